@@ -1,0 +1,1 @@
+"""MuJoCo layer: robot, objects, scene, batched simulator. Imports nothing from upper layers."""

@@ -1,0 +1,199 @@
+"""B worlds of a scene stepped together, one control step at a time, through ``mujoco.rollout``.
+
+``BatchedSim`` keeps the full physics state of every world in one ``(B, nstate)`` array and advances
+all worlds by one control step (``substeps`` physics steps with the control held) in a single call
+of a persistent :class:`mujoco.rollout.Rollout` thread pool. Readouts — joint positions and
+velocities, tracked-link poses, object pose — are slices of the rollout's output arrays: there is
+no per-world Python loop on the hot path.
+
+Per-world models are allowed (a list of ``MjModel`` with the same structure, i.e. the same
+``MjModel.signature``), so physics parameters can be randomized per world; worlds with different
+objects need one ``BatchedSim`` per object structure. Results do not depend on the thread count: each world is rolled out
+independently from its own state (tested).
+
+Unstable worlds: when MuJoCo detects a diverging simulation it resets that world's ``MjData``,
+which shows up as a time that did not advance (or as NaN). ``step`` returns a boolean
+``unstable`` mask; such a world's state is left as MuJoCo produced it and the caller decides
+(a TrackingEnv resets it alone).
+
+Example
+-------
+>>> import numpy as np
+>>> from adadex.sim.scene import build_scene_model, home_state
+>>> from adadex.sim.batched import BatchedSim
+>>> model = build_scene_model("box_00")
+>>> sim = BatchedSim(model, batch_size=4, nthread=2)
+>>> qpos, ctrl = home_state(model)
+>>> sim.reset(qpos=qpos)
+>>> out = sim.step(np.tile(ctrl, (4, 1)))
+>>> out.link_pose.shape
+(4, 5, 7)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from mujoco import rollout as mj_rollout
+
+from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
+from adadex.sim.scene import CONTROL_HZ
+
+FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+CTRL_SPEC = int(mujoco.mjtState.mjSTATE_CTRL)
+
+
+@dataclass
+class SimReadout:
+    """What one control step returns, all arrays with the batch dimension first."""
+
+    time: np.ndarray          # (B,)
+    joint_pos: np.ndarray     # (B, 22)
+    joint_vel: np.ndarray     # (B, 22)
+    link_pose: np.ndarray     # (B, 5, 7) palm + 4 fingertips, position + wxyz quaternion
+    object_pose: np.ndarray   # (B, 7); zeros when the scene has no object
+    unstable: np.ndarray      # (B,) bool
+
+
+class BatchedSim:
+    """B worlds stepped together; see the module docstring.
+
+    Args:
+        models: one ``MjModel`` shared by all worlds, or a sequence of B models of equal sizes.
+        batch_size: B (inferred from ``models`` when it is a sequence).
+        nthread: threads of the rollout pool (0 runs on the calling thread).
+        substeps: physics steps per control step (default: as many as make one 12 Hz control
+            step at the model's timestep).
+    """
+
+    def __init__(self, models: mujoco.MjModel | Sequence[mujoco.MjModel], batch_size: int | None = None,
+                 *, nthread: int = 1, substeps: int | None = None):
+        if isinstance(models, mujoco.MjModel):
+            if batch_size is None or batch_size < 1:
+                raise ValueError(f"batch_size must be a positive integer with a single model, got {batch_size!r}")
+            self._models = [models] * batch_size
+        else:
+            self._models = list(models)
+            if batch_size is not None and batch_size != len(self._models):
+                raise ValueError(f"batch_size={batch_size} but {len(self._models)} models were given")
+        if nthread < 0:
+            raise ValueError(f"nthread must be >= 0, got {nthread}")
+        m0 = self._models[0]
+        if substeps is None:
+            substeps = max(1, int(round(1.0 / (CONTROL_HZ * m0.opt.timestep))))
+        if substeps < 1:
+            raise ValueError(f"substeps must be >= 1, got {substeps}")
+        self.nstate = mujoco.mj_stateSize(m0, FULLPHYSICS)
+        for i, m in enumerate(self._models[1:], start=1):
+            # The thread-local MjData are sized for model 0, so structure must match exactly.
+            if m.signature != m0.signature:
+                raise ValueError(f"model {i} differs in structure from model 0 (signature {m.signature} "
+                                 f"!= {m0.signature}); per-world models may differ only in parameters")
+        self.batch_size = len(self._models)
+        self.nthread = nthread
+        self.substeps = substeps
+        self.timestep = float(m0.opt.timestep)
+        self._has_object = m0.nq > NUM_JOINTS
+        self._datas = [mujoco.MjData(m0) for _ in range(max(1, nthread))]
+        self._pool = mj_rollout.Rollout(nthread=nthread)
+        B, nu = self.batch_size, m0.nu
+        self.state = np.zeros((B, self.nstate))
+        self._ctrl = np.zeros((B, substeps, nu))
+        self._state_out = np.empty((B, substeps, self.nstate))
+        self._sens_out = np.empty((B, substeps, m0.nsensordata))
+        # Offsets of the readouts inside the state and sensor vectors.
+        self._qpos0 = 1                      # state = [time, qpos, qvel, act, ...]
+        self._qvel0 = 1 + m0.nq
+        adr = [int(m0.sensor_adr[m0.sensor(f"{s}_pos").id]) for s in TRACKED_SITES]
+        qadr = [int(m0.sensor_adr[m0.sensor(f"{s}_quat").id]) for s in TRACKED_SITES]
+        self._link_idx = np.array([list(range(a, a + 3)) + list(range(q, q + 4)) for a, q in zip(adr, qadr)])
+        self._last_sens = np.zeros((B, m0.nsensordata))
+        self.reset()
+
+    @property
+    def models(self) -> list[mujoco.MjModel]:
+        return self._models
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    # ---------------------------------------------------------------- state
+
+    def reset(self, qpos: np.ndarray | None = None, qvel: np.ndarray | None = None,
+              worlds: np.ndarray | Sequence[int] | None = None) -> SimReadout:
+        """Reset some worlds (all by default) to ``qpos``/``qvel`` (broadcast over the reset worlds).
+
+        Positions default to each model's ``qpos0``, velocities to zero. Sensors are recomputed
+        with ``mj_forward`` for the reset worlds only (a reset is not the hot path).
+        """
+        idx = np.arange(self.batch_size) if worlds is None else np.asarray(worlds, dtype=np.int64).reshape(-1)
+        if idx.size and (idx.min() < 0 or idx.max() >= self.batch_size):
+            raise IndexError(f"world indices {idx.tolist()} out of range for batch_size={self.batch_size}")
+        m0 = self._models[0]
+        qpos_b = None if qpos is None else np.broadcast_to(np.asarray(qpos, float), (idx.size, m0.nq))
+        qvel_b = None if qvel is None else np.broadcast_to(np.asarray(qvel, float), (idx.size, m0.nv))
+        d = self._datas[0]
+        for j, w in enumerate(idx):
+            m = self._models[w]
+            mujoco.mj_resetData(m, d)
+            if qpos_b is not None:
+                d.qpos[:] = qpos_b[j]
+            if qvel_b is not None:
+                d.qvel[:] = qvel_b[j]
+            mujoco.mj_forward(m, d)
+            mujoco.mj_getState(m, d, self.state[w], FULLPHYSICS)
+            self._last_sens[w] = d.sensordata
+        return self.readout()
+
+    def set_state(self, state: np.ndarray, worlds=None) -> None:
+        """Overwrite full-physics states (``(B, nstate)`` or ``(len(worlds), nstate)``)."""
+        idx = slice(None) if worlds is None else np.asarray(worlds, dtype=np.int64)
+        self.state[idx] = state
+
+    # ---------------------------------------------------------------- stepping
+
+    def step(self, ctrl: np.ndarray) -> SimReadout:
+        """Advance every world by one control step with ``ctrl`` (B, nu) held constant."""
+        ctrl = np.asarray(ctrl, dtype=np.float64)
+        if ctrl.shape != (self.batch_size, self._ctrl.shape[2]):
+            raise ValueError(f"ctrl must have shape {(self.batch_size, self._ctrl.shape[2])}, got {ctrl.shape}")
+        self._ctrl[:] = ctrl[:, None, :]
+        t_expected = self.state[:, 0] + self.substeps * self.timestep
+        self._pool.rollout(self._models, self._datas, self.state, self._ctrl, control_spec=CTRL_SPEC,
+                           skip_checks=True, nstep=self.substeps, state=self._state_out,
+                           sensordata=self._sens_out)
+        self.state[:] = self._state_out[:, -1]
+        self._last_sens[:] = self._sens_out[:, -1]
+        out = self.readout()
+        out.unstable |= np.abs(self.state[:, 0] - t_expected) > 0.5 * self.timestep
+        return out
+
+    def readout(self) -> SimReadout:
+        """Current readouts of all worlds, computed from the state and sensor arrays."""
+        nq = self._models[0].nq
+        qpos = self.state[:, self._qpos0:self._qpos0 + nq]
+        qvel = self.state[:, self._qvel0:self._qvel0 + self._models[0].nv]
+        if self._has_object:
+            obj = qpos[:, NUM_JOINTS:NUM_JOINTS + 7].copy()
+        else:
+            obj = np.zeros((self.batch_size, 7))
+        unstable = ~np.isfinite(self.state).all(axis=1)
+        return SimReadout(
+            time=self.state[:, 0].copy(),
+            joint_pos=qpos[:, :NUM_JOINTS].copy(),
+            joint_vel=qvel[:, :NUM_JOINTS].copy(),
+            link_pose=self._last_sens[:, self._link_idx],
+            object_pose=obj,
+            unstable=unstable,
+        )

@@ -24,7 +24,7 @@ Example
 >>> model = build_scene_model("box_00")
 >>> sim = BatchedSim(model, batch_size=4, nthread=2)
 >>> qpos, ctrl = home_state(model)
->>> sim.reset(qpos=qpos)
+>>> _ = sim.reset(qpos=qpos)
 >>> out = sim.step(np.tile(ctrl, (4, 1)))
 >>> out.link_pose.shape
 (4, 5, 7)

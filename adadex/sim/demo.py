@@ -1,9 +1,9 @@
 """The ``adadex demo`` job: a short tour of the simulator that prints what it did.
 
-1. Drop objects from several categories onto the table in many worlds at once (BatchedSim,
-   random initial positions and yaw per world) and report how they settle.
-2. Run the scripted grasp: close the hand around a 5 cm cube, lift it 10 cm and hold it.
-3. Report simulation throughput.
+1. Drop one object of every category onto the table in many worlds at once (BatchedSim, random
+   initial positions and yaw per world); report how they settle and the simulation throughput.
+2. Run the scripted grasp: thumb, index and middle finger pinch a 5 cm cube, the arm lifts it
+   10 cm and holds it for 3 s.
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ def run_demo(worlds: int = 16, nthread: int = 2, seed: int = 0) -> dict:
     print(f"   {n_steps} control steps ({n_steps * SUBSTEPS} physics steps) in {t_settle:.1f} s "
           f"(incl. model builds) = {n_steps / t_settle:.0f} control steps/s")
 
-    print("\n2. scripted grasp: palm over a 5 cm cube, close, lift 10 cm, hold 3 s")
+    print("\n2. scripted grasp: thumb, index and middle finger pinch a 5 cm cube, lift 10 cm, hold 3 s")
     t0 = time.perf_counter()
     g = scripted_grasp_lift("cube_050", nthread=0)
     print(f"   lifted {100 * g.lift_achieved:.1f} cm; cube drift in the palm frame after closing: "

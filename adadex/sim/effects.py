@@ -1,0 +1,413 @@
+"""Physical effects: named, parameterized phenomena a simulator may be missing.
+
+One abstraction shared by the tracking envs (``effects=[...]``, domain randomization over effect
+parameters), the generation of "measured" data with hidden effects, and the sysid workbench that
+fits and ranks them. An effect acts on one or more joints and has parameters, each with bounds, a
+nominal value (a typical size when present) and an *absent* value that means "not there": at the
+absent value the simulation is bit-identical to the nominal model (tested).
+
+Where an effect acts:
+
+* ``model`` — parameters of the compiled ``MjModel`` (damping, friction loss, armature, servo
+  gains, force limits, spring stiffness, body mass). They are set as *absolute* values computed
+  from a snapshot of the unmodified model (:class:`ModelBase`), never by incrementing the current
+  value, so applying a patch twice, or re-applying with new values during a fit, is safe.
+* ``structure`` — needs a change to the model's structure before compiling (an actuator history
+  buffer for a transport delay, an activation state for a first-order lag); made only when the
+  value differs from absent, then the value itself is again a model parameter.
+* ``command`` — transforms the commanded joint targets before they reach the servos (backlash).
+* ``sensor`` — transforms the measured joint positions (encoder offset).
+
+Per-joint values: ``values`` arrays are ``(len(joints), n_params)``.
+
+Example
+-------
+>>> from adadex.sim.effects import get_effect
+>>> eff = get_effect("coulomb_friction")
+>>> eff.param_names, eff.absent_values().tolist()
+(('friction',), [0.0])
+"""
+
+from __future__ import annotations
+
+import difflib
+from dataclasses import dataclass
+from typing import ClassVar
+
+import mujoco
+import numpy as np
+
+from adadex.sim.robot import effort_limits, joint_group, joint_index
+
+GROUPS = ("arm_shoulder", "arm_wrist", "finger", "thumb")
+
+
+@dataclass(frozen=True)
+class Param:
+    """One effect parameter. ``upper`` is per joint group (arm joints are far stronger than fingers)."""
+
+    name: str
+    unit: str
+    absent: float
+    nominal: dict[str, float]
+    lower: dict[str, float]
+    upper: dict[str, float]
+
+    def bounds(self, joint: str) -> tuple[float, float]:
+        g = joint_group(joint)
+        return self.lower[g], self.upper[g]
+
+
+def _per_group(arm_shoulder: float, arm_wrist: float, hand: float) -> dict[str, float]:
+    return {"arm_shoulder": arm_shoulder, "arm_wrist": arm_wrist, "finger": hand, "thumb": hand}
+
+
+def _same(v: float) -> dict[str, float]:
+    return _per_group(v, v, v)
+
+
+class EffectError(ValueError):
+    """A bad effect name, joint list or parameter value."""
+
+
+@dataclass
+class ModelBase:
+    """Snapshot of the fields effects edit, taken from an unmodified compiled model."""
+
+    dof_damping: np.ndarray
+    dof_frictionloss: np.ndarray
+    dof_armature: np.ndarray
+    jnt_stiffness: np.ndarray
+    gainprm: np.ndarray
+    biasprm: np.ndarray
+    forcerange: np.ndarray
+    actfrcrange: np.ndarray
+    body_mass: np.ndarray
+    actuator_delay: np.ndarray
+    dynprm: np.ndarray
+
+    def restore(self, m: mujoco.MjModel) -> None:
+        """Put every field effects edit back to this snapshot (before applying a new patch)."""
+        m.dof_damping[:] = self.dof_damping
+        m.dof_frictionloss[:] = self.dof_frictionloss
+        m.dof_armature[:] = self.dof_armature
+        m.jnt_stiffness[:] = self.jnt_stiffness
+        m.actuator_gainprm[:] = self.gainprm
+        m.actuator_biasprm[:] = self.biasprm
+        m.actuator_forcerange[:] = self.forcerange
+        m.jnt_actfrcrange[:] = self.actfrcrange
+        mass_changed = not np.array_equal(m.body_mass, self.body_mass)
+        m.body_mass[:] = self.body_mass
+        if mass_changed:
+            mujoco.mj_setConst(m, mujoco.MjData(m))
+        m.actuator_delay[:] = self.actuator_delay
+        m.actuator_dynprm[:] = self.dynprm
+
+    @classmethod
+    def of(cls, m: mujoco.MjModel) -> "ModelBase":
+        return cls(m.dof_damping.copy(), m.dof_frictionloss.copy(), m.dof_armature.copy(),
+                   m.jnt_stiffness.copy(), m.actuator_gainprm.copy(), m.actuator_biasprm.copy(),
+                   m.actuator_forcerange.copy(), m.jnt_actfrcrange.copy(), m.body_mass.copy(),
+                   m.actuator_delay.copy(), m.actuator_dynprm.copy())
+
+
+class Effect:
+    """Base class; subclasses set the class attributes and override the hooks of their stage."""
+
+    name: ClassVar[str]
+    stage: ClassVar[str]                       # "model" | "structure" | "command" | "sensor"
+    params: ClassVar[tuple[Param, ...]]
+    #: Alternatives the data of a position servo cannot tell apart from this effect.
+    lookalikes: ClassVar[tuple[str, ...]] = ()
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.params)
+
+    def absent_values(self) -> np.ndarray:
+        return np.array([p.absent for p in self.params])
+
+    def nominal_values(self, joints) -> np.ndarray:
+        return np.array([[p.nominal[joint_group(j)] for p in self.params] for j in joints])
+
+    def bounds(self, joints) -> tuple[np.ndarray, np.ndarray]:
+        lo = np.array([[p.bounds(j)[0] for p in self.params] for j in joints])
+        hi = np.array([[p.bounds(j)[1] for p in self.params] for j in joints])
+        return lo, hi
+
+    def is_absent(self, values: np.ndarray) -> bool:
+        return bool(np.all(np.asarray(values) == self.absent_values()))
+
+    def validate(self, joints, values) -> np.ndarray:
+        """Check joint names and values (shape, finite, in bounds); return values as (J, P)."""
+        joints = list(joints)
+        if not joints:
+            raise EffectError(f"{self.name}: no joints given")
+        joint_index(joints)
+        if len(set(joints)) != len(joints):
+            raise EffectError(f"{self.name}: duplicate joints in {joints}")
+        v = np.asarray(values, dtype=float)
+        if v.ndim == 0 or (v.ndim == 1 and len(self.params) == 1 and v.shape[0] == len(joints)):
+            v = np.broadcast_to(v.reshape(-1, 1) if v.ndim == 1 else v, (len(joints), len(self.params)))
+        elif v.ndim == 1 and v.shape[0] == len(self.params):
+            v = np.broadcast_to(v, (len(joints), len(self.params)))
+        if v.shape != (len(joints), len(self.params)):
+            raise EffectError(f"{self.name}: values must have shape ({len(joints)}, {len(self.params)}) "
+                              f"for joints {joints} and params {self.param_names}, got {np.shape(values)}")
+        if not np.isfinite(v).all():
+            raise EffectError(f"{self.name}: non-finite parameter values {v.tolist()}")
+        lo, hi = self.bounds(joints)
+        bad = np.argwhere((v < lo - 1e-12) | (v > hi + 1e-12))
+        if bad.size:
+            j, p = bad[0]
+            raise EffectError(f"{self.name}: {self.params[p].name}={v[j, p]:g} {self.params[p].unit} on "
+                              f"{joints[j]} is outside [{lo[j, p]:g}, {hi[j, p]:g}]")
+        return np.array(v)
+
+    # Hooks. ``jid`` are indices into JOINT_NAMES (= joint ids = dof ids = actuator ids of the robot).
+    def edit_spec(self, spec: mujoco.MjSpec, joints: list[str], values: np.ndarray, timestep: float) -> None:
+        """Structural change before compiling (only ``structure`` effects)."""
+
+    def apply_model(self, m: mujoco.MjModel, base: ModelBase, jid: np.ndarray, values: np.ndarray) -> None:
+        """Set absolute parameter values on a compiled model (``model`` and ``structure`` effects)."""
+
+    def transform_command(self, command: np.ndarray, jid: np.ndarray, values: np.ndarray, dt: float) -> np.ndarray:
+        """(S, T, 22) commanded targets → what the servos receive (``command`` effects)."""
+        return command
+
+    def transform_measurement(self, qpos: np.ndarray, jid: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """(S, T, 22) true joint positions → what the encoders report (``sensor`` effects)."""
+        return qpos
+
+
+_EFFORT = effort_limits()
+
+
+class Damping(Effect):
+    """Extra viscous joint damping, τ = −b·q̇ (parameter b, N·m·s/rad, added to the model's).
+
+    Residual signature: the measured joint lags and is attenuated more than the model, increasingly
+    with frequency and velocity; error ∝ velocity, no dead zone, symmetric in direction.
+    On a position servo it is indistinguishable from a larger derivative gain (``kd_scale``).
+    """
+
+    name, stage = "damping", "model"
+    params = (Param("damping", "N·m·s/rad", 0.0, _per_group(5.0, 1.0, 0.05),
+                    _same(0.0), _per_group(60.0, 15.0, 0.6)),)
+    lookalikes = ("kd_scale",)
+
+    def apply_model(self, m, base, jid, values):
+        m.dof_damping[jid] = base.dof_damping[jid] + values[:, 0]
+
+
+class CoulombFriction(Effect):
+    """Coulomb (dry) joint friction of magnitude f (N·m), MuJoCo ``frictionloss``, added to the model's.
+
+    Residual signature: error concentrated at velocity reversals (stick, then a jump), a dead zone
+    around small commanded motions; relatively larger at small amplitude, nearly independent of
+    frequency.
+    """
+
+    name, stage = "coulomb_friction", "model"
+    params = (Param("friction", "N·m", 0.0, _per_group(3.0, 1.0, 0.05),
+                    _same(0.0), _per_group(25.0, 10.0, 0.4)),)
+
+    def apply_model(self, m, base, jid, values):
+        m.dof_frictionloss[jid] = base.dof_frictionloss[jid] + values[:, 0]
+
+
+class Armature(Effect):
+    """Extra reflected rotor inertia at the joint (kg·m²), added to the model's armature.
+
+    Residual signature: error grows with acceleration (with frequency² at fixed amplitude); the
+    servo resonance moves lower, overshoot on fast reversals; nothing at constant velocity.
+    """
+
+    name, stage = "armature", "model"
+    params = (Param("armature", "kg·m²", 0.0, _per_group(0.2, 0.05, 0.003),
+                    _same(0.0), _per_group(2.0, 0.5, 0.03)),)
+    lookalikes = ("payload_mass",)
+
+    def apply_model(self, m, base, jid, values):
+        m.dof_armature[jid] = base.dof_armature[jid] + values[:, 0]
+
+
+class ActuatorDelay(Effect):
+    """Pure transport delay τ (s) between command and servo: the servo tracks the command of t − τ.
+
+    Implemented with MuJoCo 4 actuator history (``delay``/``nsample``, zero-order hold).
+    Residual signature: phase lag growing linearly with frequency (φ = 2πfτ), gain unchanged; the
+    error looks like the command's derivative times τ.
+    """
+
+    name, stage = "actuator_delay", "structure"
+    params = (Param("delay", "s", 0.0, _same(0.03), _same(0.0), _same(0.1)),)
+    MAX_DELAY = 0.1
+
+    def edit_spec(self, spec, joints, values, timestep):
+        nsample = int(np.ceil(self.MAX_DELAY / timestep)) + 2
+        for j, v in zip(joints, values[:, 0]):
+            if v != self.absent_values()[0]:
+                spec.actuator(f"{j}_pos").nsample = nsample
+
+    def apply_model(self, m, base, jid, values):
+        m.actuator_delay[jid] = values[:, 0]
+
+
+class ActuatorLag(Effect):
+    """First-order lag τ (s) on the servo target: the target follows the command as ẋ = (u − x)/τ.
+
+    Implemented as a MuJoCo ``filterexact`` actuator activation. Residual signature: low-pass —
+    amplitude ratio 1/√(1 + (2πfτ)²) and phase lag atan(2πfτ), saturating at 90°, unlike a delay.
+    """
+
+    name, stage = "actuator_lag", "structure"
+    params = (Param("tau", "s", 0.0, _same(0.04), _same(0.0), _same(0.3)),)
+
+    def edit_spec(self, spec, joints, values, timestep):
+        for j, v in zip(joints, values[:, 0]):
+            if v != 0.0:
+                act = spec.actuator(f"{j}_pos")
+                act.dyntype = mujoco.mjtDyn.mjDYN_FILTEREXACT
+                act.dynprm = [float(v)] + [0.0] * 9
+                act.actlimited = mujoco.mjtLimited.mjLIMITED_FALSE
+
+    def apply_model(self, m, base, jid, values):
+        lagged = m.actuator_dyntype[jid] == int(mujoco.mjtDyn.mjDYN_FILTEREXACT)
+        m.actuator_dynprm[jid[lagged], 0] = np.maximum(values[lagged, 0], 1e-6)
+
+
+class TorqueLimit(Effect):
+    """Servo torque saturation at a fraction of the nominal effort limit (absent = 1, no change).
+
+    Residual signature: error only above an amplitude/frequency where the demanded torque exceeds
+    the limit; clipped, triangular-looking motion; none at small amplitude.
+    """
+
+    name, stage = "torque_limit", "model"
+    params = (Param("fraction", "× effort", 1.0, _same(0.5), _same(0.05), _same(1.0)),)
+
+    def apply_model(self, m, base, jid, values):
+        lim = _EFFORT[jid] * values[:, 0]
+        m.actuator_forcerange[jid, 0] = -lim
+        m.actuator_forcerange[jid, 1] = lim
+        m.jnt_actfrcrange[jid, 0] = -lim
+        m.jnt_actfrcrange[jid, 1] = lim
+
+
+class KpScale(Effect):
+    """Proportional gain of the position servo scaled by s (absent = 1).
+
+    Residual signature: a different steady-state sag under load and a different bandwidth:
+    amplitude and phase errors that change with frequency; static offset under gravity.
+    """
+
+    name, stage = "kp_scale", "model"
+    params = (Param("scale", "×", 1.0, _same(0.7), _same(0.2), _same(3.0)),)
+
+    def apply_model(self, m, base, jid, values):
+        m.actuator_gainprm[jid, 0] = base.gainprm[jid, 0] * values[:, 0]
+        m.actuator_biasprm[jid, 1] = base.biasprm[jid, 1] * values[:, 0]
+
+
+class KdScale(Effect):
+    """Derivative gain of the position servo scaled by s (absent = 1).
+
+    Residual signature: like extra viscous damping (``damping``) — they are one hypothesis for a
+    position servo; velocity-proportional lag and attenuation.
+    """
+
+    name, stage = "kd_scale", "model"
+    params = (Param("scale", "×", 1.0, _same(2.0), _same(0.2), _same(8.0)),)
+    lookalikes = ("damping",)
+
+    def apply_model(self, m, base, jid, values):
+        m.actuator_biasprm[jid, 2] = base.biasprm[jid, 2] * values[:, 0]
+
+
+class PayloadMass(Effect):
+    """Extra point mass (kg) at the centre of mass of the link the joint moves.
+
+    Residual signature: error growing with acceleration on that joint and its parents, and a
+    static sag under gravity on the joints that carry it (pose dependent).
+    """
+
+    name, stage = "payload_mass", "model"
+    params = (Param("mass", "kg", 0.0, _per_group(0.5, 0.3, 0.02),
+                    _same(0.0), _per_group(5.0, 3.0, 0.2)),)
+    lookalikes = ("armature",)
+
+    def apply_model(self, m, base, jid, values):
+        body = m.jnt_bodyid[jid]
+        m.body_mass[body] = base.body_mass[body] + values[:, 0]
+        mujoco.mj_setConst(m, mujoco.MjData(m))
+
+
+class JointSpring(Effect):
+    """A torsional spring to the joint's zero position, τ = −k·q (N·m/rad).
+
+    Residual signature: a position-dependent static offset (pulled toward 0), larger where q is far
+    from 0 and the servo is weak; stiffer, higher-frequency dynamics.
+    """
+
+    name, stage = "joint_spring", "model"
+    params = (Param("stiffness", "N·m/rad", 0.0, _per_group(100.0, 20.0, 0.5),
+                    _same(0.0), _per_group(1000.0, 200.0, 5.0)),)
+
+    def apply_model(self, m, base, jid, values):
+        m.jnt_stiffness[jid] = base.jnt_stiffness[jid] + values[:, 0]
+
+
+class EncoderOffset(Effect):
+    """A constant bias on the measured joint position (rad): reported = true + offset.
+
+    Residual signature: a constant error, identical at every frequency, amplitude and pose.
+    """
+
+    name, stage = "encoder_offset", "sensor"
+    params = (Param("offset", "rad", 0.0, _same(0.02), _same(-0.1), _same(0.1)),)
+
+    def transform_measurement(self, qpos, jid, values):
+        out = qpos.copy()
+        out[..., jid] += values[:, 0]
+        return out
+
+
+class Backlash(Effect):
+    """Backlash: a dead band of total width 2b (rad) between command and joint on reversal.
+
+    The servo target follows the command through a play operator: it moves only once the command
+    has travelled b past it. Residual signature: after every velocity reversal the joint waits
+    while the command travels 2b; error ≈ ±b, sign following the direction of motion; relatively
+    large at small amplitude.
+    """
+
+    name, stage = "backlash", "command"
+    params = (Param("half_width", "rad", 0.0, _same(0.01), _same(0.0), _same(0.05)),)
+
+    def transform_command(self, command, jid, values, dt):
+        out = command.copy()
+        b = values[:, 0]
+        x = command[:, 0, jid].copy()
+        for t in range(command.shape[1]):
+            x = np.clip(x, command[:, t, jid] - b, command[:, t, jid] + b)
+            out[:, t, jid] = x
+        return out
+
+
+EFFECTS: dict[str, Effect] = {e.name: e for e in (
+    Damping(), CoulombFriction(), Armature(), ActuatorDelay(), ActuatorLag(), TorqueLimit(),
+    KpScale(), KdScale(), PayloadMass(), JointSpring(), EncoderOffset(), Backlash(),
+)}
+EFFECT_NAMES: tuple[str, ...] = tuple(EFFECTS)
+
+
+def get_effect(name: str) -> Effect:
+    """The effect called ``name``; :class:`EffectError` with suggestions otherwise."""
+    try:
+        return EFFECTS[name]
+    except KeyError:
+        close = difflib.get_close_matches(str(name), EFFECT_NAMES, n=3)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        raise EffectError(f"unknown effect {name!r}: known effects are {', '.join(EFFECT_NAMES)}{hint}") from None
+

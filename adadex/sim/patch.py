@@ -1,0 +1,211 @@
+"""Model patches: a list of physical effects with joints and parameter values, saved as JSON.
+
+A patch is what the sysid workbench writes after fitting and what a TrackingEnv, the recording
+simulator and the workbench itself load, so that every part of adadex runs the same corrected
+simulator. File format (``version`` 1)::
+
+    {"version": 1,
+     "effects": [{"effect": "coulomb_friction", "joints": ["if_pip", "if_dip"],
+                  "params": {"friction": [0.05, 0.04]}}]}
+
+Example
+-------
+>>> from adadex.sim.patch import ModelPatch
+>>> patch = ModelPatch.from_dict({"effects": [
+...     {"effect": "damping", "joints": ["if_pip"], "params": {"damping": [0.2]}}]})
+>>> model = patch.build_model()
+>>> round(float(model.dof_damping[8]), 3)
+0.23
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from adadex.sim.effects import EffectError, ModelBase, get_effect
+from adadex.sim.robot import joint_index
+
+PATCH_VERSION = 1
+
+
+class PatchError(ValueError):
+    """A malformed model patch; the message names the file and the entry."""
+
+
+@dataclass(frozen=True)
+class EffectInstance:
+    """One effect on some joints with values of shape (len(joints), n_params)."""
+
+    effect: str
+    joints: tuple[str, ...]
+    values: np.ndarray
+
+    def __post_init__(self):
+        eff = get_effect(self.effect)
+        object.__setattr__(self, "joints", tuple(self.joints))
+        object.__setattr__(self, "values", eff.validate(self.joints, self.values))
+
+    @property
+    def spec(self):
+        return get_effect(self.effect)
+
+    @property
+    def jid(self) -> np.ndarray:
+        return joint_index(self.joints)
+
+    def is_absent(self) -> bool:
+        return self.spec.is_absent(self.values)
+
+    def to_dict(self) -> dict:
+        return {"effect": self.effect, "joints": list(self.joints),
+                "params": {p: [float(v) for v in self.values[:, i]] for i, p in enumerate(self.spec.param_names)}}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "EffectInstance":
+        if not isinstance(d, dict) or "effect" not in d or "joints" not in d:
+            raise PatchError(f"an effect entry needs 'effect' and 'joints', got {d!r}")
+        eff = get_effect(d["effect"])
+        params = d.get("params", {})
+        unknown = set(params) - set(eff.param_names)
+        if unknown:
+            raise PatchError(f"{eff.name}: unknown parameters {sorted(unknown)}; it takes {list(eff.param_names)}")
+        joints = list(d["joints"])
+        cols = []
+        for p, absent in zip(eff.param_names, eff.absent_values()):
+            v = np.asarray(params.get(p, absent), dtype=float)
+            cols.append(np.broadcast_to(v, (len(joints),)) if v.ndim == 0 else v)
+        try:
+            values = np.stack(cols, axis=1)
+        except ValueError as e:
+            raise PatchError(f"{eff.name}: one value per joint expected for {joints}: {e}") from None
+        return cls(eff.name, tuple(joints), values)
+
+
+@dataclass(frozen=True)
+class ModelPatch:
+    """An ordered set of effects; the same (effect, joint) pair may appear only once."""
+
+    effects: tuple[EffectInstance, ...] = ()
+
+    def __post_init__(self):
+        seen = set()
+        for e in self.effects:
+            for j in e.joints:
+                if (e.effect, j) in seen:
+                    raise PatchError(f"effect {e.effect} is given twice for joint {j}")
+                seen.add((e.effect, j))
+
+    # ------------------------------------------------------------ composition
+
+    def with_effect(self, effect: str, joints, values) -> "ModelPatch":
+        return ModelPatch(self.effects + (EffectInstance(effect, tuple(joints), values),))
+
+    def __add__(self, other: "ModelPatch") -> "ModelPatch":
+        return ModelPatch(self.effects + other.effects)
+
+    def active(self) -> "ModelPatch":
+        """The patch without effects at their absent values."""
+        return ModelPatch(tuple(e for e in self.effects if not e.is_absent()))
+
+    def __len__(self) -> int:
+        return len(self.effects)
+
+    # ------------------------------------------------------------ application
+
+    def edit_spec(self, spec: mujoco.MjSpec) -> None:
+        """Structural edits (history buffers, activations) before compiling."""
+        for e in self.active().effects:
+            e.spec.edit_spec(spec, list(e.joints), e.values, spec.option.timestep)
+
+    def apply_model(self, model: mujoco.MjModel, base: ModelBase | None = None) -> None:
+        """Set every effect's parameters on ``model`` as absolute values from ``base``."""
+        base = base if base is not None else ModelBase.of(model)
+        for e in self.active().effects:
+            e.spec.apply_model(model, base, e.jid, e.values)
+
+    def transform_command(self, command: np.ndarray, dt: float) -> np.ndarray:
+        for e in self.active().effects:
+            command = e.spec.transform_command(command, e.jid, e.values, dt)
+        return command
+
+    def transform_measurement(self, qpos: np.ndarray) -> np.ndarray:
+        for e in self.active().effects:
+            qpos = e.spec.transform_measurement(qpos, e.jid, e.values)
+        return qpos
+
+    def build_model(self, object_name: str | None = None, *, timestep: float | None = None) -> mujoco.MjModel:
+        """The scene (robot + table + optional object) with this patch applied."""
+        from adadex.sim.scene import PhysicsOptions, build_scene_spec
+
+        opts = PhysicsOptions() if timestep is None else PhysicsOptions(timestep=timestep)
+        spec = build_scene_spec(object_name, options=opts)
+        self.edit_spec(spec)
+        model = spec.compile()
+        self.apply_model(model)
+        return model
+
+    # ------------------------------------------------------------ files
+
+    def to_dict(self) -> dict:
+        return {"version": PATCH_VERSION, "effects": [e.to_dict() for e in self.effects]}
+
+    @classmethod
+    def from_dict(cls, d: dict, *, source: str = "patch") -> "ModelPatch":
+        if not isinstance(d, dict) or not isinstance(d.get("effects"), list):
+            raise PatchError(f"{source}: expected an object with an 'effects' list")
+        if d.get("version", PATCH_VERSION) != PATCH_VERSION:
+            raise PatchError(f"{source}: unsupported patch version {d.get('version')!r} (this adadex reads {PATCH_VERSION})")
+        effects = []
+        for i, entry in enumerate(d["effects"]):
+            try:
+                effects.append(EffectInstance.from_dict(entry))
+            except (EffectError, PatchError, KeyError) as e:
+                msg = e.args[0] if e.args else str(e)
+                raise PatchError(f"{source}: effects[{i}]: {msg}") from None
+        try:
+            return cls(tuple(effects))
+        except PatchError as e:
+            raise PatchError(f"{source}: {e}") from None
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write JSON atomically (temp file in the same folder, then rename)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        text = json.dumps(self.to_dict(), indent=2)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(text + "\n")
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "ModelPatch":
+        path = Path(path)
+        try:
+            d = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise PatchError(f"{path}: no such patch file") from None
+        except json.JSONDecodeError as e:
+            raise PatchError(f"{path}: not valid JSON ({e})") from None
+        return cls.from_dict(d, source=str(path))
+
+    def describe(self) -> str:
+        if not self.effects:
+            return "(no effects)"
+        parts = []
+        for e in self.effects:
+            vals = ", ".join(f"{j}: " + "/".join(f"{v:.4g}" for v in row) for j, row in zip(e.joints, e.values))
+            parts.append(f"{e.effect}({'/'.join(e.spec.param_names)}) {vals}")
+        return "; ".join(parts)

@@ -1,0 +1,1 @@
+"""The model-versus-measurement workbench: replay, compare, localize, diagnose, fit, report."""

@@ -1,0 +1,139 @@
+"""Replay recorded commands on the model: what would the simulator have measured?
+
+Every sequence of a recording is rolled out with ``mujoco.rollout`` (batched over sequences, on a
+persistent thread pool), from the recording's initial configuration at rest, with the commands
+held constant between samples. The physics step divides the recording period: ``k`` substeps of
+``dt_rec / k`` with the smallest ``k`` giving a step ≤ the scene's :data:`PHYSICS_TIMESTEP`.
+
+A :class:`Replayer` compiles one model per *structure* (which actuators carry a delay buffer or a
+lag state) and re-uses it: evaluating a new patch only rewrites model parameters (absolute values
+from a snapshot), which is what makes fitting fast.
+
+Example
+-------
+>>> from adadex.sysid.replay import Replayer                     # doctest: +SKIP
+>>> sim = Replayer(recording).simulate(ModelPatch())              # doctest: +SKIP
+>>> sim.shape == recording.joint_pos.shape                        # doctest: +SKIP
+True
+"""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+import numpy as np
+from mujoco import rollout as mj_rollout
+
+from adadex.sim.effects import ModelBase
+from adadex.sim.patch import ModelPatch
+from adadex.sim.robot import NUM_JOINTS
+from adadex.sim.scene import PHYSICS_TIMESTEP, PhysicsOptions, build_scene_spec
+
+FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+CTRL_SPEC = int(mujoco.mjtState.mjSTATE_CTRL)
+
+
+def substeps_for(dt: float, max_step: float = PHYSICS_TIMESTEP) -> int:
+    """Smallest k with dt / k ≤ max_step (+ a 1e-9 relative tolerance)."""
+    return max(1, math.ceil(dt / max_step * (1 - 1e-9)))
+
+
+class Replayer:
+    """Replays one recording under any number of patches; see the module docstring.
+
+    Args:
+        recording: a :class:`adadex.data.recording.Recording`.
+        nthread: threads of the rollout pool.
+    """
+
+    def __init__(self, recording, *, nthread: int = 2):
+        self.rec = recording
+        self.nthread = nthread
+        self.k = substeps_for(recording.dt)
+        self.timestep = recording.dt / self.k
+        self.jid = np.asarray(recording.joint_indices)
+        self._models: dict[tuple, tuple[mujoco.MjModel, ModelBase, list[mujoco.MjData]]] = {}
+        self._pool = mj_rollout.Rollout(nthread=nthread)
+        self._command = np.asarray(recording.full_command(), dtype=np.float64)   # (S, T, 22)
+        S, T, _ = self._command.shape
+        self._state_out = None
+        self.num_steps = (T - 1) * self.k
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    # ------------------------------------------------------------------ models
+
+    @staticmethod
+    def _structure_key(patch: ModelPatch) -> tuple:
+        return tuple(sorted((e.effect, j) for e in patch.active().effects if e.spec.stage == "structure"
+                            for j, v in zip(e.joints, e.values) if not e.spec.is_absent(v)))
+
+    def model_for(self, patch: ModelPatch) -> tuple[mujoco.MjModel, ModelBase, list[mujoco.MjData]]:
+        """The compiled model with ``patch``'s structure, its parameters set to ``patch``."""
+        key = self._structure_key(patch)
+        if key not in self._models:
+            spec = build_scene_spec(None, options=PhysicsOptions(timestep=self.timestep))
+            patch.edit_spec(spec)
+            model = spec.compile()
+            self._models[key] = (model, ModelBase.of(model), [mujoco.MjData(model) for _ in range(max(1, self.nthread))])
+        model, base, datas = self._models[key]
+        base.restore(model)
+        patch.apply_model(model, base)
+        return model, base, datas
+
+    # ------------------------------------------------------------------ simulation
+
+    def _initial_states(self, model: mujoco.MjModel, command0: np.ndarray) -> np.ndarray:
+        S = command0.shape[0]
+        nstate = mujoco.mj_stateSize(model, FULLPHYSICS)
+        out = np.empty((S, nstate))
+        d = mujoco.MjData(model)
+        lag = np.flatnonzero(model.actuator_dyntype == int(mujoco.mjtDyn.mjDYN_FILTEREXACT))
+        hist = np.flatnonzero(model.actuator_history[:, 0] > 0)
+        q0 = self.rec.initial_qpos
+        for s in range(S):
+            mujoco.mj_resetData(model, d)
+            d.qpos[:NUM_JOINTS] = q0[s]
+            d.ctrl[:] = command0[s]
+            if lag.size:
+                d.act[model.actuator_actadr[lag]] = command0[s, lag]
+            for a in hist:
+                n = int(model.actuator_history[a, 0])
+                mujoco.mj_initCtrlHistory(model, d, int(a), None, np.full((n, 1), command0[s, a]))
+            mujoco.mj_forward(model, d)
+            mujoco.mj_getState(model, d, out[s], FULLPHYSICS)
+        return out
+
+    def simulate(self, patch: ModelPatch | None = None, *, sequences=None, full: bool = False) -> np.ndarray:
+        """Simulated joint positions, (S, T, J) for the recording's joints (``full``: all 22).
+
+        ``sequences`` restricts the replay to some sequence indices (fitting uses this to replay
+        only the sequences that excite the joints being fitted).
+        """
+        patch = patch if patch is not None else ModelPatch()
+        model, _, datas = self.model_for(patch)
+        idx = np.arange(self._command.shape[0]) if sequences is None else np.asarray(sequences, dtype=np.int64)
+        cmd = patch.transform_command(self._command[idx], self.rec.dt)
+        S, T, _ = cmd.shape
+        init = self._initial_states(model, cmd[:, 0])
+        ctrl = np.ascontiguousarray(np.repeat(cmd[:, :-1], self.k, axis=1))
+        nstate = init.shape[1]
+        state = np.empty((S, self.num_steps, nstate))
+        self._pool.rollout([model] * S, datas, init, ctrl, control_spec=CTRL_SPEC, skip_checks=True,
+                           nstep=self.num_steps, state=state,
+                           sensordata=np.empty((S, self.num_steps, model.nsensordata)))
+        qpos = np.empty((S, T, NUM_JOINTS))
+        qpos[:, 0] = init[:, 1:1 + NUM_JOINTS]
+        qpos[:, 1:] = state[:, self.k - 1::self.k, 1:1 + NUM_JOINTS]
+        qpos = patch.transform_measurement(qpos)
+        return qpos if full else qpos[..., self.jid]

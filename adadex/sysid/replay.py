@@ -93,14 +93,14 @@ class Replayer:
 
     # ------------------------------------------------------------------ simulation
 
-    def _initial_states(self, model: mujoco.MjModel, command0: np.ndarray) -> np.ndarray:
+    def _initial_states(self, model: mujoco.MjModel, command0: np.ndarray, seq_idx: np.ndarray) -> np.ndarray:
         S = command0.shape[0]
         nstate = mujoco.mj_stateSize(model, FULLPHYSICS)
         out = np.empty((S, nstate))
         d = mujoco.MjData(model)
         lag = np.flatnonzero(model.actuator_dyntype == int(mujoco.mjtDyn.mjDYN_FILTEREXACT))
         hist = np.flatnonzero(model.actuator_history[:, 0] > 0)
-        q0 = self.rec.initial_qpos
+        q0 = np.asarray(self.rec.initial_qpos)[seq_idx]
         for s in range(S):
             mujoco.mj_resetData(model, d)
             d.qpos[:NUM_JOINTS] = q0[s]
@@ -125,7 +125,7 @@ class Replayer:
         idx = np.arange(self._command.shape[0]) if sequences is None else np.asarray(sequences, dtype=np.int64)
         cmd = patch.transform_command(self._command[idx], self.rec.dt)
         S, T, _ = cmd.shape
-        init = self._initial_states(model, cmd[:, 0])
+        init = self._initial_states(model, cmd[:, 0], idx)
         ctrl = np.ascontiguousarray(np.repeat(cmd[:, :-1], self.k, axis=1))
         nstate = init.shape[1]
         state = np.empty((S, self.num_steps, nstate))

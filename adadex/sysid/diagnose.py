@@ -1,0 +1,220 @@
+"""Which physical effect is missing? Fit candidates where the model fails, rank them on held-out data.
+
+For every failing joint (see :func:`~adadex.sysid.compare.localize`) the joint's sequences are
+split into training and held-out sets (every third sequence is held out). Each candidate effect is
+fitted on the training set (:mod:`adadex.sysid.fit`) and scored on the held-out set by the
+fraction of the *excess* error it removes — the part of the mean squared error above the sensor
+noise floor, which no model can remove:
+
+    reduction = 1 − (MSE_after − σ²) / (MSE_before − σ²)
+
+Candidates are ranked by held-out reduction minus a complexity penalty per parameter. Forward
+selection then adds further effects on the same joint while each adds at least
+``min_gain`` of held-out reduction. Candidates whose held-out reduction is within ``tie`` of the
+best are reported as alternatives of one hypothesis (on a position servo, viscous ``damping`` and
+``kd_scale`` are such a pair). The same effect selected on several joints becomes one hypothesis
+over those joints.
+
+Verdicts: ``nothing_missing`` (no joint's error is above its noise floor), ``explained`` (every
+failing joint's held-out excess error falls by at least ``explained_at``), ``unexplained`` (the
+best candidates explain too little; the report says how much).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from adadex.sim.effects import EFFECT_NAMES, get_effect
+from adadex.sim.patch import ModelPatch
+from adadex.sysid.compare import compare, localize, noise_floor
+from adadex.sysid.fit import JointFitter
+from adadex.sysid.replay import Replayer
+
+COMPLEXITY_PENALTY = 0.02
+
+
+@dataclass
+class Candidate:
+    effect: str
+    joint: str
+    value: float
+    ci95: tuple[float, float]
+    train_error_reduction: float
+    heldout_error_reduction: float
+    score: float
+    alternatives: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Diagnosis:
+    verdict: str
+    baseline_error: dict
+    hypotheses: list[dict]
+    selected: list[dict]
+    explained_fraction: dict
+    findings: list[str]
+    wall_time_s: float
+
+    def patch(self) -> ModelPatch:
+        """The selected effects as a model patch."""
+        p = ModelPatch()
+        for h in self.selected:
+            p = p.with_effect(h["effect"], h["joints"], np.array(h["params"][get_effect(h["effect"]).param_names[0]])[:, None])
+        return p
+
+    def to_dict(self) -> dict:
+        return {"verdict": self.verdict, "baseline_error": self.baseline_error, "hypotheses": self.hypotheses,
+                "selected": self.selected, "explained_fraction": self.explained_fraction,
+                "findings": self.findings, "wall_time_s": self.wall_time_s}
+
+    def save(self, directory) -> Path:
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        path = d / "diagnosis.json"
+        fd, tmp = tempfile.mkstemp(dir=d, suffix=".tmp")
+        with os.fdopen(fd, "w") as f:
+            json.dump(self.to_dict(), f, indent=2)
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, directory_or_file) -> "Diagnosis":
+        p = Path(directory_or_file)
+        p = p / "diagnosis.json" if p.is_dir() else p
+        return cls(**json.loads(p.read_text()))
+
+
+def _split(seqs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    held = seqs[2::3]
+    train = np.setdiff1d(seqs, held)
+    if held.size == 0:  # too few sequences: score on the training set
+        held = seqs
+    return train, held
+
+
+def _reduction(before: float, after: float, noise2: float) -> float:
+    excess = before - noise2
+    if excess <= 0:
+        return 0.0
+    return float(1.0 - max(after - noise2, 0.0) / excess)
+
+
+def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFECT_NAMES,
+             joints=None, max_effects_per_joint: int = 2, min_gain: float = 0.1, tie: float = 0.03,
+             explained_at: float = 0.8, nthread: int = 2, progress: bool = True) -> Diagnosis:
+    """Diagnose ``recording``; see the module docstring. ``joints`` overrides the failing-joint search."""
+    t0 = time.perf_counter()
+    base_patch = base_patch if base_patch is not None else ModelPatch()
+    rep = Replayer(recording, nthread=nthread)
+    cmp = compare(recording, base_patch, replayer=rep)
+    loc = localize(cmp)
+    names = list(recording.joint_names)
+    noise = noise_floor(recording.joint_pos)
+    baseline = {"overall_rms_rad": float(cmp.rms()),
+                "per_joint_rms_rad": dict(zip(names, map(float, cmp.rms_per_joint()))),
+                "noise_floor_rad": dict(zip(names, map(float, noise)))}
+    failing = list(joints) if joints is not None else loc.failing_joints
+    findings = list(loc.sentences)
+    if not failing:
+        return Diagnosis("nothing_missing", baseline, [], [], {}, findings, time.perf_counter() - t0)
+
+    seq_meta = list(recording.meta.get("sequences") or [{} for _ in range(recording.num_sequences)])
+    per_joint: dict[str, list[Candidate]] = {}
+    selected_per_joint: dict[str, list[Candidate]] = {}
+    explained: dict[str, float] = {}
+    work = [(j, c) for j in failing for c in candidates]
+    bar = tqdm(total=len(work), desc="diagnosing", unit="fit", disable=not progress)
+    for joint in failing:
+        own = np.array([i for i, s in enumerate(seq_meta) if s.get("joint", joint) == joint])
+        train, held = _split(own)
+        n2 = float(noise[names.index(joint)] ** 2)
+        chosen: list[Candidate] = []
+        patch = base_patch
+        held_fitter = JointFitter(rep, joint, held, patch)
+        held_before = held_fitter.mse(patch)
+        first_round: list[Candidate] = []
+        for round_ in range(max_effects_per_joint):
+            fitter = JointFitter(rep, joint, train, patch)
+            held_fitter = JointFitter(rep, joint, held, patch)
+            cur_held = held_fitter.mse(patch)
+            cands = []
+            for name in candidates:
+                if any(c.effect == name for c in chosen):
+                    continue
+                r = fitter.fit(name)
+                held_after = held_fitter.mse(fitter.patch_with(name, r.value))
+                red_tr = _reduction(r.mse_before, r.mse_after, n2)
+                red_ho = _reduction(held_before, held_after, n2)
+                gain = red_ho - _reduction(held_before, cur_held, n2)
+                cands.append(Candidate(name, joint, r.value, r.ci95, red_tr, red_ho,
+                                       gain - COMPLEXITY_PENALTY * len(get_effect(name).params)))
+                if round_ == 0:
+                    bar.update(1)
+            cands.sort(key=lambda c: -c.score)
+            if round_ == 0:
+                first_round = cands
+            if not cands or cands[0].score < (min_gain if chosen else 0.0):
+                break
+            best = cands[0]
+            best.alternatives = [c.effect for c in cands[1:] if best.heldout_error_reduction - c.heldout_error_reduction < tie
+                                 or c.effect in get_effect(best.effect).lookalikes and
+                                 best.heldout_error_reduction - c.heldout_error_reduction < 3 * tie]
+            chosen.append(best)
+            patch = patch.with_effect(best.effect, [joint], [[best.value]])
+            if best.heldout_error_reduction >= 0.98:
+                break
+        per_joint[joint] = first_round
+        selected_per_joint[joint] = chosen
+        explained[joint] = chosen[-1].heldout_error_reduction if chosen else 0.0
+    bar.close()
+
+    hypotheses = []
+    for joint, cands in per_joint.items():
+        for c in cands:
+            hypotheses.append({"effect": c.effect, "joints": [joint],
+                               "params": {get_effect(c.effect).param_names[0]: [c.value]},
+                               "ci95": {get_effect(c.effect).param_names[0]: [list(c.ci95)]},
+                               "train_error_reduction": c.train_error_reduction,
+                               "heldout_error_reduction": c.heldout_error_reduction,
+                               "score": c.score, "alternatives": []})
+    hypotheses.sort(key=lambda h: -h["score"])
+    # Best first-round hypothesis per joint carries the look-alike alternatives.
+    for joint, chosen in selected_per_joint.items():
+        if chosen:
+            for h in hypotheses:
+                if h["joints"] == [joint] and h["effect"] == chosen[0].effect:
+                    h["alternatives"] = chosen[0].alternatives
+                    break
+
+    # Selected effects, merged over joints.
+    merged: dict[str, dict] = {}
+    for joint, chosen in selected_per_joint.items():
+        for c in chosen:
+            pname = get_effect(c.effect).param_names[0]
+            h = merged.setdefault(c.effect, {"effect": c.effect, "joints": [], "params": {pname: []},
+                                             "ci95": {pname: []}, "heldout_error_reduction": [],
+                                             "alternatives": []})
+            h["joints"].append(joint)
+            h["params"][pname].append(c.value)
+            h["ci95"][pname].append(list(c.ci95))
+            h["heldout_error_reduction"].append(c.heldout_error_reduction)
+            h["alternatives"] = sorted(set(h["alternatives"]) | set(c.alternatives))
+    selected = list(merged.values())
+    verdict = "explained" if all(v >= explained_at for v in explained.values()) else "unexplained"
+    for joint, v in explained.items():
+        chosen = selected_per_joint[joint]
+        what = " + ".join(f"{c.effect} ({get_effect(c.effect).param_names[0]} = {c.value:.4g})" for c in chosen) or "nothing"
+        findings.append(f"{joint}: {what} explains {100 * v:.0f}% of the held-out error above the noise floor.")
+    if verdict == "unexplained":
+        weak = [j for j, v in explained.items() if v < explained_at]
+        findings.append(f"Unexplained: on {', '.join(weak)} the best candidates explain less than "
+                        f"{100 * explained_at:.0f}% of the excess error; an effect outside the library may be at work.")
+    return Diagnosis(verdict, baseline, hypotheses, selected, explained, findings, time.perf_counter() - t0)

@@ -95,6 +95,17 @@ def noise_floor(q: np.ndarray, window: int = 9, order: int = 3) -> np.ndarray:
     return 1.4826 * mad / gain
 
 
+def heldout_mask(recording) -> np.ndarray:
+    """(S,) True for held-out sequences: every third sequence of each excited joint (or overall)."""
+    seqs = list(recording.meta.get("sequences") or [{} for _ in range(recording.num_sequences)])
+    mask = np.zeros(len(seqs), dtype=bool)
+    for joint in {s.get("joint") for s in seqs}:
+        own = np.array([i for i, s in enumerate(seqs) if s.get("joint") == joint])
+        if own.size >= 3:
+            mask[own[2::3]] = True
+    return mask
+
+
 def compare(recording, patch: ModelPatch | None = None, *, replayer=None, nthread: int = 2) -> Comparison:
     """Replay ``recording`` under ``patch`` (default: the nominal model)."""
     from adadex.sysid.replay import Replayer

@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from adadex.sim.effects import EFFECT_NAMES, get_effect
 from adadex.sim.patch import ModelPatch
-from adadex.sysid.compare import compare, localize, noise_floor
+from adadex.sysid.compare import compare, heldout_mask, localize, noise_floor
 from adadex.sysid.fit import JointFitter
 from adadex.sysid.replay import Replayer
 
@@ -92,9 +92,8 @@ class Diagnosis:
         return cls(**json.loads(p.read_text()))
 
 
-def _split(seqs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    held = seqs[2::3]
-    train = np.setdiff1d(seqs, held)
+def _split(seqs: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    held, train = seqs[mask[seqs]], seqs[~mask[seqs]]
     if held.size == 0:  # too few sequences: score on the training set
         held = seqs
     return train, held
@@ -127,6 +126,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         return Diagnosis("nothing_missing", baseline, [], [], {}, findings, time.perf_counter() - t0)
 
     seq_meta = list(recording.meta.get("sequences") or [{} for _ in range(recording.num_sequences)])
+    holdout = heldout_mask(recording)
     per_joint: dict[str, list[Candidate]] = {}
     selected_per_joint: dict[str, list[Candidate]] = {}
     explained: dict[str, float] = {}
@@ -134,7 +134,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     bar = tqdm(total=len(work), desc="diagnosing", unit="fit", disable=not progress)
     for joint in failing:
         own = np.array([i for i, s in enumerate(seq_meta) if s.get("joint", joint) == joint])
-        train, held = _split(own)
+        train, held = _split(own, holdout)
         n2 = float(noise[names.index(joint)] ** 2)
         chosen: list[Candidate] = []
         patch = base_patch

@@ -2,6 +2,7 @@
 
 ``adadex sim info [--json]``   the robot, timing and object registry
 ``adadex sim export``          write the robot's MJCF to assets/robot/robot.xml
+``adadex sysid …``             model vs measurement: excite, simulate, compare, diagnose, fit, report, demo
 ``adadex demo``                a short simulation demo (settle objects, grasp and lift a cube)
 """
 
@@ -101,6 +102,10 @@ def build_parser() -> argparse.ArgumentParser:
     exp.add_argument("--out", default=None)
     exp.set_defaults(func=_cmd_sim_export)
 
+    from adadex.sysid import cli as sysid_cli
+
+    sysid_cli.add_parser(sub)
+
     demo = sub.add_parser("demo", help="short simulation demo: objects settle, the hand grasps and lifts a cube")
     demo.add_argument("--worlds", type=int, default=16, help="worlds stepped together (default 16)")
     demo.add_argument("--threads", type=int, default=2, help="rollout threads (default 2)")
@@ -111,6 +116,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command == "sysid":
+        from adadex.sysid.cli import run
+
+        return run(args)
     return args.func(args)
 
 

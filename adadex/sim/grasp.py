@@ -8,12 +8,11 @@ object, descends, closes to a posture whose fingertips lie ``squeeze`` metres *i
 holds. It runs through :class:`~adadex.sim.batched.BatchedSim`, so it exercises the batched
 simulator too.
 
-Example
--------
->>> from adadex.sim.grasp import scripted_grasp_lift
->>> result = scripted_grasp_lift("cube_050")       # doctest: +SKIP
->>> result.max_slip < 0.02 and result.lift_achieved > 0.09   # doctest: +SKIP
-True
+Example::
+
+    from adadex.sim.grasp import scripted_grasp_lift
+    result = scripted_grasp_lift("cube_050")
+    result.max_slip < 0.02 and result.lift_achieved > 0.09
 """
 
 from __future__ import annotations

@@ -9,11 +9,11 @@ The noise floor of each joint is estimated from the measurement itself: what a l
 (Savitzky–Golay, 9 samples) cannot follow is noise, σ = MAD(q − q_smooth)·1.4826 / ‖e₀ − s‖ with
 s the filter's centre row. A model that is right up to the sensor noise is recognized as such.
 
-Example
--------
->>> from adadex.sysid.compare import compare, localize              # doctest: +SKIP
->>> cmp = compare(recording)                                         # doctest: +SKIP
->>> print(localize(cmp).text)                                        # doctest: +SKIP
+Example::
+
+    from adadex.sysid.compare import compare, localize
+    cmp = compare(recording)
+    print(localize(cmp).text)
 """
 
 from __future__ import annotations
@@ -158,20 +158,23 @@ def localize(cmp: Comparison, *, window_s: float = 0.25, top_windows: int = 5) -
     rec = cmp.recording
     names = cmp.joint_names
     err2 = cmp.error ** 2
-    rms = cmp.rms_per_joint()
     noise = cmp.noise_floor()
+    seqs = list(rec.meta.get("sequences") or [{} for _ in range(rec.num_sequences)])
+    # A joint is judged on the sequences that move it: errors a joint shows while another joint
+    # moves (a finger shaken by the arm) belong to the moving joint.
+    own_masks = []
+    for name in names:
+        own = np.array([s.get("joint", name) == name for s in seqs])
+        own_masks.append(own if own.any() else np.ones(len(seqs), dtype=bool))
+    rms = np.array([np.sqrt(err2[m, :, j].mean()) for j, m in enumerate(own_masks)])
     ratio = rms / np.maximum(noise, 1e-6)
     failing = [n for n, r, x in zip(names, rms, ratio) if x > FAIL_RATIO and r > FAIL_ABS]
-    seqs = list(rec.meta.get("sequences") or [{} for _ in range(rec.num_sequences)])
     rev = reversal_mask(cmp.command, rec.dt)
     joints, sentences = [], []
     order = np.argsort(-ratio)
     for j in order:
         name = names[j]
-        # Sequences that move this joint (all of them when the recording says nothing).
-        own = np.array([s.get("joint", name) == name for s in seqs])
-        if not own.any():
-            own[:] = True
+        own = own_masks[j]
         rev_rms = float(np.sqrt((err2[own, :, j] * rev[own, :, j]).sum() / max(rev[own, :, j].sum(), 1)))
         calm = ~rev[own, :, j]
         calm_rms = float(np.sqrt((err2[own, :, j] * calm).sum() / max(calm.sum(), 1)))
@@ -186,7 +189,7 @@ def localize(cmp: Comparison, *, window_s: float = 0.25, top_windows: int = 5) -
         joints.append(entry)
         if name not in failing:
             continue
-        words = [f"{name}: RMS error {np.degrees(rms[j]):.2f}° = {ratio[j]:.0f}× its noise floor"]
+        words = [f"{name}: RMS error {np.degrees(rms[j]):.2f}° on its own sequences = {ratio[j]:.0f}× its noise floor"]
         if rev_rms > 1.5 * calm_rms:
             words.append(f"{rev_rms / max(calm_rms, 1e-9):.1f}× larger near velocity reversals")
         for key, label, unit in (("by_frequency", "frequency", " Hz"), ("by_amplitude", "amplitude", " rad")):
@@ -210,7 +213,7 @@ def localize(cmp: Comparison, *, window_s: float = 0.25, top_windows: int = 5) -
     windows = []
     for name in failing or []:
         j = names.index(name)
-        e = err2[:, :, j]
+        e = np.where(own_masks[j][:, None], err2[:, :, j], 0.0)
         c = np.cumsum(np.pad(e, ((0, 0), (1, 0))), axis=1)
         win = np.sqrt((c[:, w:] - c[:, :-w]) / w)
         s, t0 = np.unravel_index(np.argmax(win), win.shape)

@@ -92,3 +92,36 @@ class JointFitter:
             return (lo, hi)
         half = 1.96 * np.sqrt(sigma2 / jtj)
         return (float(max(lo, x - half)), float(min(hi, x + half)))
+
+
+def sequences_moving(recording, joint: str) -> np.ndarray:
+    """Indices of the sequences that excite ``joint`` (all, when the recording does not say)."""
+    seqs = list(recording.meta.get("sequences") or [])
+    own = [i for i, s in enumerate(seqs) if s.get("joint") == joint]
+    return np.asarray(own if own else range(recording.num_sequences), dtype=np.int64)
+
+
+def fit_patch(recording, additions, *, base_patch: ModelPatch | None = None, nthread: int = 2) -> ModelPatch:
+    """Fit ``additions`` — a list of ``(effect, joints)`` — in order, each on top of the previous ones.
+
+    Every joint's value is fitted on the sequences that move it. Returns the fitted effects only
+    (not ``base_patch``).
+    """
+    from adadex.sim.effects import EffectError
+    from adadex.sysid.replay import Replayer
+
+    rep = Replayer(recording, nthread=nthread)
+    base = base_patch if base_patch is not None else ModelPatch()
+    added = ModelPatch()
+    for effect, joints in additions:
+        get_effect(effect)
+        missing = [j for j in joints if j not in recording.joint_names]
+        if missing or not joints:
+            raise EffectError(f"{effect}: joints {missing or joints} are not in the recording "
+                              f"(it has {', '.join(recording.joint_names)})")
+        values = []
+        for j in joints:
+            r = JointFitter(rep, j, sequences_moving(recording, j), base + added).fit(effect)
+            values.append([r.value])
+        added = added.with_effect(effect, joints, np.array(values))
+    return added

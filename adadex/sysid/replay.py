@@ -9,12 +9,11 @@ A :class:`Replayer` compiles one model per *structure* (which actuators carry a 
 lag state) and re-uses it: evaluating a new patch only rewrites model parameters (absolute values
 from a snapshot), which is what makes fitting fast.
 
-Example
--------
->>> from adadex.sysid.replay import Replayer                     # doctest: +SKIP
->>> sim = Replayer(recording).simulate(ModelPatch())              # doctest: +SKIP
->>> sim.shape == recording.joint_pos.shape                        # doctest: +SKIP
-True
+Example::
+
+    from adadex.sysid.replay import Replayer
+    sim = Replayer(recording).simulate(ModelPatch())
+    sim.shape == recording.joint_pos.shape
 """
 
 from __future__ import annotations

@@ -1,0 +1,1 @@
+"""Plain data, no torch modules: references, recordings."""

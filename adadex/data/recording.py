@@ -1,0 +1,846 @@
+"""Recordings of commanded and measured joint trajectories: the sysid workbench's data format.
+
+A :class:`Recording` holds ``S`` sequences of ``T`` samples for ``J`` of the robot's joints: the
+joint-position targets that were sent (``command``) and the joint positions that were measured
+(``joint_pos``), optionally measured velocities. It is what system identification compares the
+simulator against, whether the data came from the real robot or from a simulated "truth" model.
+Every recording is validated when it is built, so code downstream (replay, fitting, diagnosis)
+never has to guard against NaNs, ragged time axes, unknown joints or commands the servos would
+refuse — and errors say *what* is wrong and *where* (field, sequence, time index, joint, file).
+A recording is immutable: its arrays are read-only copies.
+
+Timing convention (zero-order hold)
+-----------------------------------
+``time`` is uniform (spacing ``dt``) and strictly increasing; its start is arbitrary.
+``joint_pos[s, k]`` is measured at ``time[k]``. ``command[s, k]`` is sent at ``time[k]`` and held
+constant until ``time[k + 1]`` (zero-order hold), so the last command is never acted on within
+the recording. Each sequence starts at rest in ``initial_qpos[s]``, the full 22-joint configuration
+(in :data:`~adadex.sim.robot.JOINT_NAMES` order); joints that are not recorded hold that value
+as their command (:meth:`Recording.full_command`).
+
+File format (``.npz``, :meth:`Recording.save` / :meth:`Recording.load`)
+------------------------------------------------------------------------
+=================== ============ ==========================================================
+key                 shape        meaning
+=================== ============ ==========================================================
+``time``            (T,)         seconds, uniform, strictly increasing, T ≥ 2
+``joint_names``     (J,) str     a subset of JOINT_NAMES, any order, no duplicates, J ≥ 1
+``command``         (S, T, J)    joint-position targets sent, rad, within the joint limits
+``joint_pos``       (S, T, J)    measured joint positions, rad
+``joint_vel``       (S, T, J)    optional: measured joint velocities, rad/s
+``sequence_labels`` (S,) str     optional: unique names, default ``seq0, seq1, …``
+``initial_qpos``    (S, 22)      optional: configuration at t = time[0]; default: the first
+                                 measured sample for recorded joints, HOME_QPOS for the rest
+``meta``            () str       optional: JSON object, free-form (how the data was made)
+=================== ============ ==========================================================
+
+All arrays are float64, strings are stored as numpy unicode arrays: files load with
+``allow_pickle=False``. Saving and loading is bit-exact; ``meta`` is normalised through JSON when
+the recording is built (tuples become lists, numpy scalars Python numbers), so a loaded recording
+equals the saved one.
+
+CSV (:func:`from_csv` / :func:`to_csv`)
+---------------------------------------
+One file per sequence with a header ``time, cmd_<joint>…, pos_<joint>…`` and optionally
+``vel_<joint>…`` (columns in any order, ``#`` lines are comments). All files of a recording must
+have identical ``time`` columns and the same joints. The file name is the sequence label,
+percent-encoded (``if_pip/loaded`` ↔ ``if_pip%2Floaded.csv``). CSV carries neither
+``initial_qpos`` nor ``meta``: reading a CSV recording gives their defaults. Numbers are written
+with Python's shortest round-trip repr, so CSV round trips are bit-exact too.
+
+Example
+-------
+>>> import numpy as np
+>>> from adadex.data.recording import Recording
+>>> cmd = np.linspace(0.0, 0.4, 5).reshape(1, 5, 1)
+>>> rec = Recording(time=np.arange(5) * 0.01, joint_names=("if_pip",), command=cmd, joint_pos=cmd)
+>>> rec.num_sequences, rec.num_steps, rec.num_joints, rec.sequence_labels
+(1, 5, 1, ('seq0',))
+>>> rec.full_command().shape
+(1, 5, 22)
+>>> Recording(time=np.arange(5) * 0.01, joint_names=("if_pip",), command=cmd + 2.0, joint_pos=cmd)
+... # doctest: +ELLIPSIS
+Traceback (most recent call last):
+...
+adadex.data.recording.CommandLimitError: command: 2.0 rad for joint 'if_pip' in sequence 0 ('seq0') at ...
+"""
+
+from __future__ import annotations
+
+import csv
+import difflib
+import io
+import json
+import os
+import re
+import secrets
+import unicodedata
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import quote, unquote
+
+import numpy as np
+
+from adadex.sim.robot import HOME_QPOS, JOINT_NAMES, NUM_JOINTS, UnknownJointError, joint_index, joint_limits
+
+#: Commands may exceed the joint limits by this much (rad) before a recording is rejected.
+LIMIT_TOLERANCE = 1e-6
+#: Samples may deviate from uniform spacing by this fraction of ``dt``.
+TIME_RELATIVE_TOLERANCE = 1e-6
+
+REQUIRED_KEYS = ("time", "joint_names", "command", "joint_pos")
+OPTIONAL_KEYS = ("joint_vel", "sequence_labels", "initial_qpos", "meta")
+_CSV_PREFIXES = ("cmd", "pos", "vel")
+
+
+class RecordingError(ValueError):
+    """Invalid recording data; the message says what is wrong and where."""
+
+
+class RecordingShapeError(RecordingError):
+    """An array has the wrong number of dimensions or the wrong size (expected vs got)."""
+
+
+class NonFiniteValueError(RecordingError):
+    """NaN or ±inf in an array."""
+
+
+class TimeAxisError(RecordingError):
+    """``time`` is too short, not strictly increasing, or not uniformly spaced."""
+
+
+class JointNameError(RecordingError):
+    """A joint name is missing, duplicated, not a string, or not recorded."""
+
+
+class UnknownJointNameError(JointNameError, UnknownJointError):
+    """A joint name that is not one of the robot's JOINT_NAMES (also a ``robot.UnknownJointError``)."""
+
+    def __init__(self, message: str):
+        Exception.__init__(self, message)
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+class CommandLimitError(RecordingError):
+    """A command lies outside its joint's position limits."""
+
+
+class RecordingFileError(RecordingError):
+    """A file that cannot be read as a recording: not an archive, missing or unexpected keys, bad CSV."""
+
+
+def _reraise_in(exc: RecordingError, where) -> RecordingError:
+    """The same error type with ``where`` (a file, usually) prefixed to its message."""
+    return type(exc)(f"{where}: {exc}")
+
+
+def _unknown_joint(name, where: str) -> UnknownJointNameError:
+    return UnknownJointNameError(f"{where}: {UnknownJointError(name).args[0]}")
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"{type(obj).__name__} is not JSON-serializable")
+
+
+def _float_array(value, name: str) -> np.ndarray:
+    """A read-only float64 copy of ``value``; the caller's array is never aliased or modified."""
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise RecordingError(f"{name}: cannot convert to a float array ({e})") from None
+    arr.setflags(write=False)
+    return arr
+
+
+def _str_tuple(value, name: str, error=RecordingError) -> tuple[str, ...]:
+    if isinstance(value, (str, bytes)):
+        raise error(f"{name}: expected a sequence of strings, got the single string {value!r}")
+    try:
+        items = list(value)
+    except TypeError:
+        raise error(f"{name}: expected a sequence of strings, got {type(value).__name__}") from None
+    out = []
+    for i, v in enumerate(items):
+        if not isinstance(v, str):
+            raise error(f"{name}[{i}]: expected a string, got {type(v).__name__} {v!r}")
+        out.append(str(v))
+    return tuple(out)
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class Recording:
+    """Commanded and measured trajectories of ``S`` sequences × ``T`` samples × ``J`` joints.
+
+    See the module docstring for the meaning of each field and the timing convention. Building a
+    recording copies and validates every field (:meth:`validate`) and fills the defaults of
+    ``sequence_labels`` (``seq0, seq1, …``) and ``initial_qpos``. ``initial_qpos`` may be given as
+    (22,) for all sequences.
+    """
+
+    time: np.ndarray
+    joint_names: tuple[str, ...]
+    command: np.ndarray
+    joint_pos: np.ndarray
+    joint_vel: np.ndarray | None = None
+    sequence_labels: tuple[str, ...] = ()
+    initial_qpos: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        put = object.__setattr__
+        put(self, "time", _float_array(self.time, "time"))
+        put(self, "joint_names", _str_tuple(self.joint_names, "joint_names", JointNameError))
+        put(self, "command", _float_array(self.command, "command"))
+        put(self, "joint_pos", _float_array(self.joint_pos, "joint_pos"))
+        if self.joint_vel is not None:
+            put(self, "joint_vel", _float_array(self.joint_vel, "joint_vel"))
+        labels = () if self.sequence_labels is None else self.sequence_labels
+        labels = _str_tuple(labels, "sequence_labels")
+        if not labels and self.command.ndim == 3:
+            labels = tuple(f"seq{i}" for i in range(self.command.shape[0]))
+        put(self, "sequence_labels", labels)
+        if self.initial_qpos is not None:
+            q = _float_array(self.initial_qpos, "initial_qpos")
+            if q.shape == (NUM_JOINTS,) and self.command.ndim == 3:
+                q = _float_array(np.broadcast_to(q, (self.command.shape[0], NUM_JOINTS)), "initial_qpos")
+            put(self, "initial_qpos", q)
+        put(self, "meta", self._normalised_meta(self.meta))
+
+        self.validate()
+
+        if self.initial_qpos is None:
+            q = np.tile(HOME_QPOS, (self.num_sequences, 1))
+            q[:, self.joint_indices] = self.joint_pos[:, 0, :]
+            q.setflags(write=False)
+            put(self, "initial_qpos", q)
+
+    @staticmethod
+    def _normalised_meta(meta) -> dict:
+        if meta is None:
+            return {}
+        if not isinstance(meta, Mapping):
+            raise RecordingError(f"meta: expected a dict, got {type(meta).__name__}")
+        try:
+            return json.loads(json.dumps(dict(meta), default=_json_default))
+        except (TypeError, ValueError) as e:
+            raise RecordingError(f"meta: not JSON-serializable ({e})") from None
+
+    # ------------------------------------------------------------------ validation
+
+    def validate(self) -> None:
+        """Check every field; raise a :class:`RecordingError` subclass naming the first problem.
+
+        Runs when a recording is built and again before it is written. An empty
+        ``sequence_labels`` or a ``None`` ``initial_qpos`` counts as "default" and passes.
+        """
+        self._check_shapes()
+        self._check_joint_names()
+        self._check_labels()
+        self._check_time()
+        for name in ("command", "joint_pos", "joint_vel"):
+            arr = getattr(self, name)
+            if arr is not None:
+                self._check_finite(name, arr)
+        self._check_limits()
+        if self.initial_qpos is not None:
+            self._check_finite_qpos()
+
+    def _where(self, s: int) -> str:
+        if self.sequence_labels:
+            return f"sequence {s} ({self.sequence_labels[s]!r})"
+        return f"sequence {s}"
+
+    def _check_shapes(self) -> None:
+        if self.time.ndim != 1:
+            raise RecordingShapeError(f"time: expected shape (T,), got {self.time.shape}")
+        T = self.time.shape[0]
+        if T < 2:
+            raise TimeAxisError(f"time: a recording needs at least 2 samples, got {T}")
+        if self.command.ndim != 3:
+            raise RecordingShapeError(f"command: expected 3 dimensions (S, T, J), got shape {self.command.shape}")
+        S, J = self.command.shape[0], len(self.joint_names)
+        if S < 1:
+            raise RecordingShapeError(f"command: a recording needs at least 1 sequence, got shape {self.command.shape}")
+        if J < 1:
+            raise JointNameError("joint_names: a recording needs at least 1 joint, got none")
+        expected = (S, T, J)
+        for name in ("command", "joint_pos", "joint_vel"):
+            arr = getattr(self, name)
+            if arr is not None and arr.shape != expected:
+                raise RecordingShapeError(
+                    f"{name}: expected shape (S, T, J) = {expected} (S from command, T from time, "
+                    f"J from joint_names), got {arr.shape}")
+        if self.sequence_labels and len(self.sequence_labels) != S:
+            raise RecordingShapeError(
+                f"sequence_labels: expected {S} labels (one per sequence), got {len(self.sequence_labels)}")
+        if self.initial_qpos is not None and self.initial_qpos.shape != (S, NUM_JOINTS):
+            raise RecordingShapeError(
+                f"initial_qpos: expected shape (S, 22) = {(S, NUM_JOINTS)} (or (22,) for all sequences), "
+                f"got {self.initial_qpos.shape}")
+
+    def _check_joint_names(self) -> None:
+        seen: dict[str, int] = {}
+        for i, n in enumerate(self.joint_names):
+            if n not in JOINT_NAMES:
+                raise _unknown_joint(n, f"joint_names[{i}]")
+            if n in seen:
+                raise JointNameError(f"joint_names: duplicate joint {n!r} at positions {seen[n]} and {i}")
+            seen[n] = i
+
+    def _check_labels(self) -> None:
+        seen: dict[str, int] = {}
+        for i, lab in enumerate(self.sequence_labels):
+            if not lab:
+                raise RecordingError(f"sequence_labels[{i}]: empty label")
+            bad = [c for c in lab if unicodedata.category(c) in ("Cc", "Cs")]
+            if bad:
+                raise RecordingError(f"sequence_labels[{i}]: label {lab!r} contains control character {bad[0]!r}")
+            if lab in seen:
+                raise RecordingError(f"sequence_labels: duplicate label {lab!r} at sequences {seen[lab]} and {i}")
+            seen[lab] = i
+
+    def _check_time(self) -> None:
+        t = self.time
+        bad = np.flatnonzero(~np.isfinite(t))
+        if bad.size:
+            raise NonFiniteValueError(f"time: non-finite value {t[bad[0]]} at time index {bad[0]}")
+        d = np.diff(t)
+        bad = np.flatnonzero(d <= 0)
+        if bad.size:
+            k = bad[0] + 1
+            raise TimeAxisError(
+                f"time: not strictly increasing at time index {k}: time[{k}] = {float(t[k])!r} s "
+                f"≤ time[{k - 1}] = {float(t[k - 1])!r} s")
+        step = float(np.median(d))
+        # The second term only matters for huge absolute times (e.g. Unix epochs), where float64
+        # cannot represent a grid that is uniform to TIME_RELATIVE_TOLERANCE · dt.
+        tol = TIME_RELATIVE_TOLERANCE * step + 4 * float(np.spacing(np.abs(t).max()))
+        bad = np.flatnonzero(np.abs(d - step) > tol)
+        if bad.size:
+            k = bad[0] + 1
+            raise TimeAxisError(
+                f"time: non-uniform spacing at time index {k}: time[{k}] - time[{k - 1}] = {float(d[k - 1])!r} s, "
+                f"but the typical spacing is dt = {step!r} s (relative tolerance {TIME_RELATIVE_TOLERANCE:g}); "
+                f"{bad.size} intervals differ in total")
+
+    def _check_finite(self, name: str, arr: np.ndarray) -> None:
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            s, k, j = (int(i) for i in np.argwhere(bad)[0])
+            raise NonFiniteValueError(
+                f"{name}: non-finite value {arr[s, k, j]} in {self._where(s)} at time index {k} "
+                f"(t={self.time[k]:g} s), joint {self.joint_names[j]!r}; "
+                f"{int(bad.sum())} non-finite values in total")
+
+    def _check_limits(self) -> None:
+        lim = joint_limits()[joint_index(self.joint_names)]
+        lo, hi = lim[:, 0], lim[:, 1]
+        below = self.command < lo - LIMIT_TOLERANCE
+        above = self.command > hi + LIMIT_TOLERANCE
+        outside = below | above
+        if not outside.any():
+            return
+        s, k, j = (int(i) for i in np.argwhere(outside)[0])
+        value = float(self.command[s, k, j])
+        if above[s, k, j]:
+            side, limit = "above the joint's upper", float(hi[j])
+        else:
+            side, limit = "below the joint's lower", float(lo[j])
+        raise CommandLimitError(
+            f"command: {value!r} rad for joint {self.joint_names[j]!r} in {self._where(s)} at time index {k} "
+            f"(t={self.time[k]:g} s) is {side} limit {limit!r} rad (tolerance {LIMIT_TOLERANCE:g} rad); "
+            f"{int(outside.sum())} command values are outside the limits in total")
+
+    def _check_finite_qpos(self) -> None:
+        bad = ~np.isfinite(self.initial_qpos)
+        if bad.any():
+            s, j = (int(i) for i in np.argwhere(bad)[0])
+            raise NonFiniteValueError(
+                f"initial_qpos: non-finite value {self.initial_qpos[s, j]} in {self._where(s)} "
+                f"for joint {JOINT_NAMES[j]!r}")
+
+    # ------------------------------------------------------------------ views
+
+    @property
+    def num_sequences(self) -> int:
+        return int(self.command.shape[0])
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.command.shape[1])
+
+    @property
+    def num_joints(self) -> int:
+        return int(self.command.shape[2])
+
+    @property
+    def dt(self) -> float:
+        """Sample period, s: the mean spacing of ``time`` (uniform to 1e-6·dt by validation)."""
+        return float((self.time[-1] - self.time[0]) / (self.num_steps - 1))
+
+    @property
+    def duration(self) -> float:
+        """``time[-1] - time[0]``, s."""
+        return float(self.time[-1] - self.time[0])
+
+    @property
+    def joint_indices(self) -> np.ndarray:
+        """(J,) int64 indices of ``joint_names`` into :data:`~adadex.sim.robot.JOINT_NAMES`."""
+        return joint_index(self.joint_names)
+
+    def full_command(self) -> np.ndarray:
+        """(S, T, 22) commands for every joint, in JOINT_NAMES order: what the simulator is sent.
+
+        Recorded joints get ``command``; the others are held at ``initial_qpos`` throughout.
+        """
+        out = np.repeat(self.initial_qpos[:, None, :], self.num_steps, axis=1)
+        out[:, :, self.joint_indices] = self.command
+        return out
+
+    def subset(self, sequences=None, joints=None) -> Recording:
+        """A new recording with some sequences and/or joints, in the order given.
+
+        ``sequences``: an index, a label, or a list of them (negative indices count from the end);
+        ``None`` keeps all. ``joints``: a joint name or a list of recorded joint names; ``None``
+        keeps all. ``initial_qpos`` keeps all 22 joints, so a dropped joint is held at its initial
+        value by :meth:`full_command`. If ``meta["sequences"]`` is a per-sequence list (as
+        written by :mod:`adadex.sysid.excite`), it is subset along with the sequences.
+        """
+        s_idx = self._select_sequences(sequences)
+        j_idx = self._select_joints(joints)
+        pick = np.ix_(s_idx, np.arange(self.num_steps), j_idx)
+        meta = json.loads(json.dumps(self.meta))
+        per_seq = meta.get("sequences")
+        if isinstance(per_seq, list) and len(per_seq) == self.num_sequences:
+            meta["sequences"] = [per_seq[i] for i in s_idx]
+        return Recording(
+            time=self.time,
+            joint_names=tuple(self.joint_names[j] for j in j_idx),
+            command=self.command[pick],
+            joint_pos=self.joint_pos[pick],
+            joint_vel=None if self.joint_vel is None else self.joint_vel[pick],
+            sequence_labels=tuple(self.sequence_labels[i] for i in s_idx),
+            initial_qpos=self.initial_qpos[s_idx],
+            meta=meta,
+        )
+
+    def _select_sequences(self, sequences) -> np.ndarray:
+        S = self.num_sequences
+        if sequences is None:
+            return np.arange(S)
+        if isinstance(sequences, (str, int, np.integer)):
+            sequences = [sequences]
+        out: list[int] = []
+        for item in sequences:
+            if isinstance(item, (bool, np.bool_)):
+                raise RecordingError(f"sequences: expected a sequence index or label, got {item!r}")
+            if isinstance(item, (int, np.integer)):
+                if not -S <= item < S:
+                    raise RecordingError(f"sequences: index {item} is out of range for {S} sequences")
+                i = int(item) % S
+            elif isinstance(item, str):
+                if item not in self.sequence_labels:
+                    close = difflib.get_close_matches(item, self.sequence_labels, n=3)
+                    hint = f"; did you mean {', '.join(map(repr, close))}?" if close else ""
+                    raise RecordingError(f"sequences: no sequence labelled {item!r}{hint}")
+                i = self.sequence_labels.index(item)
+            else:
+                raise RecordingError(f"sequences: expected a sequence index or label, got {type(item).__name__}")
+            if i in out:
+                raise RecordingError(f"sequences: {self._where(i)} is selected twice")
+            out.append(i)
+        if not out:
+            raise RecordingError("sequences: empty selection; a recording needs at least 1 sequence")
+        return np.asarray(out, dtype=np.int64)
+
+    def _select_joints(self, joints) -> np.ndarray:
+        if joints is None:
+            return np.arange(self.num_joints)
+        names = _str_tuple([joints] if isinstance(joints, str) else joints, "joints", JointNameError)
+        out: list[int] = []
+        for n in names:
+            if n not in JOINT_NAMES:
+                raise _unknown_joint(n, "joints")
+            if n not in self.joint_names:
+                raise JointNameError(f"joints: {n!r} is not recorded (recorded joints: {', '.join(self.joint_names)})")
+            j = self.joint_names.index(n)
+            if j in out:
+                raise JointNameError(f"joints: {n!r} is selected twice")
+            out.append(j)
+        if not out:
+            raise JointNameError("joints: empty selection; a recording needs at least 1 joint")
+        return np.asarray(out, dtype=np.int64)
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Recording):
+            return NotImplemented
+        if any(getattr(self, n) != getattr(other, n) for n in ("joint_names", "sequence_labels", "meta")):
+            return False
+        if (self.joint_vel is None) != (other.joint_vel is None):
+            return False
+        return all(np.array_equal(getattr(self, n), getattr(other, n))
+                   for n in ("time", "command", "joint_pos", "joint_vel", "initial_qpos")
+                   if getattr(self, n) is not None)
+
+    __hash__ = None
+
+    def __repr__(self) -> str:
+        return (f"Recording({self.num_sequences} sequences × {self.num_steps} steps, dt={self.dt:g} s, "
+                f"joints={list(self.joint_names)}, joint_vel={'yes' if self.joint_vel is not None else 'no'}, "
+                f"labels={list(self.sequence_labels[:3])}{'…' if self.num_sequences > 3 else ''}, "
+                f"meta keys={sorted(self.meta)})")
+
+    # ------------------------------------------------------------------ files
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The ``.npz`` contents: float64 arrays, numpy unicode strings, ``meta`` as a JSON string."""
+        out = {
+            "time": self.time,
+            "joint_names": np.array(self.joint_names, dtype=str),
+            "command": self.command,
+            "joint_pos": self.joint_pos,
+            "sequence_labels": np.array(self.sequence_labels, dtype=str),
+            "initial_qpos": self.initial_qpos,
+            "meta": np.array(json.dumps(self.meta)),
+        }
+        if self.joint_vel is not None:
+            out["joint_vel"] = self.joint_vel
+        return out
+
+    def save(self, path) -> Path:
+        """Write the recording to ``path`` as ``.npz``, atomically; returns the path.
+
+        The data is validated first and written to a temporary file in the same directory that
+        replaces ``path`` only when complete, so ``path`` is never partially written and bad data
+        writes nothing. Parent directories are created.
+        """
+        path = Path(path)
+        if path.suffix.lower() == ".csv":
+            raise RecordingFileError(f"{path}: save writes .npz; use to_csv(recording, directory) for CSV")
+        self.validate()
+        arrays = self.to_arrays()
+        _atomic_write(path, lambda f: np.savez(f, **arrays))
+        return path
+
+    @classmethod
+    def load(cls, path) -> Recording:
+        """Read and validate an ``.npz`` recording; errors name the file (and the key)."""
+        path = Path(path)
+        try:
+            archive = np.load(path, allow_pickle=False)
+        except (FileNotFoundError, IsADirectoryError, PermissionError):
+            raise
+        except (OSError, ValueError, EOFError) as e:
+            raise RecordingFileError(f"{path}: not a readable .npz recording ({e})") from None
+        if not isinstance(archive, np.lib.npyio.NpzFile):
+            raise RecordingFileError(f"{path}: not a .npz archive (a single .npy array?); a recording is an .npz")
+        with archive:
+            keys = set(archive.files)
+            missing = [k for k in REQUIRED_KEYS if k not in keys]
+            if missing:
+                raise RecordingFileError(
+                    f"{path}: missing required key {missing[0]!r} (a recording needs {', '.join(REQUIRED_KEYS)}; "
+                    f"the file has {', '.join(sorted(keys)) or 'no keys'})")
+            extra = sorted(keys - set(REQUIRED_KEYS) - set(OPTIONAL_KEYS))
+            if extra:
+                raise RecordingFileError(
+                    f"{path}: unexpected key {extra[0]!r} (allowed: {', '.join(REQUIRED_KEYS + OPTIONAL_KEYS)})")
+            fields = {}
+            for k in sorted(keys):
+                try:
+                    fields[k] = archive[k]
+                except (ValueError, OSError, EOFError) as e:
+                    raise RecordingFileError(f"{path}: key {k!r} cannot be read ({e})") from None
+        for k in ("joint_names", "sequence_labels"):
+            if k in fields:
+                fields[k] = _strings_from_file(fields[k], k, path)
+        if "meta" in fields:
+            fields["meta"] = _meta_from_file(fields["meta"], path)
+        try:
+            return cls(**fields)
+        except RecordingError as e:
+            raise _reraise_in(e, path) from None
+
+
+def _strings_from_file(arr: np.ndarray, key: str, path: Path) -> tuple[str, ...]:
+    if arr.ndim != 1 or arr.dtype.kind not in "US":
+        raise RecordingFileError(
+            f"{path}: key {key!r} must be a 1-D string array, got {arr.dtype} of shape {arr.shape}")
+    if arr.dtype.kind == "S":
+        return tuple(b.decode("utf-8") for b in arr.tolist())
+    return tuple(arr.tolist())
+
+
+def _meta_from_file(arr: np.ndarray, path: Path) -> dict:
+    if arr.ndim != 0 or arr.dtype.kind not in "US":
+        raise RecordingFileError(f"{path}: key 'meta' must be a JSON string, got {arr.dtype} of shape {arr.shape}")
+    text = arr.item()
+    text = text.decode("utf-8") if isinstance(text, bytes) else text
+    try:
+        meta = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise RecordingFileError(f"{path}: key 'meta' is not valid JSON ({e})") from None
+    if not isinstance(meta, dict):
+        raise RecordingFileError(f"{path}: key 'meta' must be a JSON object, got {type(meta).__name__}")
+    return meta
+
+
+def _temp_path(path: Path) -> Path:
+    return path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
+
+
+def _open_new(tmp: Path):
+    """Create ``tmp`` exclusively with the usual permissions (mkstemp would make it owner-only)."""
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+    return os.fdopen(fd, "wb")
+
+
+def _write_temp(path: Path, write) -> Path:
+    tmp = _temp_path(path)
+    try:
+        with _open_new(tmp) as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return tmp
+
+
+def _atomic_write(path: Path, write) -> None:
+    """Write ``path`` via a temporary file in the same directory and ``os.replace``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _write_temp(path, write)
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+# ---------------------------------------------------------------------- loading by extension
+
+
+def load_recording(path) -> Recording:
+    """Load a recording: ``.csv`` file or a directory of them via :func:`from_csv`, else ``.npz``."""
+    path = Path(path)
+    if path.is_dir() or path.suffix.lower() == ".csv":
+        return from_csv(path)
+    return Recording.load(path)
+
+
+# ---------------------------------------------------------------------- CSV
+
+
+def _natural_key(p: Path):
+    return [int(s) if s.isdigit() else s for s in re.split(r"(\d+)", p.name)]
+
+
+def _csv_files(paths) -> list[Path]:
+    if isinstance(paths, (str, os.PathLike)):
+        p = Path(paths)
+        if p.is_dir():
+            files = sorted((q for q in p.iterdir() if q.suffix.lower() == ".csv" and q.is_file()), key=_natural_key)
+            if not files:
+                raise RecordingFileError(f"{p}: directory contains no .csv files")
+            return files
+        return [p]
+    files = [Path(p) for p in paths]
+    if not files:
+        raise RecordingFileError("from_csv: no files given")
+    return files
+
+
+def _parse_header(header: list[str], path: Path) -> tuple[int, list[str], dict[str, dict[str, int]]]:
+    """Column of ``time``, joint order (as the cmd_ columns), and {prefix: {joint: column}}."""
+    names = [h.strip() for h in header]
+    seen: dict[str, int] = {}
+    for c, n in enumerate(names):
+        if n in seen:
+            raise RecordingFileError(f"{path}: duplicate column {n!r} (columns {seen[n] + 1} and {c + 1})")
+        seen[n] = c
+    if "time" not in seen:
+        raise RecordingFileError(f"{path}: missing column 'time' (header: {', '.join(names)})")
+    cols: dict[str, dict[str, int]] = {p: {} for p in _CSV_PREFIXES}
+    order: list[str] = []
+    for c, n in enumerate(names):
+        if n == "time":
+            continue
+        prefix, _, joint = n.partition("_")
+        if prefix not in _CSV_PREFIXES or not joint:
+            raise RecordingFileError(
+                f"{path}: unexpected column {n!r} (column {c + 1}); expected time, cmd_<joint>, pos_<joint> "
+                f"and optionally vel_<joint>")
+        if joint not in JOINT_NAMES:
+            raise _unknown_joint(joint, f"{path}: column {n!r} (column {c + 1})")
+        cols[prefix][joint] = c
+        if prefix == "cmd":
+            order.append(joint)
+    if not order:
+        raise RecordingFileError(f"{path}: no cmd_<joint> columns (header: {', '.join(names)})")
+    for prefix in ("pos", "vel"):
+        if prefix == "vel" and not cols["vel"]:
+            continue
+        for j in order:
+            if j not in cols[prefix]:
+                raise RecordingFileError(f"{path}: joint {j!r} has column cmd_{j} but no {prefix}_{j}")
+        for j in cols[prefix]:
+            if j not in cols["cmd"]:
+                raise RecordingFileError(f"{path}: column {prefix}_{j} has no matching cmd_{j}")
+    return seen["time"], order, cols
+
+
+def _read_csv(path: Path):
+    """(time, joints, cmd (T, J), pos (T, J), vel (T, J) or None) of one CSV file."""
+    with open(path, newline="", encoding="utf-8-sig") as f:
+        rows = [(n, r) for n, r in enumerate(csv.reader(f), start=1)
+                if r and any(x.strip() for x in r) and not r[0].lstrip().startswith("#")]
+    if not rows:
+        raise RecordingFileError(f"{path}: empty file (no header)")
+    (_, header), body = rows[0], rows[1:]
+    tcol, joints, cols = _parse_header(header, path)
+    for line, r in body:
+        if len(r) != len(header):
+            raise RecordingFileError(f"{path} line {line}: expected {len(header)} values, got {len(r)}")
+    try:
+        data = np.array([r for _, r in body], dtype=np.float64).reshape(len(body), len(header))
+    except ValueError:
+        for line, r in body:
+            for c, v in enumerate(r):
+                try:
+                    float(v)
+                except ValueError:
+                    raise RecordingFileError(
+                        f"{path} line {line}, column {header[c].strip()!r}: cannot parse {v!r} as a number") from None
+        raise
+
+    def pick(prefix):
+        return data[:, [cols[prefix][j] for j in joints]]
+
+    return data[:, tcol], tuple(joints), pick("cmd"), pick("pos"), pick("vel") if cols["vel"] else None
+
+
+def from_csv(paths, label=None) -> Recording:
+    """Read a recording from CSV files, one sequence per file (see the module docstring).
+
+    ``paths``: a file, a list of files (sequence order), or a directory (all ``*.csv`` in natural
+    name order). ``label``: a label, or a list with one per file; default: each file's name
+    without ``.csv``, percent-decoded (as written by :func:`to_csv`). Every file must have the
+    same joints (in any column order; the first file's order is used) and an identical ``time``
+    column. Errors name the file; nothing is returned unless every file is valid.
+    """
+    files = _csv_files(paths)
+    if label is None:
+        labels = [unquote(p.stem) for p in files]
+    elif isinstance(label, str):
+        if len(files) != 1:
+            raise RecordingError(f"label: got one label {label!r} for {len(files)} files; pass a list of labels")
+        labels = [label]
+    else:
+        labels = list(label)
+        if len(labels) != len(files):
+            raise RecordingError(f"label: expected {len(files)} labels (one per file), got {len(labels)}")
+    seqs = []
+    for p, lab in zip(files, labels):
+        try:
+            t, joints, cmd, pos, vel = _read_csv(p)
+            one = Recording(time=t, joint_names=joints, command=cmd[None], joint_pos=pos[None],
+                            joint_vel=None if vel is None else vel[None], sequence_labels=(lab,))
+        except RecordingError as e:
+            raise e if str(e).startswith(str(p)) else _reraise_in(e, p) from None
+        seqs.append((p, one))
+    p0, first = seqs[0]
+    for p, r in seqs[1:]:
+        if set(r.joint_names) != set(first.joint_names):
+            missing = sorted(set(first.joint_names) - set(r.joint_names))
+            extra = sorted(set(r.joint_names) - set(first.joint_names))
+            raise JointNameError(
+                f"{p}: joints differ from {p0} (missing: {', '.join(missing) or 'none'}; "
+                f"extra: {', '.join(extra) or 'none'})")
+        if (r.joint_vel is None) != (first.joint_vel is None):
+            has, lacks = (p, p0) if r.joint_vel is not None else (p0, p)
+            raise RecordingFileError(f"{p}: {has} has vel_ columns but {lacks} does not; all files or none")
+        if r.time.shape != first.time.shape:
+            raise TimeAxisError(f"{p}: {r.num_steps} samples but {p0} has {first.num_steps}; time must be identical")
+        diff = np.flatnonzero(r.time != first.time)
+        if diff.size:
+            k = diff[0]
+            raise TimeAxisError(
+                f"{p}: time differs from {p0} at time index {k} ({float(r.time[k])!r} vs {float(first.time[k])!r} s); "
+                f"every file of a recording must have an identical time column")
+    aligned = [r.subset(joints=first.joint_names) for _, r in seqs]
+
+    def stack(name):
+        return np.stack([getattr(r, name)[0] for r in aligned])
+
+    return Recording(
+        time=first.time,
+        joint_names=first.joint_names,
+        command=stack("command"),
+        joint_pos=stack("joint_pos"),
+        joint_vel=None if first.joint_vel is None else stack("joint_vel"),
+        sequence_labels=tuple(labels),
+    )
+
+
+def _csv_text(rec: Recording, s: int) -> str:
+    header = ["time"] + [f"{p}_{j}" for p in ("cmd", "pos", "vel") for j in rec.joint_names
+                         if p != "vel" or rec.joint_vel is not None]
+    parts = [rec.time[:, None], rec.command[s], rec.joint_pos[s]]
+    if rec.joint_vel is not None:
+        parts.append(rec.joint_vel[s])
+    buf = io.StringIO()
+    buf.write(",".join(header) + "\n")
+    for row in np.hstack(parts).tolist():
+        buf.write(",".join(map(repr, row)) + "\n")
+    return buf.getvalue()
+
+
+def csv_file_name(label: str) -> str:
+    """The file name :func:`to_csv` gives a sequence: its label percent-encoded, plus ``.csv``."""
+    return quote(label, safe="") + ".csv"
+
+
+def to_csv(rec: Recording, directory) -> list[Path]:
+    """Write one CSV file per sequence into ``directory`` (created); returns the paths in order.
+
+    Everything is validated and rendered before anything is written; each file is written to a
+    temporary file and renamed into place, so no file is ever partial. ``initial_qpos`` and
+    ``meta`` are not written (see the module docstring).
+    """
+    if not isinstance(rec, Recording):
+        raise TypeError(f"to_csv: expected a Recording, got {type(rec).__name__}")
+    rec.validate()
+    directory = Path(directory)
+    if directory.exists() and not directory.is_dir():
+        raise RecordingFileError(f"{directory}: exists and is not a directory")
+    names = [csv_file_name(lab) for lab in rec.sequence_labels]
+    folded: dict[str, str] = {}
+    for lab, n in zip(rec.sequence_labels, names):
+        if n.lower() in folded:
+            raise RecordingError(
+                f"sequence_labels: {folded[n.lower()]!r} and {lab!r} would be written to files whose names differ "
+                f"only in case, which collide on case-insensitive file systems")
+        folded[n.lower()] = lab
+    texts = [_csv_text(rec, s) for s in range(rec.num_sequences)]
+    paths = [directory / n for n in names]
+    directory.mkdir(parents=True, exist_ok=True)
+    temps: list[Path] = []
+    try:
+        for p, text in zip(paths, texts):
+            temps.append(_write_temp(p, lambda f, text=text: f.write(text.encode("utf-8"))))
+        for tmp, p in zip(temps, paths):
+            os.replace(tmp, p)
+    except BaseException:
+        for tmp in temps:
+            tmp.unlink(missing_ok=True)
+        raise
+    return paths

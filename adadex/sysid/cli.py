@@ -1,0 +1,278 @@
+"""``adadex sysid …``: the model-versus-measurement loop from the command line.
+
+    adadex sysid excite   --joints if_pip,if_dip --out plan.npz
+    adadex sysid simulate plan.npz --patch truth.json --noise 2e-4 --out rec.npz
+    adadex sysid compare  rec.npz [--patch patch.json] [--out DIR]
+    adadex sysid diagnose rec.npz --out D
+    adadex sysid fit      rec.npz --add coulomb_friction:if_pip,if_dip --out patch.json   (or --accept D)
+    adadex sysid report   rec.npz --patch patch.json [--diagnosis D] --out report.html
+    adadex sysid demo     [--out DIR]    the whole loop on assets/recordings/demo.npz
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from adadex.sim.effects import EFFECT_NAMES, EffectError
+from adadex.sim.patch import ModelPatch, PatchError
+
+DEMO_RECORDING = Path(__file__).resolve().parents[2] / "assets" / "recordings" / "demo.npz"
+
+
+class CliError(Exception):
+    """A user error: printed as one line, exit code 2."""
+
+
+def _load_rec(path):
+    from adadex.data.recording import load_recording
+
+    return load_recording(path)
+
+
+def _load_patch(path) -> ModelPatch:
+    return ModelPatch.load(path) if path else ModelPatch()
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    return tuple(float(x) for x in text.split(",") if x)
+
+
+def _cmd_excite(a) -> int:
+    from adadex.sysid.excite import design_excitation
+
+    plan = design_excitation(a.joints.split(","), freqs=_floats(a.freqs), amps=_floats(a.amps),
+                             poses=tuple(a.poses.split(",")), kinds=tuple(a.kinds.split(",")),
+                             duration=a.duration, rate=a.rate)
+    out = Path(a.out)
+    if out.suffix == ".csv":
+        from adadex.data.recording import to_csv
+
+        files = to_csv(plan.to_recording(plan.command.copy(), {"plan": True}), out.with_suffix(""))
+        print(f"wrote {len(files)} CSV files to {out.with_suffix('')}/")
+    else:
+        plan.save(out)
+        print(f"wrote {out}: {len(plan.sequences)} sequences × {len(plan.time)} samples at {a.rate:g} Hz "
+              f"on {', '.join(plan.joint_names)}")
+    return 0
+
+
+def _cmd_simulate(a) -> int:
+    from adadex.sysid.excite import ExcitationPlan, simulate_recording
+
+    plan = ExcitationPlan.load(a.plan)
+    rec = simulate_recording(plan, _load_patch(a.patch), noise=a.noise, seed=a.seed, nthread=a.threads)
+    rec.save(a.out)
+    print(f"wrote {a.out}: {rec.num_sequences} sequences simulated"
+          + (f" with {len(_load_patch(a.patch))} effect(s)" if a.patch else " on the nominal model")
+          + f", sensor noise {a.noise:g} rad, seed {a.seed}")
+    return 0
+
+
+def _print_stages(rec, patch, threads) -> None:
+    from adadex.sysid.report import error_stages
+
+    st = error_stages(rec, patch, nthread=threads)
+    print(st.table())
+    return st
+
+
+def _cmd_compare(a) -> int:
+    from adadex.sysid.compare import compare, localize
+
+    rec = _load_rec(a.recording)
+    patch = _load_patch(a.patch)
+    cmp0 = compare(rec, nthread=a.threads)
+    loc = localize(cmp0)
+    print(loc.text)
+    st = None
+    if a.patch:
+        print(f"\nwith {a.patch}: {patch.describe()}")
+        st = _print_stages(rec, patch, a.threads)
+    if a.out:
+        from adadex.sysid import plots
+
+        out = Path(a.out)
+        out.mkdir(parents=True, exist_ok=True)
+        summary = {"nominal": cmp0.summary(), "localization": loc.to_dict()}
+        if st is not None:
+            summary["stages"] = st.to_dict()
+        (out / "compare.json").write_text(json.dumps(summary, indent=2))
+        err = cmp0.rms_per_sequence_joint()
+        (out / "heatmap.png").write_bytes(plots.fig_to_png(plots.heatmap(err, rec.joint_names, rec.sequence_labels, "nominal model")))
+        s, j = np.unravel_index(np.argmax(err), err.shape)
+        sims = {"model (nominal)": cmp0.simulated}
+        if st is not None:
+            sims["model + patch"] = st.comparisons[-1].simulated
+        (out / "overlay_worst.png").write_bytes(plots.fig_to_png(plots.overlay(rec, sims, int(s), rec.joint_names[j])))
+        print(f"wrote {out}/compare.json, heatmap.png, overlay_worst.png")
+    return 0
+
+
+def _cmd_diagnose(a) -> int:
+    from adadex.sysid.diagnose import diagnose
+
+    rec = _load_rec(a.recording)
+    cands = tuple(a.candidates.split(",")) if a.candidates else EFFECT_NAMES
+    for c in cands:
+        if c not in EFFECT_NAMES:
+            raise CliError(f"unknown candidate effect {c!r}; known: {', '.join(EFFECT_NAMES)}")
+    d = diagnose(rec, base_patch=_load_patch(a.patch), candidates=cands,
+                 joints=a.joints.split(",") if a.joints else None, nthread=a.threads)
+    print("\n".join(d.findings))
+    print(f"verdict: {d.verdict}  ({d.wall_time_s:.0f} s)")
+    if a.out:
+        path = d.save(a.out)
+        _diagnosis_plot(d, Path(a.out))
+        print(f"wrote {path} and {Path(a.out) / 'hypotheses.png'}")
+    return 0
+
+
+def _diagnosis_plot(d, out: Path) -> None:
+    from adadex.sysid import plots
+
+    hs = d.hypotheses[:12]
+    if not hs:
+        return
+    fig, ax = plots.plt.subplots(figsize=(7, 0.3 * len(hs) + 1))
+    labels = [f"{h['effect']} @ {','.join(h['joints'])}" for h in hs]
+    ax.barh(range(len(hs)), [100 * h["heldout_error_reduction"] for h in hs], color="tab:blue")
+    ax.set_yticks(range(len(hs)), labels, fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("held-out excess-error reduction (%)")
+    ax.set_title(f"candidate effects (verdict: {d.verdict})", fontsize=9)
+    (out / "hypotheses.png").write_bytes(plots.fig_to_png(fig))
+
+
+def _parse_add(spec: str) -> tuple[str, list[str]]:
+    if ":" not in spec:
+        raise CliError(f"--add expects EFFECT:JOINT[,JOINT…], got {spec!r}")
+    eff, joints = spec.split(":", 1)
+    return eff, [j for j in joints.split(",") if j]
+
+
+def _cmd_fit(a) -> int:
+    from adadex.sysid.diagnose import Diagnosis
+    from adadex.sysid.fit import fit_patch
+
+    rec = _load_rec(a.recording)
+    if bool(a.add) == bool(a.accept):
+        raise CliError("give either --add EFFECT:JOINTS (repeatable) or --accept DIAGNOSIS_DIR")
+    if a.accept:
+        patch = Diagnosis.load(a.accept).patch()
+        if not len(patch):
+            raise CliError(f"{a.accept}: the diagnosis selected no effect (verdict "
+                           f"{Diagnosis.load(a.accept).verdict}); nothing to accept")
+    else:
+        patch = fit_patch(rec, [_parse_add(s) for s in a.add], base_patch=_load_patch(a.patch), nthread=a.threads)
+    patch = _load_patch(a.patch) + patch if a.patch and a.accept else patch
+    patch.save(a.out)
+    print(f"wrote {a.out}: {patch.describe()}")
+    _print_stages(rec, patch, a.threads)
+    return 0
+
+
+def _cmd_report(a) -> int:
+    from adadex.sysid.diagnose import Diagnosis
+    from adadex.sysid.report import write_report
+
+    rec = _load_rec(a.recording)
+    d = Diagnosis.load(a.diagnosis) if a.diagnosis else None
+    path = write_report(rec, _load_patch(a.patch), a.out, diagnosis=d, nthread=a.threads)
+    print(f"wrote {path}")
+    return 0
+
+
+def _cmd_demo(a) -> int:
+    from adadex.sysid.demo import run_demo
+
+    run_demo(recording=a.recording, out=a.out, nthread=a.threads)
+    return 0
+
+
+def add_parser(sub) -> None:
+    """Register ``sysid`` and its subcommands on the top-level ``adadex`` parser."""
+    p = sub.add_parser("sysid", help="model vs measurement: compare, diagnose, fit, report",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    s = p.add_subparsers(dest="sysid_command", required=True)
+
+    def common(q):
+        q.add_argument("--threads", type=int, default=2, help="rollout threads (default 2)")
+
+    q = s.add_parser("excite", help="design per-joint excitation (sine sweeps, chirp, multisine)")
+    q.add_argument("--joints", required=True, help="comma-separated joint names")
+    q.add_argument("--freqs", default="0.5,1.5,3", help="sine frequencies, Hz")
+    q.add_argument("--amps", default="0.25,1", help="amplitudes as fractions of the in-limit range")
+    q.add_argument("--poses", default="loaded,unloaded")
+    q.add_argument("--kinds", default="sine,chirp,multisine")
+    q.add_argument("--duration", type=float, default=3.0)
+    q.add_argument("--rate", type=float, default=60.0, help="sample rate, Hz")
+    q.add_argument("--out", required=True, help="plan.npz, or plan.csv for a folder of CSV files")
+    q.set_defaults(func=_cmd_excite)
+
+    q = s.add_parser("simulate", help="make a recording from a plan with the model plus effects")
+    q.add_argument("plan")
+    q.add_argument("--patch", help="truth patch (JSON) with the effects to hide in the data")
+    q.add_argument("--noise", type=float, default=2e-4, help="sensor noise std, rad")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--out", required=True)
+    common(q)
+    q.set_defaults(func=_cmd_simulate)
+
+    q = s.add_parser("compare", help="replay on the model: errors and where it fails")
+    q.add_argument("recording")
+    q.add_argument("--patch", help="also show baseline → +each effect of this patch")
+    q.add_argument("--out", help="folder for compare.json and plots")
+    common(q)
+    q.set_defaults(func=_cmd_compare)
+
+    q = s.add_parser("diagnose", help="which physical effect is missing")
+    q.add_argument("recording")
+    q.add_argument("--out", help="folder for diagnosis.json and plots")
+    q.add_argument("--patch", help="start from this patch instead of the nominal model")
+    q.add_argument("--candidates", help=f"comma-separated subset of: {', '.join(EFFECT_NAMES)}")
+    q.add_argument("--joints", help="diagnose these joints instead of the failing ones")
+    common(q)
+    q.set_defaults(func=_cmd_diagnose)
+
+    q = s.add_parser("fit", help="fit chosen effects (or accept a diagnosis) into a model patch")
+    q.add_argument("recording")
+    q.add_argument("--add", action="append", default=[], metavar="EFFECT:JOINTS")
+    q.add_argument("--accept", metavar="DIAGNOSIS_DIR")
+    q.add_argument("--patch", help="start from this patch")
+    q.add_argument("--out", required=True)
+    common(q)
+    q.set_defaults(func=_cmd_fit)
+
+    q = s.add_parser("report", help="self-contained HTML report: the error falling, plots, findings")
+    q.add_argument("recording")
+    q.add_argument("--patch")
+    q.add_argument("--diagnosis")
+    q.add_argument("--out", required=True)
+    common(q)
+    q.set_defaults(func=_cmd_report)
+
+    q = s.add_parser("demo", help="the whole loop on the shipped demo recording")
+    q.add_argument("--recording", default=str(DEMO_RECORDING))
+    q.add_argument("--out", default="adadex_demo")
+    common(q)
+    q.set_defaults(func=_cmd_demo)
+
+
+USER_ERRORS = (CliError, PatchError, EffectError, FileNotFoundError)
+
+
+def run(args) -> int:
+    """Run a sysid subcommand, turning user errors into one-line messages."""
+    from adadex.data.recording import RecordingError
+    from adadex.sysid.excite import ExcitationError
+
+    try:
+        return args.func(args)
+    except (*USER_ERRORS, RecordingError, ExcitationError) as e:
+        print(f"adadex sysid {args.sysid_command}: error: {e}", file=sys.stderr)
+        return 2

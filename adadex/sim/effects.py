@@ -235,7 +235,8 @@ class Armature(Effect):
 class ActuatorDelay(Effect):
     """Pure transport delay τ (s) between command and servo: the servo tracks the command of t − τ.
 
-    Implemented with MuJoCo 4 actuator history (``delay``/``nsample``, zero-order hold).
+    Implemented with MuJoCo 4 actuator history (``delay``/``nsample``), read with linear
+    interpolation so the delay is continuous rather than quantized to the physics step.
     Residual signature: phase lag growing linearly with frequency (φ = 2πfτ), gain unchanged; the
     error looks like the command's derivative times τ.
     """
@@ -248,7 +249,9 @@ class ActuatorDelay(Effect):
         nsample = int(np.ceil(self.MAX_DELAY / timestep)) + 2
         for j, v in zip(joints, values[:, 0]):
             if v != self.absent_values()[0]:
-                spec.actuator(f"{j}_pos").nsample = nsample
+                act = spec.actuator(f"{j}_pos")
+                act.nsample = nsample
+                act.interp = 1
 
     def apply_model(self, m, base, jid, values):
         m.actuator_delay[jid] = values[:, 0]

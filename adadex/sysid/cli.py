@@ -20,6 +20,7 @@ import numpy as np
 
 from adadex.sim.effects import EFFECT_NAMES, EffectError
 from adadex.sim.patch import ModelPatch, PatchError
+from adadex.sim.robot import UnknownJointError
 
 DEMO_RECORDING = Path(__file__).resolve().parents[2] / "assets" / "recordings" / "demo.npz"
 
@@ -263,7 +264,7 @@ def add_parser(sub) -> None:
     q.set_defaults(func=_cmd_demo)
 
 
-USER_ERRORS = (CliError, PatchError, EffectError, FileNotFoundError)
+USER_ERRORS = (CliError, PatchError, EffectError, UnknownJointError, FileNotFoundError)
 
 
 def run(args) -> int:

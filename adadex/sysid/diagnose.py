@@ -1,12 +1,14 @@
 """Which physical effect is missing? Fit candidates where the model fails, rank them on held-out data.
 
 For every failing joint (see :func:`~adadex.sysid.compare.localize`) the joint's sequences are
-split into training and held-out sets (every third sequence is held out). Each candidate effect is
-fitted on the training set (:mod:`adadex.sysid.fit`) and scored on the held-out set by the
+split into training and held-out sets (every third sequence is held out). Every candidate effect is
+screened on a coarse parameter grid on the training set; the ``refine_top`` most promising are
+fitted precisely (:mod:`adadex.sysid.fit`). Each is scored on the held-out set by the
 fraction of the *excess* error it removes — the part of the mean squared error above the sensor
-noise floor, which no model can remove:
+noise floor, which no model can remove — averaged over the held-out sequences that have excess
+error, so that every regime counts alike:
 
-    reduction = 1 − (MSE_after − σ²) / (MSE_before − σ²)
+    reduction = mean over sequences of 1 − (MSE_after − σ²) / (MSE_before − σ²)
 
 Candidates are ranked by held-out reduction minus a complexity penalty per parameter. Forward
 selection then adds further effects on the same joint while each adds at least
@@ -99,16 +101,25 @@ def _split(seqs: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return train, held
 
 
-def _reduction(before: float, after: float, noise2: float) -> float:
+def _reduction(before, after, noise2: float) -> float:
+    """Fraction of the excess error removed, averaged over sequences that have excess error.
+
+    Per-sequence averaging weighs every regime alike: an effect that only matches the fast, large
+    sequences (where errors are largest) does not pass for one that explains the slow ones too.
+    """
+    before, after = np.atleast_1d(before), np.atleast_1d(after)
     excess = before - noise2
-    if excess <= 0:
+    keep = excess > 2.0 * noise2
+    if not keep.any():
         return 0.0
-    return float(1.0 - max(after - noise2, 0.0) / excess)
+    red = 1.0 - np.maximum(after[keep] - noise2, 0.0) / excess[keep]
+    return float(np.mean(np.clip(red, -1.0, 1.0)))
 
 
 def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFECT_NAMES,
              joints=None, max_effects_per_joint: int = 2, min_gain: float = 0.1, tie: float = 0.03,
-             explained_at: float = 0.8, nthread: int = 2, progress: bool = True) -> Diagnosis:
+             explained_at: float = 0.8, refine_top: int = 4, nthread: int = 2,
+             progress: bool = True) -> Diagnosis:
     """Diagnose ``recording``; see the module docstring. ``joints`` overrides the failing-joint search."""
     t0 = time.perf_counter()
     base_patch = base_patch if base_patch is not None else ModelPatch()
@@ -139,22 +150,32 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         chosen: list[Candidate] = []
         patch = base_patch
         held_fitter = JointFitter(rep, joint, held, patch)
-        held_before = held_fitter.mse(patch)
+        held_before = held_fitter.mse_per_sequence(patch)
         first_round: list[Candidate] = []
         for round_ in range(max_effects_per_joint):
             fitter = JointFitter(rep, joint, train, patch)
             held_fitter = JointFitter(rep, joint, held, patch)
-            cur_held = held_fitter.mse(patch)
+            cur_held = held_fitter.mse_per_sequence(patch)
             cands = []
-            for name in candidates:
-                if any(c.effect == name for c in chosen):
-                    continue
-                r = fitter.fit(name)
-                held_after = held_fitter.mse(fitter.patch_with(name, r.value))
-                red_tr = _reduction(r.mse_before, r.mse_after, n2)
+            names_left = [n for n in candidates if not any(c.effect == n for c in chosen)]
+            train_before = fitter.mse(patch)
+            # Screen every candidate on a coarse grid; refine only the most promising ones.
+            grids = {n: fitter.grid(n) for n in names_left}
+            ranked = sorted(names_left, key=lambda n: grids[n][1].min())
+            for k, name in enumerate(ranked):
+                if k < refine_top:
+                    r = fitter.fit(name, grid=grids[name], mse_before=train_before)
+                    value, ci, after = r.value, r.ci95, r.mse_after
+                else:
+                    i = int(np.argmin(grids[name][1]))
+                    value, after = float(grids[name][0][i]), float(grids[name][1][i])
+                    eff = get_effect(name)
+                    ci = tuple(float(b[0, 0]) for b in eff.bounds([joint]))
+                held_after = held_fitter.mse_per_sequence(fitter.patch_with(name, value))
+                red_tr = _reduction(train_before, after, n2)
                 red_ho = _reduction(held_before, held_after, n2)
                 gain = red_ho - _reduction(held_before, cur_held, n2)
-                cands.append(Candidate(name, joint, r.value, r.ci95, red_tr, red_ho,
+                cands.append(Candidate(name, joint, value, ci, red_tr, red_ho,
                                        gain - COMPLEXITY_PENALTY * len(get_effect(name).params)))
                 if round_ == 0:
                     bar.update(1)

@@ -51,6 +51,10 @@ class JointFitter:
         sim = self.rep.simulate(patch, sequences=self.seqs)[..., self.col]
         return (sim - self.measured).ravel()
 
+    def mse_per_sequence(self, patch: ModelPatch) -> np.ndarray:
+        r = self.residual(patch).reshape(len(self.seqs), -1)
+        return np.mean(r * r, axis=1)
+
     def mse(self, patch: ModelPatch) -> float:
         r = self.residual(patch)
         return float(np.mean(r * r))
@@ -58,15 +62,31 @@ class JointFitter:
     def patch_with(self, effect: str, value: float) -> ModelPatch:
         return self.base_patch.with_effect(effect, [self.joint], [[value]])
 
-    def fit(self, effect: str, *, grid: int = 7, xtol_frac: float = 1e-3) -> FitResult:
+    def grid(self, effect: str, points: int = 9) -> tuple[np.ndarray, np.ndarray]:
+        """Costs on a coarse grid over the bounds plus the absent value: geometric for scale-like
+        parameters (positive lower bound), quadratic (dense near 0) for sizes that start at 0,
+        linear for signed ones."""
         eff = get_effect(effect)
         lo, hi = (float(b[0, 0]) for b in eff.bounds([self.joint]))
         absent = float(eff.absent_values()[0])
+        ramp = np.linspace(0, 1, points)
+        if lo > 0:
+            xs = np.geomspace(lo, hi, points)
+        elif lo < 0:
+            xs = lo + (hi - lo) * ramp
+        else:
+            xs = lo + (hi - lo) * ramp ** 2
+        xs = np.unique(np.concatenate([xs, [absent]]))
+        return xs, np.array([self.mse(self.patch_with(effect, float(x))) for x in xs])
+
+    def fit(self, effect: str, *, points: int = 9, xtol_frac: float = 1e-3, grid=None,
+            mse_before: float | None = None) -> FitResult:
+        """Grid, then bounded Brent refinement around the best grid point, then the CI."""
+        eff = get_effect(effect)
+        lo, hi = (float(b[0, 0]) for b in eff.bounds([self.joint]))
         start = self.evaluations
-        before = self.mse(self.base_patch)
-        xs = np.unique(np.concatenate([np.linspace(lo, hi, grid) ** 1 if lo < 0 else
-                                       lo + (hi - lo) * np.linspace(0, 1, grid) ** 2, [absent]]))
-        costs = np.array([self.mse(self.patch_with(effect, float(x))) for x in xs])
+        before = self.mse(self.base_patch) if mse_before is None else mse_before
+        xs, costs = grid if grid is not None else self.grid(effect, points)
         i = int(np.argmin(costs))
         a, b = xs[max(i - 1, 0)], xs[min(i + 1, len(xs) - 1)]
         best_x, best_c = float(xs[i]), float(costs[i])
@@ -125,3 +145,49 @@ def fit_patch(recording, additions, *, base_patch: ModelPatch | None = None, nth
             values.append([r.value])
         added = added.with_effect(effect, joints, np.array(values))
     return added
+
+
+def identify_pd(replayer, joint: str, seqs, *, method: str = "cma", seed: int = 0,
+                base_patch: ModelPatch | None = None, max_evals: int = 150) -> dict:
+    """The paper's identification: per-joint servo gains (``kp_scale``, ``kd_scale``) that minimize
+    Σ‖q_sim − q_real‖² on ``seqs``, with CMA-ES (``method="cma"``, the paper's choice, seeded) or
+    MuJoCo's bounded least squares (``method="lsq"``, the optimizer behind ``mujoco.sysid``).
+    """
+    import io
+    import time
+
+    import cma
+    from mujoco import minimize
+
+    fitter = JointFitter(replayer, joint, seqs, base_patch)
+    lo = np.array([get_effect("kp_scale").bounds([joint])[0][0, 0], get_effect("kd_scale").bounds([joint])[0][0, 0]])
+    hi = np.array([get_effect("kp_scale").bounds([joint])[1][0, 0], get_effect("kd_scale").bounds([joint])[1][0, 0]])
+
+    def patch_at(x):
+        return (fitter.base_patch.with_effect("kp_scale", [joint], [[float(x[0])]])
+                .with_effect("kd_scale", [joint], [[float(x[1])]]))
+
+    t0 = time.perf_counter()
+    x0 = np.ones(2)
+    if method == "cma":
+        span = hi - lo
+        es = cma.CMAEvolutionStrategy(((x0 - lo) / span).tolist(), 0.15,
+                                      {"bounds": [[0, 0], [1, 1]], "seed": seed + 1, "maxfevals": max_evals,
+                                       "verbose": -9, "popsize": 8})
+        while not es.stop():
+            zs = es.ask()
+            es.tell(zs, [fitter.mse(patch_at(lo + np.asarray(z) * span)) for z in zs])
+        x = lo + np.asarray(es.result.xbest) * span
+    elif method == "lsq":
+        def residual(x):
+            x = np.asarray(x)
+            cols = x if x.ndim == 2 else x[:, None]
+            return np.stack([fitter.residual(patch_at(cols[:, i])) for i in range(cols.shape[1])], axis=1) \
+                if x.ndim == 2 else fitter.residual(patch_at(x))
+
+        x, _ = minimize.least_squares(x0, residual, bounds=[lo, hi], verbose=0, output=io.StringIO(), max_iter=40)
+    else:
+        raise ValueError(f"method must be 'cma' or 'lsq', got {method!r}")
+    return {"joint": joint, "method": method, "kp_scale": float(x[0]), "kd_scale": float(x[1]),
+            "mse": fitter.mse(patch_at(x)), "mse_nominal": fitter.mse(fitter.base_patch),
+            "evaluations": fitter.evaluations, "seconds": time.perf_counter() - t0}

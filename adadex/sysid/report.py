@@ -89,7 +89,8 @@ code{background:#f3f3f3;padding:1px 4px}"""
 
 
 def write_report(recording, patch: ModelPatch, out, *, diagnosis=None, title: str = "adadex: model vs measurement",
-                 stages: Stages | None = None, nthread: int = 2, max_overlays: int = 6) -> Path:
+                 stages: Stages | None = None, nthread: int = 2, max_overlays: int = 6,
+                 pd_results: list[dict] | None = None) -> Path:
     """Write the HTML report atomically; returns its path."""
     st = stages if stages is not None else error_stages(recording, patch, nthread=nthread)
     base, final = st.comparisons[0], st.comparisons[-1]
@@ -124,6 +125,18 @@ def write_report(recording, patch: ModelPatch, out, *, diagnosis=None, title: st
                          f"<td>{100 * h['train_error_reduction']:.0f}%</td><td>{100 * h['heldout_error_reduction']:.0f}%</td>"
                          f"<td class='l'>{', '.join(h['alternatives'])}</td></tr>")
         parts.append("</table><ul>" + "".join(f"<li>{html.escape(f)}</li>" for f in diagnosis.findings[-len(diagnosis.explained_fraction) - 1:]) + "</ul>")
+    if pd_results:
+        parts.append("<h2>The paper's identification: per-joint servo gains, CMA-ES vs least squares</h2>"
+                     "<p>kp and kd scales fitted alone (no other effect) to Σ‖q<sub>sim</sub> − q<sub>real</sub>‖² "
+                     "on each joint's sequences. A gain fit absorbs what it can of other effects; the residual "
+                     "MSE shows how much it leaves.</p><table><tr><th class='l'>joint</th><th class='l'>method</th>"
+                     "<th>kp scale</th><th>kd scale</th><th>MSE nominal (rad²)</th><th>MSE fitted (rad²)</th>"
+                     "<th>evaluations</th><th>seconds</th></tr>")
+        for r in pd_results:
+            parts.append(f"<tr><td class='l'>{r['joint']}</td><td class='l'>{r['method']}</td><td>{r['kp_scale']:.3f}</td>"
+                         f"<td>{r['kd_scale']:.3f}</td><td>{r['mse_nominal']:.2e}</td><td>{r['mse']:.2e}</td>"
+                         f"<td>{r['evaluations']}</td><td>{r['seconds']:.1f}</td></tr>")
+        parts.append("</table>")
     parts.append("<h2>Overlays: command, measured, model before and after</h2>")
     err = base.rms_per_sequence_joint()
     worst = np.dstack(np.unravel_index(np.argsort(-err, axis=None), err.shape))[0]

@@ -116,9 +116,17 @@ def _reduction(before, after, noise2: float) -> float:
     return float(np.mean(np.clip(red, -1.0, 1.0)))
 
 
+def _patch_of(selected_per_joint: dict, base: ModelPatch) -> ModelPatch:
+    p = base
+    for joint, chosen in selected_per_joint.items():
+        for c in chosen:
+            p = p.with_effect(c.effect, [joint], [[c.value]])
+    return p
+
+
 def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFECT_NAMES,
              joints=None, max_effects_per_joint: int = 2, min_gain: float = 0.1, tie: float = 0.03,
-             explained_at: float = 0.8, refine_top: int = 4, nthread: int = 2,
+             explained_at: float = 0.8, refine_top: int = 4, refine_passes: int = 1, nthread: int = 2,
              progress: bool = True) -> Diagnosis:
     """Diagnose ``recording``; see the module docstring. ``joints`` overrides the failing-joint search."""
     t0 = time.perf_counter()
@@ -196,6 +204,31 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         selected_per_joint[joint] = chosen
         explained[joint] = chosen[-1].heldout_error_reduction if chosen else 0.0
     bar.close()
+
+    # Effects on one joint change how the others move (a finger that no longer flops changes the
+    # load on a saturating arm joint), so refit every selected value with all the other selected
+    # effects in place — a coordinate-descent pass — and score the joints again.
+    if sum(len(c) for c in selected_per_joint.values()) > 1:
+        for _ in range(refine_passes):
+            for joint, chosen in selected_per_joint.items():
+                for k, c in enumerate(chosen):
+                    others = ModelPatch(tuple(
+                        e for e in _patch_of(selected_per_joint, base_patch).effects
+                        if not (e.joints == (joint,) and e.effect == c.effect)))
+                    own = np.array([i for i, s in enumerate(seq_meta) if s.get("joint", joint) == joint])
+                    train, _ = _split(own, holdout)
+                    r = JointFitter(rep, joint, train, others).fit(c.effect)
+                    c.value, c.ci95 = r.value, r.ci95
+        full = _patch_of(selected_per_joint, base_patch)
+        for joint, chosen in selected_per_joint.items():
+            own = np.array([i for i, s in enumerate(seq_meta) if s.get("joint", joint) == joint])
+            _, held = _split(own, holdout)
+            hf = JointFitter(rep, joint, held, base_patch)
+            n2 = float(noise[names.index(joint)] ** 2)
+            red = _reduction(hf.mse_per_sequence(base_patch), hf.mse_per_sequence(full), n2)
+            if chosen:
+                chosen[-1].heldout_error_reduction = red
+            explained[joint] = red
 
     hypotheses = []
     for joint, cands in per_joint.items():

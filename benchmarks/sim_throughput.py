@@ -16,7 +16,6 @@ import argparse
 import json
 import os
 import platform
-import tempfile
 import time
 from pathlib import Path
 
@@ -25,6 +24,7 @@ import numpy as np
 from mujoco import rollout as mj_rollout
 from tqdm import tqdm
 
+from adadex.io import atomic_write_text
 from adadex.sim.batched import CTRL_SPEC, FULLPHYSICS, BatchedSim
 from adadex.sim.robot import joint_limits
 from adadex.sim.scene import PHYSICS_TIMESTEP, SUBSTEPS, build_scene_model, home_state
@@ -138,11 +138,7 @@ def main(argv=None) -> dict:
         "target_met": bool(ratio >= 0.95),
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "mujoco": mujoco.__version__},
     }
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=a.out.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(out, f, indent=2)
-    os.replace(tmp, a.out)
+    atomic_write_text(a.out, json.dumps(out, indent=2))
     print(f"sim throughput, B={a.worlds}, {a.threads} threads, {SUBSTEPS} substeps/control step "
           f"(control steps/s, all worlds):")
     for k, v in res.items():

@@ -15,13 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from adadex.io import atomic_write_text
 from adadex.sim.effects import EFFECT_NAMES, get_effect
 from adadex.sim.patch import ModelPatch
 from adadex.sim.robot import JOINT_NAMES, joint_group
@@ -89,11 +88,7 @@ def main(argv=None) -> dict:
                                                         if r["heldout_error_reduction"] is not None])),
            "simulate_seconds": t_sim, "diagnosis_seconds": t_diag, "target_seconds": 300,
            "target_met": bool(t_diag <= 300), "cases": rows}
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=a.out.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(out, f, indent=2)
-    os.replace(tmp, a.out)
+    atomic_write_text(a.out, json.dumps(out, indent=2))
     print(f"{'joint':<8} {'truth':<18} {'value':>8}  {'top-1':<18} {'fitted':>8}  {'ok':<3} {'held-out red.':>13}")
     for r in rows:
         print(f"{r['joint']:<8} {r['truth_effect']:<18} {r['truth_value']:8.4g}  {str(r['top1_effect']):<18} "

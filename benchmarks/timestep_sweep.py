@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -20,6 +18,7 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
+from adadex.io import atomic_write_text
 from adadex.sim import objects
 from adadex.sim.grasp import scripted_grasp_lift
 from adadex.sim.scene import OBJECT_QPOS, PhysicsOptions, build_scene_model, home_state
@@ -75,11 +74,7 @@ def main(argv=None) -> dict:
     passing = [r["physics_hz"] for r in rows if r["passes"]]
     out = {"benchmark": "timestep_sweep", "control_hz": 12.0, "rows": rows,
            "lowest_passing_physics_hz": min(passing) if passing else None}
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=a.out.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(out, f, indent=2)
-    os.replace(tmp, a.out)
+    atomic_write_text(a.out, json.dumps(out, indent=2))
     print(f"{'Hz':>5} {'pen mm':>7} {'settled':>8} {'grasps held (lift cm / slip mm)':<50} pass")
     for r in rows:
         gs = " ".join(f"{100 * g['lift_m']:.1f}/{1000 * g['slip_m']:.0f}" for g in r["grasps"])

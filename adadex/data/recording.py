@@ -73,14 +73,15 @@ import io
 import json
 import os
 import re
-import secrets
 import unicodedata
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import quote, unquote
 
 import numpy as np
+
+from adadex.io import atomic_write, write_temp
 
 from adadex.sim.robot import HOME_QPOS, JOINT_NAMES, NUM_JOINTS, UnknownJointError, joint_index, joint_limits
 
@@ -526,7 +527,7 @@ class Recording:
             raise RecordingFileError(f"{path}: save writes .npz; use to_csv(recording, directory) for CSV")
         self.validate()
         arrays = self.to_arrays()
-        _atomic_write(path, lambda f: np.savez(f, **arrays))
+        atomic_write(path, lambda f: np.savez(f, **arrays))
         return path
 
     @classmethod
@@ -590,40 +591,6 @@ def _meta_from_file(arr: np.ndarray, path: Path) -> dict:
     if not isinstance(meta, dict):
         raise RecordingFileError(f"{path}: key 'meta' must be a JSON object, got {type(meta).__name__}")
     return meta
-
-
-def _temp_path(path: Path) -> Path:
-    return path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
-
-
-def _open_new(tmp: Path):
-    """Create ``tmp`` exclusively with the usual permissions (mkstemp would make it owner-only)."""
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
-    return os.fdopen(fd, "wb")
-
-
-def _write_temp(path: Path, write) -> Path:
-    tmp = _temp_path(path)
-    try:
-        with _open_new(tmp) as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return tmp
-
-
-def _atomic_write(path: Path, write) -> None:
-    """Write ``path`` via a temporary file in the same directory and ``os.replace``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _write_temp(path, write)
-    try:
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 # ---------------------------------------------------------------------- loading by extension
@@ -836,7 +803,7 @@ def to_csv(rec: Recording, directory) -> list[Path]:
     temps: list[Path] = []
     try:
         for p, text in zip(paths, texts):
-            temps.append(_write_temp(p, lambda f, text=text: f.write(text.encode("utf-8"))))
+            temps.append(write_temp(p, lambda f, text=text: f.write(text.encode("utf-8"))))
         for tmp, p in zip(temps, paths):
             os.replace(tmp, p)
     except BaseException:

@@ -288,7 +288,7 @@ class TorqueLimit(Effect):
     """
 
     name, stage = "torque_limit", "model"
-    params = (Param("fraction", "× effort", 1.0, _same(0.5), _same(0.05), _same(1.0)),)
+    params = (Param("fraction", "× effort", 1.0, _per_group(0.7, 0.6, 0.5), _same(0.05), _same(1.0)),)
 
     def apply_model(self, m, base, jid, values):
         lim = _EFFORT[jid] * values[:, 0]
@@ -354,7 +354,7 @@ class JointSpring(Effect):
     """
 
     name, stage = "joint_spring", "model"
-    params = (Param("stiffness", "N·m/rad", 0.0, _per_group(100.0, 20.0, 0.5),
+    params = (Param("stiffness", "N·m/rad", 0.0, _per_group(8.0, 4.0, 0.3),
                     _same(0.0), _per_group(1000.0, 200.0, 5.0)),)
 
     def apply_model(self, m, base, jid, values):

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -352,18 +351,8 @@ def robot_mjcf_path() -> Path:
 
 def export_mjcf(path: str | os.PathLike = ROBOT_MJCF) -> Path:
     """Write the builder's robot to ``path`` as MJCF, atomically (temp file + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    from adadex.io import atomic_write_text
+
     spec = build_robot_spec()
     spec.compile()
-    xml = spec.to_xml()
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(xml)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    return atomic_write_text(path, spec.to_xml())

@@ -183,7 +183,17 @@ def _cmd_report(a) -> int:
 
     rec = _load_rec(a.recording)
     d = Diagnosis.load(a.diagnosis) if a.diagnosis else None
-    path = write_report(rec, _load_patch(a.patch), a.out, diagnosis=d, nthread=a.threads)
+    pd = None
+    if a.pd:
+        from tqdm import tqdm
+
+        from adadex.sysid.fit import identify_pd, sequences_moving
+        from adadex.sysid.replay import Replayer
+
+        rep = Replayer(rec, nthread=a.threads)
+        pd = [identify_pd(rep, j, sequences_moving(rec, j), method=m)
+              for j in tqdm(rec.joint_names, desc="kp/kd fits", unit="joint") for m in ("cma", "lsq")]
+    path = write_report(rec, _load_patch(a.patch), a.out, diagnosis=d, nthread=a.threads, pd_results=pd)
     print(f"wrote {path}")
     return 0
 
@@ -253,6 +263,8 @@ def add_parser(sub) -> None:
     q.add_argument("recording")
     q.add_argument("--patch")
     q.add_argument("--diagnosis")
+    q.add_argument("--pd", action="store_true",
+                   help="add the paper's per-joint kp/kd identification, CMA-ES vs least squares")
     q.add_argument("--out", required=True)
     common(q)
     q.set_defaults(func=_cmd_report)

@@ -25,8 +25,6 @@ best candidates explain too little; the report says how much).
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +32,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from adadex.io import atomic_write_text
 from adadex.sim.effects import EFFECT_NAMES, get_effect
 from adadex.sim.patch import ModelPatch
 from adadex.sysid.compare import compare, heldout_mask, localize, noise_floor
@@ -78,14 +77,7 @@ class Diagnosis:
                 "findings": self.findings, "wall_time_s": self.wall_time_s}
 
     def save(self, directory) -> Path:
-        d = Path(directory)
-        d.mkdir(parents=True, exist_ok=True)
-        path = d / "diagnosis.json"
-        fd, tmp = tempfile.mkstemp(dir=d, suffix=".tmp")
-        with os.fdopen(fd, "w") as f:
-            json.dump(self.to_dict(), f, indent=2)
-        os.replace(tmp, path)
-        return path
+        return atomic_write_text(Path(directory) / "diagnosis.json", json.dumps(self.to_dict(), indent=2))
 
     @classmethod
     def load(cls, directory_or_file) -> "Diagnosis":

@@ -1,8 +1,9 @@
 """Replay recorded commands on the model: what would the simulator have measured?
 
 Every sequence of a recording is rolled out with ``mujoco.rollout`` (batched over sequences, on a
-persistent thread pool), from the recording's initial configuration at rest, with the commands
-held constant between samples. The physics step divides the recording period: ``k`` substeps of
+persistent thread pool), from the recording's initial configuration, first holding the initial
+command for :data:`PREROLL_S` so the robot is at rest at t = 0, then with the commands held
+constant between samples. The physics step divides the recording period: ``k`` substeps of
 ``dt_rec / k`` with the smallest ``k`` giving a step ≤ the scene's :data:`PHYSICS_TIMESTEP`.
 
 A :class:`Replayer` compiles one model per *structure* (which actuators carry a delay buffer or a
@@ -30,6 +31,10 @@ from adadex.sim.robot import NUM_JOINTS
 from adadex.sim.scene import PHYSICS_TIMESTEP, PhysicsOptions, build_scene_spec
 
 FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+#: Before t = 0 the robot holds the first command for this long, as a real robot does before a
+#: recording starts: every sequence then starts at rest at the model's own equilibrium (a weaker
+#: servo or a payload sags before the first sample, not during it).
+PREROLL_S = 0.5
 CTRL_SPEC = int(mujoco.mjtState.mjSTATE_CTRL)
 
 
@@ -46,7 +51,7 @@ class Replayer:
         nthread: threads of the rollout pool.
     """
 
-    def __init__(self, recording, *, nthread: int = 2):
+    def __init__(self, recording, *, nthread: int = 2, preroll_s: float = PREROLL_S):
         self.rec = recording
         self.nthread = nthread
         self.k = substeps_for(recording.dt)
@@ -58,6 +63,7 @@ class Replayer:
         S, T, _ = self._command.shape
         self._state_out = None
         self.num_steps = (T - 1) * self.k
+        self.preroll_steps = int(round(preroll_s / self.timestep))
 
     def close(self) -> None:
         if self._pool is not None:
@@ -125,14 +131,15 @@ class Replayer:
         cmd = patch.transform_command(self._command[idx], self.rec.dt)
         S, T, _ = cmd.shape
         init = self._initial_states(model, cmd[:, 0], idx)
-        ctrl = np.ascontiguousarray(np.repeat(cmd[:, :-1], self.k, axis=1))
-        nstate = init.shape[1]
-        state = np.empty((S, self.num_steps, nstate))
+        P = self.preroll_steps
+        ctrl = np.ascontiguousarray(np.concatenate(
+            [np.repeat(cmd[:, :1], P, axis=1), np.repeat(cmd[:, :-1], self.k, axis=1)], axis=1))
+        n = P + self.num_steps
+        state = np.empty((S, n, init.shape[1]))
         self._pool.rollout([model] * S, datas, init, ctrl, control_spec=CTRL_SPEC, skip_checks=True,
-                           nstep=self.num_steps, state=state,
-                           sensordata=np.empty((S, self.num_steps, model.nsensordata)))
+                           nstep=n, state=state, sensordata=np.empty((S, n, model.nsensordata)))
         qpos = np.empty((S, T, NUM_JOINTS))
-        qpos[:, 0] = init[:, 1:1 + NUM_JOINTS]
-        qpos[:, 1:] = state[:, self.k - 1::self.k, 1:1 + NUM_JOINTS]
+        qpos[:, 0] = state[:, P - 1, 1:1 + NUM_JOINTS] if P else init[:, 1:1 + NUM_JOINTS]
+        qpos[:, 1:] = state[:, P + self.k - 1::self.k, 1:1 + NUM_JOINTS]
         qpos = patch.transform_measurement(qpos)
         return qpos if full else qpos[..., self.jid]

@@ -12,13 +12,12 @@ from __future__ import annotations
 import base64
 import html
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from adadex.io import atomic_write_text
 from adadex.sim.patch import ModelPatch
 from adadex.sysid import plots
 from adadex.sysid.compare import Comparison, heldout_mask, localize
@@ -155,10 +154,4 @@ def write_report(recording, patch: ModelPatch, out, *, diagnosis=None, title: st
     parts.append(_img(plots.fig_to_png(plots.heatmap(final.rms_per_sequence_joint(), joints, recording.sequence_labels,
                                                      "model + patch", vmax)), "heatmap after"))
     parts.append("</body></html>")
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write("\n".join(parts))
-    os.replace(tmp, out)
-    return out
+    return atomic_write_text(out, "\n".join(parts))

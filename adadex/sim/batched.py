@@ -46,6 +46,27 @@ FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
 CTRL_SPEC = int(mujoco.mjtState.mjSTATE_CTRL)
 
 
+class RolloutPool:
+    """Owns a persistent ``mujoco.rollout.Rollout`` thread pool, closed with the object."""
+
+    _pool: mj_rollout.Rollout | None = None
+
+    def _open_pool(self, nthread: int) -> mj_rollout.Rollout:
+        self._pool = mj_rollout.Rollout(nthread=nthread)
+        return self._pool
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
 @dataclass
 class SimReadout:
     """What one control step returns, all arrays with the batch dimension first."""
@@ -58,7 +79,7 @@ class SimReadout:
     unstable: np.ndarray      # (B,) bool
 
 
-class BatchedSim:
+class BatchedSim(RolloutPool):
     """B worlds stepped together; see the module docstring.
 
     Args:
@@ -98,7 +119,7 @@ class BatchedSim:
         self.timestep = float(m0.opt.timestep)
         self._has_object = m0.nq > NUM_JOINTS
         self._datas = [mujoco.MjData(m0) for _ in range(max(1, nthread))]
-        self._pool = mj_rollout.Rollout(nthread=nthread)
+        self._open_pool(nthread)
         B, nu = self.batch_size, m0.nu
         self.state = np.zeros((B, self.nstate))
         self._ctrl = np.zeros((B, substeps, nu))
@@ -116,17 +137,6 @@ class BatchedSim:
     @property
     def models(self) -> list[mujoco.MjModel]:
         return self._models
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.close()
-            self._pool = None
-
-    def __del__(self):
-        try:
-            self.close()
-        except Exception:
-            pass
 
     # ---------------------------------------------------------------- state
 

@@ -23,8 +23,8 @@ import math
 
 import mujoco
 import numpy as np
-from mujoco import rollout as mj_rollout
 
+from adadex.sim.batched import RolloutPool
 from adadex.sim.effects import ModelBase
 from adadex.sim.patch import ModelPatch
 from adadex.sim.robot import NUM_JOINTS
@@ -43,7 +43,7 @@ def substeps_for(dt: float, max_step: float = PHYSICS_TIMESTEP) -> int:
     return max(1, math.ceil(dt / max_step * (1 - 1e-9)))
 
 
-class Replayer:
+class Replayer(RolloutPool):
     """Replays one recording under any number of patches; see the module docstring.
 
     Args:
@@ -58,23 +58,11 @@ class Replayer:
         self.timestep = recording.dt / self.k
         self.jid = np.asarray(recording.joint_indices)
         self._models: dict[tuple, tuple[mujoco.MjModel, ModelBase, list[mujoco.MjData]]] = {}
-        self._pool = mj_rollout.Rollout(nthread=nthread)
+        self._open_pool(nthread)
         self._command = np.asarray(recording.full_command(), dtype=np.float64)   # (S, T, 22)
         S, T, _ = self._command.shape
-        self._state_out = None
         self.num_steps = (T - 1) * self.k
         self.preroll_steps = int(round(preroll_s / self.timestep))
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.close()
-            self._pool = None
-
-    def __del__(self):
-        try:
-            self.close()
-        except Exception:
-            pass
 
     # ------------------------------------------------------------------ models
 

@@ -74,7 +74,8 @@ def _cmd_simulate(a) -> int:
     return 0
 
 
-def _print_stages(rec, patch, threads) -> None:
+def _print_stages(rec, patch, threads):
+    """Print baseline → +each effect and return the :class:`~adadex.sysid.report.Stages`."""
     from adadex.sysid.report import error_stages
 
     st = error_stages(rec, patch, nthread=threads)

@@ -1,0 +1,205 @@
+"""Build a reference dataset: instructions → synthesized human motion → retargeted robot reference
+→ feasibility filter → splits → dataset folder. This is what ``adadex data build`` runs.
+
+Presets (:data:`PRESETS`):
+
+``tiny``   a few references on four objects (one held out) — for tests, seconds;
+``small``  hundreds of references over all 80 objects — for CPU experiments;
+``paper``  the paper's size: 505 base instructions × 10 paraphrases over 50 objects (45 seen + the 5
+           held out) — for machines that can afford it.
+
+Splits written with the dataset (``splits.json``), disjoint by construction:
+
+``unseen_trajectory``  references on seen objects, 80 % train / 20 % test at random;
+``unseen_object``      the same train part; test = every reference on a held-out object
+                       (:func:`adadex.sim.objects.held_out_objects`), none of which is ever in a train part.
+
+Every random choice derives from ``seed``; the same seed builds the same dataset.
+
+Example::
+
+    from adadex.data.build import build_dataset
+    report = build_dataset("tiny", "data/tiny", seed=0)
+    print(report.summary())
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from adadex.data import feasibility
+from adadex.data.reference import Reference, save_dataset
+from adadex.data.retarget import Retargeter
+from adadex.data.synth import VERBS, HumanMotion, NoiseConfig, Synthesizer, make_instruction
+from adadex.sim.objects import OBJECT_NAMES, held_out_objects
+
+
+@dataclass(frozen=True)
+class Preset:
+    """How many references to build, on which objects."""
+
+    name: str
+    objects: tuple[str, ...]
+    base_instructions: int
+    paraphrases: int
+    description: str
+
+
+def _paper_objects() -> tuple[str, ...]:
+    held = set(held_out_objects())
+    seen = [n for n in OBJECT_NAMES if n not in held]
+    step = len(seen) / 45
+    return tuple(seen[int(i * step)] for i in range(45)) + tuple(sorted(held))
+
+
+PRESETS: dict[str, Preset] = {
+    "tiny": Preset("tiny", ("cube_050", "cylinder_02", "bottle_00", "box_04"), 4, 2,
+                   "8 references on 4 objects (box_04 held out); for tests"),
+    "small": Preset("small", OBJECT_NAMES, 100, 4, "≈400 references over all 80 objects; for CPU experiments"),
+    "paper": Preset("paper", _paper_objects(), 505, 10, "505 base × 10 paraphrases over 50 objects (paper size)"),
+}
+
+
+@dataclass
+class BuildReport:
+    """What a build produced and how long each stage took."""
+
+    preset: str
+    seed: int
+    candidates: int = 0
+    accepted: int = 0
+    rejected: Counter = field(default_factory=Counter)
+    rejections: list = field(default_factory=list)      # [{name, reason, frame, detail}]
+    seconds: dict = field(default_factory=dict)          # stage → wall-clock seconds
+    retargeted_frames: int = 0
+    path: str | None = None
+
+    def summary(self) -> str:
+        rej = ", ".join(f"{k} {v}" for k, v in sorted(self.rejected.items())) or "none"
+        secs = ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items())
+        return (f"{self.preset}: {self.accepted} of {self.candidates} references accepted (rejected: {rej}); "
+                f"{self.retargeted_frames} frames retargeted; {secs}")
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["rejected"] = dict(self.rejected)
+        return d
+
+
+def plan_instructions(preset: Preset, seed: int):
+    """The preset's base instructions: verbs and objects assigned round-robin in a seeded order."""
+    rng = np.random.default_rng([seed, 1])
+    objects = list(rng.permutation(preset.objects))
+    verbs = list(rng.permutation(VERBS))
+    out = []
+    for i in range(preset.base_instructions):
+        obj = objects[i % len(objects)]
+        verb = verbs[(i + i // len(objects)) % len(verbs)]
+        out.append(make_instruction(str(verb), str(obj), seed=int(rng.integers(2 ** 31))))
+    return out
+
+
+def references_from_motions(motions: list[HumanMotion], group_ids: list[int], names: list[str],
+                            retargeter: Retargeter, config: feasibility.FeasibilityConfig, report: BuildReport,
+                            batch: int = 64, progress: bool = True):
+    """Retarget motions in batches and keep the feasible references (rejections go to ``report``)."""
+    out = []
+    frames = sum(len(m.keypoints) for m in motions)
+    order = sorted(range(len(motions)), key=lambda i: len(motions[i].keypoints))
+    batches = [order[s: s + batch] for s in range(0, len(order), batch)]
+    lengths = [max(len(motions[i].keypoints) for i in idx) for idx in batches]
+    bar = tqdm(total=sum(len(b) * T for b, T in zip(batches, lengths)), desc="retarget", unit="frame",
+               disable=not progress, leave=False)
+    t0 = time.perf_counter()
+    results = []
+    for idx, T in zip(batches, lengths):
+        kp = np.stack([np.pad(motions[i].keypoints, ((0, T - len(motions[i].keypoints)), (0, 0), (0, 0)),
+                              mode="edge") for i in idx])
+        res = retargeter.retarget(kp, progress=bar.update)
+        results += [(i, res, j) for j, i in enumerate(idx)]
+    bar.close()
+    report.seconds["retarget"] = report.seconds.get("retarget", 0.0) + time.perf_counter() - t0
+    report.retargeted_frames += frames
+
+    t0 = time.perf_counter()
+    for i, res, j in tqdm(sorted(results, key=lambda r: r[0]), desc="check", disable=not progress, leave=False):
+        m = motions[i]
+        T = len(m.keypoints)
+        ref = Reference.from_joint_positions(
+            res.joint_pos[j, :T], m.object_pose, object_name=m.instruction.object_name,
+            instruction=m.instruction.text, group_id=group_ids[i], fps=m.fps, human_keypoints=m.keypoints,
+            retarget_residual=res.residual[j, :T], name=names[i],
+            meta=dict(m.meta, retarget_scale=float(res.scale[j]),
+                      retarget_tip_error_max=float(res.tip_error[j, :T].max()),
+                      retarget_palm_error_max=float(res.palm_error[j, :T].max())))
+        rej = feasibility.check(ref, retarget_palm_error=res.palm_error[j, :T],
+                                retarget_tip_error=res.tip_error[j, :T], config=config)
+        if rej is None:
+            out.append(ref)
+        else:
+            report.rejected[rej.reason] += 1
+            report.rejections.append(dict(name=names[i], **rej.as_dict()))
+    report.seconds["check"] = report.seconds.get("check", 0.0) + time.perf_counter() - t0
+    return out
+
+
+def make_splits(refs: list[Reference], seed: int, test_fraction: float = 0.2) -> dict:
+    """``unseen_trajectory`` and ``unseen_object`` splits (see the module docstring)."""
+    held = set(held_out_objects())
+    seen = [i for i, r in enumerate(refs) if r.object_name not in held]
+    unseen = [i for i, r in enumerate(refs) if r.object_name in held]
+    rng = np.random.default_rng([seed, 2])
+    perm = [seen[k] for k in rng.permutation(len(seen))]
+    n_test = int(round(test_fraction * len(seen)))
+    test, train = sorted(perm[:n_test]), sorted(perm[n_test:])
+    return {"unseen_trajectory": {"train": train, "test": test},
+            "unseen_object": {"train": train, "test": unseen}}
+
+
+def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfig = NoiseConfig(),
+                  config: feasibility.FeasibilityConfig = feasibility.FeasibilityConfig(),
+                  progress: bool = True, limit: int | None = None) -> BuildReport:
+    """Build ``preset`` into the dataset folder ``out`` (written atomically); returns a :class:`BuildReport`.
+
+    ``limit`` caps the number of base instructions (for quick looks at a large preset).
+    """
+    if isinstance(preset, str):
+        if preset not in PRESETS:
+            raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+        preset = PRESETS[preset]
+    report = BuildReport(preset.name, seed)
+    t0 = time.perf_counter()
+    synth = Synthesizer(noise)
+    bases = plan_instructions(preset, seed)[:limit]
+    motions, groups, names = [], [], []
+    for g, base in enumerate(tqdm(bases, desc="synthesize", disable=not progress, leave=False)):
+        for instr in synth.paraphrases(base, preset.paraphrases, seed=seed * 100003 + g):
+            name = f"g{g:04d}_p{instr.paraphrase}_{instr.verb}_{instr.object_name}"
+            report.candidates += 1
+            try:
+                motions.append(synth.synthesize(instr, seed=seed * 1000003 + g * 10 + instr.paraphrase))
+            except ValueError as e:
+                report.rejected["no_grasp"] += 1
+                report.rejections.append({"name": name, "reason": "no_grasp", "frame": None, "detail": str(e)})
+                continue
+            groups.append(g)
+            names.append(name)
+    report.seconds["synthesize"] = time.perf_counter() - t0
+    refs = references_from_motions(motions, groups, names, Retargeter(), config, report, progress=progress)
+    report.accepted = len(refs)
+    if not refs:
+        raise RuntimeError(f"no reference of preset {preset.name!r} passed the feasibility filter: "
+                           f"{dict(report.rejected)}")
+    t0 = time.perf_counter()
+    splits = make_splits(refs, seed)
+    info = {"preset": preset.name, "seed": seed, "noise": asdict(noise), "feasibility": asdict(config),
+            "report": report.as_dict()}
+    report.path = str(save_dataset(refs, Path(out), splits=splits, info=info))
+    report.seconds["save"] = time.perf_counter() - t0
+    return report

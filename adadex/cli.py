@@ -2,6 +2,7 @@
 
 ``adadex sim info [--json]``   the robot, timing and object registry
 ``adadex sim export``          write the robot's MJCF to assets/robot/robot.xml
+``adadex data …``              reference datasets: build, info, show, import
 ``adadex sysid …``             model vs measurement: excite, simulate, compare, diagnose, fit, report, demo
 ``adadex demo``                a short simulation demo (settle objects, grasp and lift a cube)
 """
@@ -102,8 +103,10 @@ def build_parser() -> argparse.ArgumentParser:
     exp.add_argument("--out", default=None)
     exp.set_defaults(func=_cmd_sim_export)
 
+    from adadex.data import cli as data_cli
     from adadex.sysid import cli as sysid_cli
 
+    data_cli.add_parser(sub)
     sysid_cli.add_parser(sub)
 
     demo = sub.add_parser("demo", help="short simulation demo: objects settle, the hand grasps and lifts a cube")
@@ -118,6 +121,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "sysid":
         from adadex.sysid.cli import run
+
+        return run(args)
+    if args.command == "data":
+        from adadex.data.cli import run
 
         return run(args)
     return args.func(args)

@@ -1,0 +1,136 @@
+"""``adadex data …``: build, inspect and import reference datasets.
+
+    adadex data build  --preset tiny|small|paper --out DIR [--seed N] [--clean] [--limit N]
+    adadex data info   DIR                      counts per verb, object, split; rejection reasons
+    adadex data show   DIR --index I --out ref.png [--no-render]
+    adadex data import FILE.npz [FILE.npz …] --object NAME --out DIR
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from pathlib import Path
+
+
+def _cmd_build(a) -> int:
+    from adadex.data.build import PRESETS, build_dataset
+    from adadex.data.synth import NoiseConfig
+
+    p = PRESETS[a.preset]
+    n = min(a.limit, p.base_instructions) if a.limit else p.base_instructions
+    print(f"building preset {p.name!r}: {n} base instructions × {p.paraphrases} paraphrases on "
+          f"{len(p.objects)} objects (seed {a.seed}) → {a.out}")
+    report = build_dataset(a.preset, a.out, seed=a.seed, noise=NoiseConfig.clean() if a.clean else NoiseConfig(),
+                           limit=a.limit, progress=not a.quiet)
+    print(report.summary())
+    print(f"wrote {report.path}; see `adadex data info {report.path}`")
+    return 0
+
+
+def _cmd_info(a) -> int:
+    from adadex.data.reference import ReferenceDataset
+
+    ds = ReferenceDataset(a.dir)
+    verbs = Counter(e["meta"].get("verb", "?") for e in ds.entries)
+    objects = Counter(e["object"] for e in ds.entries)
+    summary = {
+        "path": str(ds.path), "references": len(ds), "frames": ds.num_frames,
+        "groups": len({e["group"] for e in ds.entries}), "objects": len(objects), "verbs": dict(verbs),
+        "splits": {name: {part: len(idx) for part, idx in parts.items()} for name, parts in ds.splits.items()},
+        "rejected": ds.info.get("report", {}).get("rejected", {}),
+    }
+    if a.json:
+        print(json.dumps(summary, indent=1))
+        return 0
+    print(f"{ds.path}: {len(ds)} references, {ds.num_frames} frames, {summary['groups']} semantic groups, "
+          f"{len(objects)} objects")
+    print("verbs:   " + ", ".join(f"{k} {v}" for k, v in sorted(verbs.items())))
+    for name, parts in summary["splits"].items():
+        print(f"split {name}: " + ", ".join(f"{k} {v}" for k, v in parts.items()))
+    if summary["rejected"]:
+        print("rejected while building: " + ", ".join(f"{k} {v}" for k, v in sorted(summary["rejected"].items())))
+    for i, e in enumerate(ds.entries[: a.head]):
+        print(f"  [{i}] {e['name']}: {e['instruction']!r} ({e['length']} frames, window from {e['window_start']})")
+    return 0
+
+
+def _cmd_show(a) -> int:
+    from adadex.data.reference import ReferenceDataset
+    from adadex.data.show import plot_reference
+
+    ds = ReferenceDataset(a.dir)
+    ref = ds[a.index]
+    out = plot_reference(ref, a.out, render=False if a.no_render else None)
+    print(f"wrote {out['path']}: {ref.instruction!r} on {ref.object_name} ({ref.num_frames} frames); "
+          f"{out['render_note']}")
+    return 0
+
+
+def _cmd_import(a) -> int:
+    from adadex.data.hoi_import import ImportRejected, import_npz
+    from adadex.data.reference import save_dataset
+    from adadex.data.retarget import Retargeter
+
+    rt = Retargeter()
+    refs, rejected = [], []
+    for i, f in enumerate(a.files):
+        try:
+            refs.append(import_npz(f, object_name=a.object, instruction=a.instruction, group_id=i, retargeter=rt))
+            print(f"imported {f}: {refs[-1].num_frames} frames")
+        except ImportRejected as e:
+            rejected.append({"file": str(f), **e.rejection.as_dict()})
+            print(f"rejected {f}: {e.rejection.reason}: {e.rejection.detail}")
+    if not refs:
+        raise ValueError("no file passed the feasibility filter; nothing written")
+    path = save_dataset(refs, a.out, info={"imported": [str(f) for f in a.files], "rejections": rejected})
+    print(f"wrote {path}: {len(refs)} references ({len(rejected)} rejected)")
+    return 0
+
+
+def add_parser(sub) -> None:
+    from adadex.data.build import PRESETS
+
+    data = sub.add_parser("data", help="hand–object reference datasets: build, info, show, import",
+                          description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    dsub = data.add_subparsers(dest="data_command", required=True)
+    b = dsub.add_parser("build", help="synthesize, retarget, filter and split a reference dataset")
+    b.add_argument("--preset", choices=sorted(PRESETS), default="tiny",
+                   help="; ".join(f"{k}: {v.description}" for k, v in PRESETS.items()))
+    b.add_argument("--out", required=True, help="dataset folder to write (replaced atomically)")
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--clean", action="store_true", help="no synthesis noise (for debugging)")
+    b.add_argument("--limit", type=int, default=None, help="use only the first N base instructions")
+    b.add_argument("--quiet", action="store_true", help="no progress bars")
+    b.set_defaults(func=_cmd_build)
+    i = dsub.add_parser("info", help="summary of a dataset")
+    i.add_argument("dir")
+    i.add_argument("--json", action="store_true")
+    i.add_argument("--head", type=int, default=5, help="list the first N references (default 5)")
+    i.set_defaults(func=_cmd_info)
+    s = dsub.add_parser("show", help="plot one reference (3-D and top-down paths, rendered frames)")
+    s.add_argument("dir")
+    s.add_argument("--index", type=int, default=0)
+    s.add_argument("--out", default="ref.png")
+    s.add_argument("--no-render", action="store_true", help="skip the rendered frames")
+    s.set_defaults(func=_cmd_show)
+    m = dsub.add_parser("import", help="retarget human keypoint + object pose .npz files into a dataset")
+    m.add_argument("files", nargs="+", type=Path)
+    m.add_argument("--object", default=None, help="object name (if the files do not say)")
+    m.add_argument("--instruction", default=None)
+    m.add_argument("--out", required=True)
+    m.set_defaults(func=_cmd_import)
+
+
+def run(args) -> int:
+    """Run a data subcommand, turning user errors into one-line messages."""
+    from adadex.sim.objects import UnknownObjectError
+
+    try:
+        return args.func(args)
+    except (ValueError, KeyError, IndexError, FileExistsError, UnknownObjectError) as e:
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
+        print(f"adadex data {args.data_command}: error: {msg}", file=sys.stderr)
+        return 2

@@ -1,0 +1,125 @@
+"""Import human–object data you bring: hand keypoints + object poses in an ``.npz``, retargeted to
+the robot on import.
+
+File layout (``.npz``)::
+
+    keypoints    (T, 21, 3) float   one hand's keypoints in MANO joint order (see
+                                    :data:`adadex.data.human_hand.KEYPOINT_NAMES`), world frame, metres;
+                 (T, H, 21, 3)      with H hands — rejected as not single-handed unless H == 1
+    object_pose  (T, 7) float       object position + w-first unit quaternion, world frame
+    fps          scalar (optional)  frame rate of the file; resampled to 12 Hz if different (default 12)
+    object_name  str (optional)     an object of the registry (``adadex sim info``)
+    instruction  str (optional)     what the motion does
+
+The world frame is the robot's: base at the origin, table top at z = 0, the robot reaching along +x.
+Keypoints are scaled about the wrist to the robot's hand size (``scale="auto"``) during
+retargeting; the result goes through the same feasibility filter as synthesized data.
+
+Example::
+
+    from adadex.data.hoi_import import import_npz
+    ref = import_npz("my_take.npz", object_name="mug_00", instruction="lift the mug")
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from adadex.data import feasibility
+from adadex.data.reference import (
+    Reference,
+    ReferenceError,
+    ReferenceShapeError,
+    ReferenceValueError,
+)
+from adadex.data.retarget import Retargeter
+from scipy.spatial.transform import Slerp
+
+from adadex.geometry import quat, rotation
+from adadex.sim.scene import CONTROL_HZ
+
+
+class ImportRejected(ReferenceError):
+    """The file is valid but the motion fails the feasibility filter; ``rejection`` says why."""
+
+    def __init__(self, message: str, rejection: feasibility.Rejection):
+        super().__init__(message)
+        self.rejection = rejection
+
+
+def resample(keypoints: np.ndarray, object_pose: np.ndarray, fps: float, target_fps: float = CONTROL_HZ):
+    """Keypoints (linear) and object poses (linear + slerp) at ``target_fps``."""
+    T = len(keypoints)
+    t_in = np.arange(T) / fps
+    t_out = np.arange(int(np.floor(t_in[-1] * target_fps)) + 1) / target_fps
+    kp = np.stack([np.stack([np.interp(t_out, t_in, keypoints[:, j, k]) for k in range(3)], -1)
+                   for j in range(keypoints.shape[1])], 1)
+    pos = np.stack([np.interp(t_out, t_in, object_pose[:, k]) for k in range(3)], -1)
+    rot = Slerp(t_in, rotation(object_pose[:, 3:]))(t_out)
+    return kp, np.concatenate([pos, quat(rot)], axis=1)
+
+
+def _field(data, key: str, path: Path, default=None):
+    if key in data.files:
+        v = data[key]
+        return v.item() if v.ndim == 0 else v
+    if default is None:
+        raise ReferenceError(f"{path}: missing array {key!r} (found {sorted(data.files)})")
+    return default
+
+
+def import_npz(path, *, object_name: str | None = None, instruction: str | None = None, group_id: int = 0,
+               scale: float | str = "auto", retargeter: Retargeter | None = None,
+               config: feasibility.FeasibilityConfig = feasibility.FeasibilityConfig()) -> Reference:
+    """Read, validate, resample, retarget and check one ``.npz`` (see the module docstring).
+
+    Raises :class:`ReferenceError` subclasses for malformed files and :class:`ImportRejected` when
+    the motion is not feasible for the robot.
+    """
+    path = Path(path)
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise ReferenceError(f"{path}: cannot read as .npz ({e})") from None
+    with data:
+        kp = np.asarray(_field(data, "keypoints", path), dtype=np.float64)
+        obj = np.asarray(_field(data, "object_pose", path), dtype=np.float64)
+        fps = float(_field(data, "fps", path, CONTROL_HZ))
+        object_name = object_name or str(_field(data, "object_name", path, ""))
+        instruction = instruction or str(_field(data, "instruction", path, path.stem))
+    if not object_name:
+        raise ReferenceError(f"{path}: no object_name in the file; pass object_name=")
+    if kp.ndim == 4:
+        if kp.shape[1] != 1:
+            raise ImportRejected(f"{path}: {kp.shape[1]} hands; references are single-handed",
+                                 feasibility.Rejection("two_hands", None, f"{kp.shape[1]} hands in the file"))
+        kp = kp[:, 0]
+    if kp.ndim != 3 or kp.shape[1:] != (21, 3):
+        raise ReferenceShapeError(f"{path}: keypoints: expected shape (T, 21, 3), got {kp.shape}")
+    if obj.shape != (len(kp), 7):
+        raise ReferenceShapeError(f"{path}: object_pose: expected shape ({len(kp)}, 7), got {obj.shape}")
+    for name, arr in (("keypoints", kp), ("object_pose", obj)):
+        bad = np.argwhere(~np.isfinite(arr))
+        if len(bad):
+            raise ReferenceValueError(f"{path}: {name}: non-finite value at frame {bad[0][0]}")
+    if not (np.isfinite(fps) and fps > 0):
+        raise ReferenceError(f"{path}: fps must be positive, got {fps}")
+    norms = np.linalg.norm(obj[:, 3:], axis=1)
+    if np.abs(norms - 1).max() > 1e-3:
+        t = int(np.argmax(np.abs(norms - 1)))
+        raise ReferenceError(f"{path}: object_pose quaternion at frame {t} has norm {norms[t]:.4f}, expected 1")
+    if abs(fps - CONTROL_HZ) > 1e-6:
+        kp, obj = resample(kp, obj, fps)
+    rt = retargeter or Retargeter()
+    res = rt.retarget(kp, scale=scale)
+    ref = Reference.from_joint_positions(
+        res.joint_pos, obj, object_name=object_name, instruction=instruction, group_id=group_id, fps=CONTROL_HZ,
+        human_keypoints=kp, retarget_residual=res.residual, name=path.stem,
+        meta={"source": str(path), "source_fps": fps, "retarget_scale": float(res.scale[0])})
+    rej = feasibility.check(ref, retarget_palm_error=res.palm_error, retarget_tip_error=res.tip_error, config=config)
+    if rej is not None:
+        raise ImportRejected(f"{path}: rejected ({rej.reason}): {rej.detail}", rej)
+    return ref
+

@@ -208,7 +208,7 @@ class Retargeter:
         if len(failing) and self.retry_above < np.inf:
             # Tracking lost the fit: the arm posture chosen at frame 0 ran into a joint limit later on.
             # Track those sequences again from every start posture and keep the best whole sequence.
-            starts = self._starts(q[failing])
+            starts = self._starts(q[failing])[1:8]   # the other arm postures (the thumb does not move the palm)
             K, F = len(starts), len(failing)
             tgt = target[failing].repeat(K, 1, 1, 1)
             q0, _ = self._solve_frame(tgt[:, 0], torch.cat(starts), self.first_iters)

@@ -121,7 +121,7 @@ def references_from_motions(motions: list[HumanMotion], group_ids: list[int], na
     for idx, T in zip(batches, lengths):
         kp = np.stack([np.pad(motions[i].keypoints, ((0, T - len(motions[i].keypoints)), (0, 0), (0, 0)),
                               mode="edge") for i in idx])
-        res = retargeter.retarget(kp, progress=bar.update)
+        res = retargeter.retarget(kp, lengths=[len(motions[i].keypoints) for i in idx], progress=bar.update)
         results += [(i, res, j) for j, i in enumerate(idx)]
     bar.close()
     report.seconds["retarget"] = report.seconds.get("retarget", 0.0) + time.perf_counter() - t0

@@ -41,7 +41,7 @@ _ARM, _HAND, _WORLD = 4, 8, 16
 class FeasibilityConfig:
     """Thresholds of :func:`check` (m)."""
 
-    max_palm_error: float = 0.04      # retargeting: wrist / middle-knuckle distance to the human's
+    max_palm_error: float = 0.05      # retargeting: wrist / middle-knuckle distance to the human's
     max_tip_error: float = 0.08       # retargeting: fingertip distance to the human's (embodiment bias is expected)
     max_penetration: float = 0.003    # hand–arm overlap tolerated
     max_table_penetration: float = 0.006  # arm/palm–table overlap tolerated

@@ -170,12 +170,13 @@ class Retargeter:
 
     # -- solve ---------------------------------------------------------------------------------
     def retarget(self, keypoints: np.ndarray, *, scale: float | np.ndarray | str = "auto",
-                 q_init: np.ndarray | None = None, progress=None) -> RetargetResult:
+                 q_init: np.ndarray | None = None, lengths=None, progress=None) -> RetargetResult:
         """Retarget ``keypoints`` (T, 21, 3) or (B, T, 21, 3) in the world frame.
 
         ``scale`` multiplies keypoint offsets from the wrist; ``"auto"`` uses robot hand length /
         median human hand length per sequence. ``progress`` is an optional callable taking the
-        number of frames just done (a tqdm ``update``).
+        number of frames just done (a tqdm ``update``). ``lengths`` (B,) gives each sequence's real
+        length when a batch was padded; padded frames then do not count toward the retry decision.
         """
         kp = np.asarray(keypoints, dtype=np.float64)
         single = kp.ndim == 3
@@ -204,7 +205,13 @@ class Retargeter:
         q = torch.as_tensor(np.broadcast_to(q_init, (B, NUM_JOINTS)).copy()).clamp(self._lo, self._hi)
         out_q, out_err = self._track(target, self._solve_first(target[:, 0], q)[0], progress)
         palm = [_MATCHED.index(i) for i in _PALM]
-        failing = torch.nonzero(out_err[..., palm].amax((1, 2)) > self.retry_above).flatten()
+        valid = torch.ones(B, T, dtype=torch.bool) if lengths is None else \
+            torch.arange(T)[None] < torch.as_tensor(np.asarray(lengths))[:, None]
+
+        def palm_error(err, rows):  # (n, T) wrist/palm error, zero on padded frames
+            return err[..., palm].amax(-1) * valid[rows]
+
+        failing = torch.nonzero(palm_error(out_err, slice(None)).amax(1) > self.retry_above).flatten()
         if len(failing) and self.retry_above < np.inf:
             # Tracking lost the fit: the arm posture chosen at frame 0 ran into a joint limit later on.
             # Track those sequences again from every start posture and keep the best whole sequence.
@@ -213,9 +220,9 @@ class Retargeter:
             tgt = target[failing].repeat(K, 1, 1, 1)
             q0, _ = self._solve_frame(tgt[:, 0], torch.cat(starts), self.first_iters)
             alt_q, alt_err = self._track(tgt, q0, None)
-            score = alt_err[..., palm].amax(-1).quantile(0.95, dim=1).reshape(K, F)
+            score = palm_error(alt_err, failing.repeat(K)).quantile(0.95, dim=1).reshape(K, F)
             pick = score.argmin(0) * F + torch.arange(F)
-            better = score.min(0).values < out_err[failing][..., palm].amax(-1).quantile(0.95, dim=1)
+            better = score.min(0).values < palm_error(out_err[failing], failing).quantile(0.95, dim=1)
             out_q[failing[better]] = alt_q[pick[better]]
             out_err[failing[better]] = alt_err[pick[better]]
         err = out_err.numpy()
@@ -258,6 +265,11 @@ class Retargeter:
             q = q0.clone()
             q[:, 18], q[:, 19] = cmc, axl
             starts.append(q)
+        # Thumb bent backward (MCP straight, IP hyperextended): from the flexed starts above the
+        # solve can stop with the MCP at its lower limit and the IP bent the wrong way, tip ~3 cm off.
+        q = q0.clone()
+        q[:, 20], q[:, 21] = 0.0, -0.8
+        starts.append(q)
         return starts
 
     def _solve_first(self, target: torch.Tensor, q0: torch.Tensor):

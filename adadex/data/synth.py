@@ -21,7 +21,7 @@ Example
 >>> from adadex.data.synth import Synthesizer, make_instruction
 >>> instr = make_instruction("lift", "cube_050", seed=0)
 >>> instr.text
-'lift the cube 12 cm'
+'lift the cube 19 cm'
 >>> variants = Synthesizer().paraphrases(instr, 3, seed=0)
 >>> motion = Synthesizer().synthesize(variants[1], seed=1)
 >>> motion.keypoints.shape[1:], motion.object_pose.shape[1]
@@ -162,11 +162,16 @@ def make_instruction(verb: str, object_name: str, seed: int) -> Instruction:
     return Instruction(verb, object_name, p, _text(verb, object_name, p, 0))
 
 
+#: Manner phrases appended once a verb's templates are used up, so the 10 paraphrases read differently.
+MANNERS = ("", ", slowly", ", carefully", ", in one smooth motion")
+
+
 def _text(verb: str, object_name: str, p: dict, k: int) -> str:
-    template = TEMPLATES[verb][k % len(TEMPLATES[verb])]
+    """Text of paraphrase ``k``: template ``k mod n``, then a manner phrase for every further round."""
+    templates = TEMPLATES[verb]
     fields = {"obj": _category(object_name), "h_cm": round(100 * p.get("h", 0)), "d_cm": round(100 * p.get("d", 0)),
               "deg": round(abs(np.degrees(p.get("angle", 0)))), "side": p.get("side", ""), "n": p.get("n", 0)}
-    return template.format(**fields)
+    return templates[k % len(templates)].format(**fields) + MANNERS[(k // len(templates)) % len(MANNERS)]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -458,9 +463,14 @@ class Synthesizer:
         yaw = st["approach_yaw"] + rng.normal(0, 0.15)
         d = Rotation.from_euler("z", yaw).apply(to_base)
         pos = o0[:3] + rng.uniform(0.22, 0.28) * d + [0, 0, rng.uniform(0.22, 0.3)]
+        dist = np.linalg.norm(pos - o0[:3])
         radial = np.linalg.norm(pos[:2])
         if radial < 0.3:
             pos[:2] *= 0.3 / radial
+            # Pushed out from the base axis, the hand can end up nearer the object (as near as 0.19 m
+            # for the palm, too close for an episode to start): raise it to keep its distance.
+            horizontal = np.linalg.norm(pos[:2] - o0[:2])
+            pos[2] = max(pos[2], o0[2] + np.sqrt(max(dist ** 2 - horizontal ** 2, 0.0)))
         rot = Rotation.from_rotvec(rng.normal(0, 0.25, 3)) * rotation(g0[3:])
         return _pose(pos, rot)
 

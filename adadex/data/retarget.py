@@ -50,6 +50,15 @@ _TIPS = (16, 17, 18, 19)
 _PALM = (0, 4)   # wrist and middle knuckle: where the arm puts the palm (index/ring knuckle spacing differs by design)
 _MIDDLE_CHAIN = (0, 4, 5, 6, 18)
 
+#: Points kept above the table top during retargeting: (frame, offset in the frame, clearance in m) —
+#: the forearm, wrist and flange capsule ends, the palm block's corners and the finger joints
+#: (see ``adadex.sim.robot``).
+TABLE_CLEARANCE_POINTS = (
+    ("link4", (0.0, 0.0, 0.0), 0.045), ("link4", (0.0, 0.0, -0.10), 0.045),
+    ("link5", (0.0, 0.0, 0.0), 0.04), ("link5", (0.038, 0.03, 0.0), 0.04), ("link6", (0.0, 0.0, 0.0), 0.04),
+) + tuple(("link6", (x, y, z), 0.008) for x in (-0.015, 0.015) for y in (-0.071, 0.065) for z in (0.015, 0.115)) + tuple(
+    (f, (0.0, 0.0, 0.0), 0.008) for f in ("th_ds", "th_px", "if_ds", "mf_ds", "rf_ds"))
+
 #: Default residual weight per keypoint kind.
 DEFAULT_WEIGHTS = {"wrist": 1.0, "knuckle": 0.5, "joint": 0.1, "tip": 1.0}
 
@@ -89,6 +98,8 @@ class Retargeter:
         iters: Gauss–Newton iterations per frame (warm-started).
         first_iters: iterations for the first frame (from ``HOME_QPOS`` or ``q_init``).
         smooth: weight (m/rad) of the pull toward the previous frame's joints.
+        table_weight: weight of the penalty on arm and palm points below the table top plus their
+            clearance (:data:`TABLE_CLEARANCE_POINTS`); 0 disables it.
         damping: Levenberg damping added to the normal equations.
         max_step: largest change of one joint per iteration, rad.
         retry_above: a sequence whose wrist/knuckle error exceeds this (m) at some frame is tracked
@@ -96,7 +107,8 @@ class Retargeter:
     """
 
     def __init__(self, *, weights: dict | None = None, iters: int = 4, first_iters: int = 60,
-                 smooth: float = 3e-3, damping: float = 1e-6, max_step: float = 0.25, retry_above: float = 0.05):
+                 smooth: float = 3e-3, damping: float = 1e-6, max_step: float = 0.25, retry_above: float = 0.05,
+                 table_weight: float = 3.0):
         w = dict(DEFAULT_WEIGHTS, **(weights or {}))
         unknown = set(w) - set(DEFAULT_WEIGHTS)
         if unknown:
@@ -108,7 +120,11 @@ class Retargeter:
         self.smooth, self.damping, self.max_step, self.retry_above = smooth, damping, max_step, retry_above
         self.fk = RobotKinematics()
         chain = self.fk.chain
-        self._frames = [ROBOT_POINTS[i] for i in _MATCHED]
+        self._frames = [ROBOT_POINTS[i] for i in _MATCHED] + [f for f, _, _ in TABLE_CLEARANCE_POINTS]
+        self._offsets = torch.tensor([[0.0, 0.0, 0.0]] * len(_MATCHED) + [o for _, o, _ in TABLE_CLEARANCE_POINTS],
+                                     dtype=torch.float64)
+        self._clearance = torch.tensor([c for _, _, c in TABLE_CLEARANCE_POINTS], dtype=torch.float64)
+        self.table_weight = table_weight
         self._w = torch.tensor([w[_kind(i)] for i in _MATCHED], dtype=torch.float64)
         # Joint frames and, per matched point, which joints move it (ancestors in the tree).
         joint_frame, axis, movers = {}, {}, {}
@@ -142,9 +158,10 @@ class Retargeter:
         return {name: mats[name].get_matrix() for name in self._all}
 
     def _points_jacobian(self, q: torch.Tensor):
-        """(N, K, 3) matched robot points and their (N, K, 3, 22) Jacobian."""
+        """(N, P, 3) robot points (matched keypoints, then table-clearance points), (N, P, 3, 22) Jacobian."""
         m = self._transforms(q)
-        pts = torch.stack([m[n][:, :3, 3] for n in self._frames], dim=1)
+        pts = torch.stack([m[n][:, :3, 3] + m[n][:, :3, :3] @ self._offsets[k] for k, n in enumerate(self._frames)],
+                          dim=1)
         origin = torch.stack([m[n][:, :3, 3] for n in self._joint_frames], dim=1)      # (N, 22, 3)
         rot = torch.stack([m[n][:, :3, :3] for n in self._joint_frames], dim=1)        # (N, 22, 3, 3)
         axis = torch.einsum("njab,jb->nja", rot, self._axes)                            # (N, 22, 3)
@@ -156,6 +173,7 @@ class Retargeter:
         """(…, 21, 3) the robot's own keypoints at joints ``q`` (…, 22); the little finger copies the ring."""
         lead = q.shape[:-1]
         pts, _ = self._points_jacobian(q.reshape(-1, NUM_JOINTS).to(torch.float64))
+        pts = pts[:, : len(_MATCHED)]
         out = torch.zeros(pts.shape[0], len(ROBOT_POINTS), 3, dtype=torch.float64)
         out[:, list(_MATCHED)] = pts
         out[:, [7, 8, 9, 20]] = out[:, [10, 11, 12, 19]]
@@ -291,13 +309,16 @@ class Retargeter:
         w = self._w[None, :, None]
         eye = torch.eye(NUM_JOINTS, dtype=torch.float64)
         reg = self.smooth ** 2
+        K = len(_MATCHED)
         for _ in range(iters):
             pts, jac = self._points_jacobian(q)
-            r = (w * (pts - target)).reshape(len(q), -1)
-            J = (w[..., None] * jac).reshape(len(q), -1, NUM_JOINTS)
+            below = (self._clearance - pts[:, K:, 2]).clamp(min=0.0)                  # (N, C)
+            r = torch.cat([(w * (pts[:, :K] - target)).reshape(len(q), -1), self.table_weight * below], dim=1)
+            J = torch.cat([(w[..., None] * jac[:, :K]).reshape(len(q), -1, NUM_JOINTS),
+                           -self.table_weight * (below > 0)[..., None] * jac[:, K:, 2]], dim=1)
             A = J.transpose(1, 2) @ J + (self.damping + reg) * eye
             g = (J.transpose(1, 2) @ r[..., None])[..., 0] + reg * (q - q_prev)
             dq = -torch.linalg.solve(A, g).clamp(-self.max_step, self.max_step)
             q = torch.minimum(torch.maximum(q + dq, self._lo), self._hi)
         pts, _ = self._points_jacobian(q)
-        return q, torch.linalg.norm(pts - target, dim=-1)
+        return q, torch.linalg.norm(pts[:, :K] - target, dim=-1)

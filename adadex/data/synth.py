@@ -35,6 +35,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Slerp
 
 from adadex.data.human_hand import ANGLE_LIMITS, NUM_ANGLES, TIP_INDEX, HumanHand
 from adadex.geometry import Rotation, compose, inverse, quat, rotation, slerp_poses
@@ -471,7 +472,11 @@ class Synthesizer:
             # for the palm, too close for an episode to start): raise it to keep its distance.
             horizontal = np.linalg.norm(pos[:2] - o0[:2])
             pos[2] = max(pos[2], o0[2] + np.sqrt(max(dist ** 2 - horizontal ** 2, 0.0)))
-        rot = Rotation.from_rotvec(rng.normal(0, 0.25, 3)) * rotation(g0[3:])
+        # Relaxed start: halfway between palm-down-fingers-forward and the coming grasp's orientation.
+        out = np.array([pos[0], pos[1], 0.0]) / np.linalg.norm(pos[:2])
+        neutral = Rotation.from_matrix(np.stack([[0.0, 0.0, 1.0], np.cross(out, [0.0, 0.0, 1.0]), out], axis=1))
+        half = Slerp([0.0, 1.0], Rotation.concatenate([neutral, rotation(g0[3:])]))(0.5)
+        rot = Rotation.from_rotvec(rng.normal(0, 0.15, 3)) * half
         return _pose(pos, rot)
 
     @staticmethod

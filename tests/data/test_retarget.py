@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from adadex.data.retarget import _MATCHED, DEFAULT_WEIGHTS, ROBOT_POINTS, Retargeter, hand_length
+from adadex.data.retarget import (
+    _MATCHED,
+    DEFAULT_WEIGHTS,
+    ROBOT_POINTS,
+    TABLE_CLEARANCE_POINTS,
+    Retargeter,
+    hand_length,
+)
 from adadex.sim.kinematics import RobotKinematics
 from adadex.sim.robot import HOME_QPOS, JOINT_NAMES, NUM_JOINTS, joint_limits
 
@@ -92,7 +99,7 @@ def test_points_jacobian_matches_finite_differences():
     rng = np.random.default_rng(1)
     q = torch.as_tensor(rng.uniform(LIMITS[:, 0], LIMITS[:, 1], (4, NUM_JOINTS)))
     pts, jac = rt._points_jacobian(q)
-    K = len(_MATCHED)
+    K = len(_MATCHED) + len(TABLE_CLEARANCE_POINTS)   # matched keypoints, then table-clearance points
     assert pts.shape == (4, K, 3) and jac.shape == (4, K, 3, NUM_JOINTS)
     eps = 1e-5
     fd = torch.empty_like(jac)
@@ -248,3 +255,18 @@ def test_retarget_is_deterministic():
     b = Retargeter().retarget(kp)
     for name in ("joint_pos", "residual", "tip_error", "palm_error", "at_limit", "scale"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+def test_table_clearance_keeps_the_arm_above_the_table():
+    """Targets that would pull the palm into the table: the clearance term keeps it out."""
+    rt, free = retargeter(), Retargeter(table_weight=0.0, retry_above=np.inf)
+    q = HOME_QPOS.copy()
+    kp = robot_keypoints(q[None, None])[0]
+    kp[:, :, 2] -= 0.25                      # the whole hand 25 cm lower: below the table top
+    lowest = []
+    for r in (rt, free):
+        res = r.retarget(kp)
+        pts, _ = r._points_jacobian(torch.as_tensor(res.joint_pos))
+        lowest.append(float(pts[:, len(_MATCHED):, 2].min()))
+    assert lowest[1] < -0.03                 # without the term the palm goes through the table
+    assert lowest[0] > -0.01                 # with it, the clearance points stay (nearly) above

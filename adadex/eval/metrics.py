@@ -1,0 +1,154 @@
+"""The paper's tracking metrics (Sec. 4.1), per frame, per trajectory and over a set of trajectories.
+
+Per frame (:func:`frame_errors`): ``T_o`` object position error and ``T_h`` wrist (palm) position
+error in m, ``R_o`` and ``R_h`` their rotation errors in rad (angle of :func:`adadex.quat.quat_diff`,
+so q ≡ −q), ``E_finger`` the mean absolute error of the 16 hand joints in rad.
+
+Success, two ways (:class:`Thresholds`, the paper's values by default):
+
+*mean-error*  a trajectory succeeds when its *mean* errors satisfy 0.5·T_o + 0.5·T_h ≤ 10 cm,
+              0.5·R_o + 0.5·R_h ≤ 60° and E_finger ≤ 40° — and it was tracked to its end (an episode
+              terminated early is not a success);
+*completion*  per trajectory, the fraction of its frames meeting the same thresholds (frames it
+              never reached count as failures), averaged over trajectories.
+
+:func:`from_rollout` reads the per-frame errors a tracking environment writes into each step's
+output (``("next", "errors", name)``) from a TorchRL rollout of batch shape ``[B, T]``, so
+evaluation never recomputes physics. Each row is one trajectory, up to and including its first
+``done``; a row without frames is reported as empty and left out.
+
+Example
+-------
+>>> import torch
+>>> err = {k: torch.zeros(2, 3) for k in ERROR_NAMES}
+>>> err["T_o"][1] = 0.5                                  # trajectory 1: object 50 cm off
+>>> m = trajectory_metrics(err)
+>>> m["success_mean_error"].tolist(), m["completion"].tolist()
+([True, False], [1.0, 0.0])
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from adadex.quat import quat_angle, quat_diff
+from adadex.sim.robot import ARM_JOINTS, NUM_JOINTS
+
+ERROR_NAMES = ("T_o", "R_o", "T_h", "R_h", "E_finger")
+_FINGERS = slice(len(ARM_JOINTS), NUM_JOINTS)
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """Success thresholds (SI units): position in m, rotations in rad."""
+
+    position: float = 0.10
+    rotation: float = math.radians(60.0)
+    finger: float = math.radians(40.0)
+
+    def __post_init__(self):
+        for k in ("position", "rotation", "finger"):
+            v = getattr(self, k)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"Thresholds.{k} must be a positive number, got {v}")
+
+
+def frame_errors(object_pose: torch.Tensor, ref_object_pose: torch.Tensor, palm_pose: torch.Tensor,
+                 ref_palm_pose: torch.Tensor, joint_pos: torch.Tensor, ref_joint_pos: torch.Tensor
+                 ) -> dict[str, torch.Tensor]:
+    """Per-frame errors from (…, 7) poses and (…, 22) joint positions; each output has shape (…)."""
+    return {
+        "T_o": torch.linalg.vector_norm(object_pose[..., :3] - ref_object_pose[..., :3], dim=-1),
+        "R_o": quat_angle(quat_diff(object_pose[..., 3:], ref_object_pose[..., 3:])),
+        "T_h": torch.linalg.vector_norm(palm_pose[..., :3] - ref_palm_pose[..., :3], dim=-1),
+        "R_h": quat_angle(quat_diff(palm_pose[..., 3:], ref_palm_pose[..., 3:])),
+        "E_finger": (joint_pos[..., _FINGERS] - ref_joint_pos[..., _FINGERS]).abs().mean(-1),
+    }
+
+
+def _meets(t_o, r_o, t_h, r_h, e_f, th: Thresholds) -> torch.Tensor:
+    return ((0.5 * t_o + 0.5 * t_h <= th.position) & (0.5 * r_o + 0.5 * r_h <= th.rotation)
+            & (e_f <= th.finger))
+
+
+def frame_success(errors: dict[str, torch.Tensor], thresholds: Thresholds = Thresholds()) -> torch.Tensor:
+    """Whether each frame meets the thresholds."""
+    return _meets(*(errors[k] for k in ERROR_NAMES), thresholds)
+
+
+def _check(errors: dict) -> tuple[int, int]:
+    missing = [k for k in ERROR_NAMES if k not in errors]
+    if missing:
+        raise KeyError(f"errors lack {missing}; expected {ERROR_NAMES}")
+    shapes = {k: tuple(errors[k].shape) for k in ERROR_NAMES}
+    if len(set(shapes.values())) != 1 or len(next(iter(shapes.values()))) != 2:
+        raise ValueError(f"errors must all have shape (B, T); got {shapes}")
+    return next(iter(shapes.values()))
+
+
+def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | None = None,
+                       lengths: torch.Tensor | None = None,
+                       thresholds: Thresholds = Thresholds()) -> dict[str, torch.Tensor]:
+    """Per-trajectory means and both success measures from (B, T) per-frame errors.
+
+    Args:
+        valid: (B, T) bool, the frames each trajectory actually tracked (default: all).
+        lengths: (B,) frames each trajectory should have tracked (default: its valid frames); a
+            trajectory with fewer valid frames ended early.
+
+    Returns (B,) tensors: the mean of each error (NaN for an empty trajectory), ``frames``,
+    ``ended_early``, ``success_mean_error`` (bool), ``completion`` (fraction), ``empty`` (bool).
+    """
+    B, T = _check(errors)
+    valid = torch.ones(B, T, dtype=torch.bool) if valid is None else valid.to(torch.bool)
+    n = valid.sum(1)
+    target = n if lengths is None else torch.as_tensor(lengths).to(n.dtype)
+    if (target < n).any():
+        raise ValueError("lengths must be at least the number of valid frames of each trajectory")
+    out: dict[str, torch.Tensor] = {}
+    for k in ERROR_NAMES:
+        e = torch.where(valid, errors[k].to(torch.float64), 0.0)
+        out[k] = torch.where(n > 0, e.sum(1) / n.clamp(min=1), torch.nan)
+    good = frame_success(errors, thresholds) & valid
+    out["frames"] = n
+    out["empty"] = n == 0
+    out["ended_early"] = n < target
+    out["success_mean_error"] = (~out["empty"]) & (~out["ended_early"]) & _meets(
+        *(out[k] for k in ERROR_NAMES), thresholds)
+    out["completion"] = torch.where(target > 0, good.sum(1) / target.clamp(min=1), 0.0).to(torch.float64)
+    return out
+
+
+def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
+    """Over non-empty trajectories: mean errors (positions in cm, rotations in rad, fingers in rad)
+    and success rates in %, as the paper's tables report them."""
+    keep = ~per_traj["empty"]
+    n = int(keep.sum())
+    out = {"trajectories": n, "empty": int(per_traj["empty"].sum())}
+    if n == 0:
+        return out | {k: math.nan for k in (*ERROR_NAMES, "success_mean_error_pct", "completion_pct")}
+    for k in ERROR_NAMES:
+        scale = 100.0 if k in ("T_o", "T_h") else 1.0
+        out[k] = float(per_traj[k][keep].mean()) * scale
+    out["success_mean_error_pct"] = 100.0 * float(per_traj["success_mean_error"][keep].double().mean())
+    out["completion_pct"] = 100.0 * float(per_traj["completion"][keep].mean())
+    return out
+
+
+def from_rollout(td, *, errors_key=("next", "errors"), lengths: torch.Tensor | None = None,
+                 thresholds: Thresholds = Thresholds()) -> dict[str, torch.Tensor]:
+    """:func:`trajectory_metrics` of a TorchRL rollout TensorDict of batch shape ``[B, T]``.
+
+    A trajectory's frames run up to and including its first ``("next", "done")``; frames after
+    it (an auto-reset next episode) are not counted.
+    """
+    if td.batch_dims != 2:
+        raise ValueError(f"expected a rollout of batch shape [B, T], got {list(td.batch_size)}")
+    errs = td.get(errors_key)
+    errors = {k: errs.get(k).reshape(td.batch_size) for k in ERROR_NAMES}
+    done = td.get(("next", "done")).reshape(td.batch_size).to(torch.bool)
+    after_done = torch.cumsum(done.int(), dim=1) - done.int() > 0
+    return trajectory_metrics(errors, valid=~after_done, lengths=lengths, thresholds=thresholds)

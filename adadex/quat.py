@@ -1,0 +1,51 @@
+"""Quaternion algebra on torch tensors, w-first (as MuJoCo stores them), batched over leading dims.
+
+The *difference* of two orientations is defined here once and used everywhere (observation,
+reward, metrics): ``quat_diff(a, b)`` is the rotation that takes ``b`` to ``a``, ``a ⊗ b⁻¹``, as a
+unit quaternion with w ≥ 0; its angle, :func:`quat_angle`, is the rotation error. Both treat q and
+−q as the same rotation.
+
+Example
+-------
+>>> import math, torch
+>>> a = torch.tensor([math.cos(0.25), 0.0, 0.0, math.sin(0.25)])   # 0.5 rad about z
+>>> b = torch.tensor([1.0, 0.0, 0.0, 0.0])
+>>> round(float(quat_angle(quat_diff(a, b))), 6), round(float(quat_angle(quat_diff(-a, b))), 6)
+(0.5, 0.5)
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product a ⊗ b of (…, 4) w-first quaternions."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ], dim=-1)
+
+
+def quat_conj(q: torch.Tensor) -> torch.Tensor:
+    """Conjugate (the inverse of a unit quaternion)."""
+    return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype, device=q.device)
+
+
+def quat_canonical(q: torch.Tensor) -> torch.Tensor:
+    """The same rotation with w ≥ 0."""
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def quat_diff(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Relative rotation a ⊗ b⁻¹ (takes ``b`` to ``a``), canonical (w ≥ 0). The one definition."""
+    return quat_canonical(quat_mul(a, quat_conj(b)))
+
+
+def quat_angle(q: torch.Tensor) -> torch.Tensor:
+    """Rotation angle in [0, π] of (…, 4) unit quaternions, robust near 0 and π."""
+    return 2.0 * torch.atan2(torch.linalg.vector_norm(q[..., 1:], dim=-1), q[..., 0].abs())

@@ -7,8 +7,9 @@ velocities, tracked-link poses, object pose — are slices of the rollout's outp
 no per-world Python loop on the hot path.
 
 Per-world models are allowed (a list of ``MjModel`` with the same structure, i.e. the same
-``MjModel.signature``), so physics parameters can be randomized per world; worlds with different
-objects need one ``BatchedSim`` per object structure. Results do not depend on the thread count: each world is rolled out
+``MjModel.signature``), so physics parameters can be randomized per world; worlds may even hold
+different objects when their scenes are built with ``uniform_layout=True`` (objects padded to the
+same number of geoms and meshes). Results do not depend on the thread count: each world is rolled out
 independently from its own state (tested).
 
 Unstable worlds: when MuJoCo detects a diverging simulation it resets that world's ``MjData``,
@@ -118,7 +119,11 @@ class BatchedSim(RolloutPool):
         self.substeps = substeps
         self.timestep = float(m0.opt.timestep)
         self._has_object = m0.nq > NUM_JOINTS
-        self._datas = [mujoco.MjData(m0) for _ in range(max(1, nthread))]
+        # Equal signatures leave some MjData sizes free: the sparse inertia (an object whose inertia is
+        # diagonal in its body frame has a sparser one) and the mesh bounding-volume hierarchies.
+        # Size the shared MjData for the largest model.
+        m_big = max(self._models, key=lambda m: (m.nC, m.nbvh, m.nbvhdynamic))
+        self._datas = [mujoco.MjData(m_big) for _ in range(max(1, nthread))]
         self._open_pool(nthread)
         B, nu = self.batch_size, m0.nu
         self.state = np.zeros((B, self.nstate))

@@ -481,9 +481,17 @@ def object_split(name: str) -> str:
     return "held_out" if get_object(name).held_out else "train"
 
 
+#: Most convex parts of any registry object (a test holds this to the registry).
+MAX_OBJECT_PARTS = 21
+
+
 def add_object_geoms(spec: mujoco.MjSpec, body: mujoco.MjsBody, name: str, *,
-                     friction=(1.0, 0.01, 0.001), rgba=None) -> None:
+                     friction=(1.0, 0.01, 0.001), rgba=None, pad_to: int | None = None) -> None:
     """Add object ``name`` to ``body``: one mesh asset and one collision geom per convex part.
+
+    ``pad_to`` adds massless, non-colliding, invisible placeholder geoms up to that many geoms, so
+    scenes with different objects have the same structure (equal ``MjModel.signature``) and can
+    be stepped together as per-world models of one :class:`~adadex.sim.batched.BatchedSim`.
 
     Meshes are named ``{name}_part{i}`` and reused if ``spec`` already has them, so one object
     can sit on several bodies. Geoms are named ``{body.name}_{name}_part{i}`` (``{name}_part{i}``
@@ -502,3 +510,12 @@ def add_object_geoms(spec: mujoco.MjSpec, body: mujoco.MjsBody, name: str, *,
         body.add_geom(name=f"{prefix}{mesh_name}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh_name,
                       density=info.density, condim=4, friction=list(friction), contype=1,
                       conaffinity=1, rgba=color)
+    n = len(_parts(info))
+    if pad_to is not None and pad_to < n:
+        raise ValueError(f"pad_to={pad_to} is less than the {n} parts of {name!r}")
+    for i in range(n, pad_to or 0):
+        # Placeholders are meshes with a mesh asset each: the model structure counts geom types and meshes.
+        if spec.mesh(f"adadex_pad{i}") is None:
+            spec.add_mesh(name=f"adadex_pad{i}", uservert=[0, 0, 0, 1e-3, 0, 0, 0, 1e-3, 0, 0, 0, 1e-3])
+        body.add_geom(name=f"{prefix}{name}_pad{i}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"adadex_pad{i}",
+                      mass=0.0, contype=0, conaffinity=0, group=5, rgba=[0, 0, 0, 0])

@@ -83,10 +83,13 @@ def apply_physics_options(spec: mujoco.MjSpec, opts: PhysicsOptions = PhysicsOpt
 
 def build_scene_spec(object_name: str | None = "box_00", *,
                      object_xy: tuple[float, float] = OBJECT_HOME_XY,
-                     options: PhysicsOptions = PhysicsOptions()) -> mujoco.MjSpec:
+                     options: PhysicsOptions = PhysicsOptions(), uniform_layout: bool = False) -> mujoco.MjSpec:
     """Robot + table + one object (or none with ``object_name=None``) as an ``MjSpec``.
 
-    The object body is named :data:`OBJECT_BODY`; it rests on the table at ``object_xy``.
+    The object body is named :data:`OBJECT_BODY`; it rests on the table at ``object_xy``. With
+    ``uniform_layout`` the object's geoms are padded to :data:`~adadex.sim.objects.MAX_OBJECT_PARTS`,
+    so scenes of any two objects share one structure (``MjModel.signature``) and one
+    ``BatchedSim`` can step worlds holding different objects in a single rollout call.
     """
     spec = build_robot_spec()
     spec.modelname = f"adadex_scene_{object_name or 'empty'}"
@@ -110,7 +113,8 @@ def build_scene_spec(object_name: str | None = "box_00", *,
         body = spec.worldbody.add_body(name=OBJECT_BODY,
                                        pos=[object_xy[0], object_xy[1], info.half_height + 1e-3])
         body.add_freejoint(name="object_free")
-        objects.add_object_geoms(spec, body, object_name)
+        objects.add_object_geoms(spec, body, object_name,
+                                 pad_to=objects.MAX_OBJECT_PARTS if uniform_layout else None)
     apply_physics_options(spec, options)
     key_qpos = list(HOME_QPOS)
     if object_name is not None:

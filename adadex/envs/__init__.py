@@ -1,0 +1,1 @@
+"""TorchRL environments: the tracking environment and its observation layout."""

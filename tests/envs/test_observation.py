@@ -1,0 +1,93 @@
+"""The 273-D observation vector: Table 4's order, checked entry by entry."""
+
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from adadex.envs.observation import (
+    JOINT_POS,
+    LAYOUT,
+    LINK_POSE,
+    OBJECT_LATENT,
+    OBJECT_POSE,
+    OBS_DIM,
+    REF_JOINT_POS,
+    REF_LINK_POSE,
+    REF_OBJECT_POSE,
+    REF_OFFSETS,
+    flat_from_tensordict,
+    flat_observation,
+)
+from adadex.quat import quat_angle
+
+
+def test_layout_is_table_4():
+    bounds = {name: (s.start, s.stop) for name, s in LAYOUT.items()}
+    assert bounds == {"joint_pos": (0, 22), "link_pose": (22, 57), "object_pose": (57, 64),
+                      "object_error": (64, 71), "ref_object_future": (71, 99), "joint_error": (99, 121),
+                      "ref_joint_future": (121, 209), "latent": (209, 273)}
+    assert OBS_DIM == 273 and REF_OFFSETS == (0, 1, 2, 4, 12)
+
+
+def structured(B=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+
+    def quats(*shape):
+        q = torch.randn(*shape, 4, generator=g, dtype=torch.float64)
+        return q / q.norm(dim=-1, keepdim=True)
+
+    def poses(*shape):
+        return torch.cat([torch.randn(*shape, 3, generator=g, dtype=torch.float64), quats(*shape)], -1)
+
+    return TensorDict({
+        JOINT_POS: torch.randn(B, 22, generator=g, dtype=torch.float64), LINK_POSE: poses(B, 5),
+        OBJECT_POSE: poses(B), OBJECT_LATENT: torch.randn(B, 64, generator=g, dtype=torch.float64),
+        REF_JOINT_POS: torch.randn(B, 5, 22, generator=g, dtype=torch.float64), REF_LINK_POSE: poses(B, 5, 5),
+        REF_OBJECT_POSE: poses(B, 5),
+    }, batch_size=[B])
+
+
+def test_every_entry_lands_where_table_4_says():
+    td = structured()
+    obs = flat_from_tensordict(td)
+    assert obs.shape == (3, 273)
+    assert torch.equal(obs[:, LAYOUT["joint_pos"]], td[JOINT_POS])
+    assert torch.equal(obs[:, LAYOUT["link_pose"]], td[LINK_POSE].reshape(3, 35))
+    assert torch.equal(obs[:, LAYOUT["object_pose"]], td[OBJECT_POSE])
+    err = obs[:, LAYOUT["object_error"]]
+    assert torch.allclose(err[:, :3], td[OBJECT_POSE][:, :3] - td[REF_OBJECT_POSE][:, 0, :3])
+    # The quaternion part is the relative rotation: its angle is the angle between the two.
+    cos = (td[OBJECT_POSE][:, 3:] * td[REF_OBJECT_POSE][:, 0, 3:]).sum(-1).abs().clamp(max=1)
+    assert torch.allclose(quat_angle(err[:, 3:]), 2 * torch.acos(cos), atol=1e-6)
+    assert (err[:, 3] >= 0).all()
+    assert torch.equal(obs[:, LAYOUT["ref_object_future"]], td[REF_OBJECT_POSE][:, 1:].reshape(3, 28))
+    assert torch.equal(obs[:, LAYOUT["joint_error"]], td[JOINT_POS] - td[REF_JOINT_POS][:, 0])
+    assert torch.equal(obs[:, LAYOUT["ref_joint_future"]], td[REF_JOINT_POS][:, 1:].reshape(3, 88))
+    assert torch.equal(obs[:, LAYOUT["latent"]], td[OBJECT_LATENT])
+
+
+def test_perfect_tracking_zeroes_the_errors():
+    td = structured()
+    td[OBJECT_POSE] = td[REF_OBJECT_POSE][:, 0]
+    td[JOINT_POS] = td[REF_JOINT_POS][:, 0]
+    obs = flat_from_tensordict(td)
+    assert torch.allclose(obs[:, LAYOUT["object_error"]], torch.tensor([0.0, 0, 0, 1, 0, 0, 0], dtype=obs.dtype))
+    assert torch.allclose(obs[:, LAYOUT["joint_error"]], torch.zeros(3, 22, dtype=obs.dtype))
+    td[OBJECT_POSE] = torch.cat([td[OBJECT_POSE][:, :3], -td[OBJECT_POSE][:, 3:]], -1)   # q ≡ −q
+    assert torch.allclose(flat_from_tensordict(td)[:, LAYOUT["object_error"]][:, 3:],
+                          torch.tensor([1.0, 0, 0, 0], dtype=obs.dtype))
+
+
+def test_extra_batch_dims_and_bad_shapes():
+    td = structured(B=6).reshape(2, 3)
+    assert flat_from_tensordict(td).shape == (2, 3, 273)
+    td = structured()
+    with pytest.raises(ValueError, match=r"ref_joint_pos: expected shape \(3, 5, 22\)"):
+        flat_observation(td[JOINT_POS], td[LINK_POSE], td[OBJECT_POSE], td[OBJECT_LATENT],
+                         td[REF_JOINT_POS][:, :4], td[REF_OBJECT_POSE])
+    with pytest.raises(ValueError, match="latent"):
+        flat_observation(td[JOINT_POS], td[LINK_POSE], td[OBJECT_POSE], td[OBJECT_LATENT][:, :32],
+                         td[REF_JOINT_POS], td[REF_OBJECT_POSE])
+    assert math.isfinite(float(flat_from_tensordict(td).sum()))

@@ -122,8 +122,7 @@ class BatchedSim(RolloutPool):
         # Equal signatures leave some MjData sizes free: the sparse inertia (an object whose inertia is
         # diagonal in its body frame has a sparser one) and the mesh bounding-volume hierarchies.
         # Size the shared MjData for the largest model.
-        m_big = max(self._models, key=lambda m: (m.nC, m.nbvh, m.nbvhdynamic))
-        self._datas = [mujoco.MjData(m_big) for _ in range(max(1, nthread))]
+        self._datas = self._make_datas(self._models)
         self._open_pool(nthread)
         B, nu = self.batch_size, m0.nu
         self.state = np.zeros((B, self.nstate))
@@ -142,6 +141,40 @@ class BatchedSim(RolloutPool):
     @property
     def models(self) -> list[mujoco.MjModel]:
         return self._models
+
+    @staticmethod
+    def _size_key(m: mujoco.MjModel) -> tuple[int, int, int]:
+        return (m.nC, m.nbvh, m.nbvhdynamic)
+
+    def _make_datas(self, models) -> list[mujoco.MjData]:
+        """Thread-local MjData sized for every model: from the largest one, which must cover all."""
+        big = max(models, key=self._size_key)
+        key = self._size_key(big)
+        for m in models:
+            if any(a > b for a, b in zip(self._size_key(m), key)):
+                raise ValueError(f"no single model bounds the data sizes (nC, nbvh, nbvhdynamic) of all worlds: "
+                                 f"{self._size_key(m)} vs {key}")
+        self._data_key = key
+        return [mujoco.MjData(big) for _ in range(max(1, self.nthread))]
+
+    def set_models(self, worlds: Sequence[int], models: Sequence[mujoco.MjModel]) -> None:
+        """Give ``worlds`` new models (same structure: another object of a uniform-layout scene, or
+        re-randomized parameters). Reset those worlds afterwards; their state is not converted."""
+        worlds = [int(w) for w in worlds]
+        models = list(models)
+        if len(worlds) != len(models):
+            raise ValueError(f"{len(worlds)} worlds but {len(models)} models")
+        sig = self._models[0].signature
+        for w, m in zip(worlds, models):
+            if not 0 <= w < self.batch_size:
+                raise IndexError(f"world {w} out of range for batch_size={self.batch_size}")
+            if m.signature != sig:
+                raise ValueError(f"model for world {w} differs in structure (signature {m.signature} != {sig}); "
+                                 f"build scenes with uniform_layout=True to swap objects")
+        for w, m in zip(worlds, models):
+            self._models[w] = m
+        if any(a > b for m in models for a, b in zip(self._size_key(m), self._data_key)):
+            self._datas = self._make_datas(self._models)
 
     # ---------------------------------------------------------------- state
 

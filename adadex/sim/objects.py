@@ -489,7 +489,7 @@ def add_object_geoms(spec: mujoco.MjSpec, body: mujoco.MjsBody, name: str, *,
                      friction=(1.0, 0.01, 0.001), rgba=None, pad_to: int | None = None) -> None:
     """Add object ``name`` to ``body``: one mesh asset and one collision geom per convex part.
 
-    ``pad_to`` adds massless, non-colliding, invisible placeholder geoms up to that many geoms, so
+    ``pad_to`` adds (nearly) massless, non-colliding, invisible placeholder geoms up to that many geoms, so
     scenes with different objects have the same structure (equal ``MjModel.signature``) and can
     be stepped together as per-world models of one :class:`~adadex.sim.batched.BatchedSim`.
 
@@ -517,5 +517,9 @@ def add_object_geoms(spec: mujoco.MjSpec, body: mujoco.MjsBody, name: str, *,
         # Placeholders are meshes with a mesh asset each: the model structure counts geom types and meshes.
         if spec.mesh(f"adadex_pad{i}") is None:
             spec.add_mesh(name=f"adadex_pad{i}", uservert=[0, 0, 0, 1e-3, 0, 0, 0, 1e-3, 0, 0, 0, 1e-3])
+        # The first placeholder carries 1 mg 1 cm off-centre (moving the centre of mass by ~0.1 µm), so no
+        # object body is "simple" (inertia frame = body frame): MuJoCo sizes the sparse inertia differently
+        # for simple bodies, and worlds stepped together must agree on that too.
         body.add_geom(name=f"{prefix}{name}_pad{i}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"adadex_pad{i}",
-                      mass=0.0, contype=0, conaffinity=0, group=5, rgba=[0, 0, 0, 0])
+                      mass=1e-6 if i == n else 0.0, pos=[0.01, 0.01, 0.01] if i == n else [0, 0, 0],
+                      contype=0, conaffinity=0, group=5, rgba=[0, 0, 0, 0])

@@ -46,6 +46,7 @@ LATENT_DIM = 64
 OBS_DIM = 273
 
 JOINT_POS = ("proprio", "joint_pos")
+JOINT_TARGET = ("proprio", "joint_target")
 LINK_POSE = ("proprio", "link_pose")
 OBJECT_POSE = ("object", "pose")
 OBJECT_LATENT = ("object", "latent")

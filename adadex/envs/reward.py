@@ -1,0 +1,76 @@
+"""The tracking reward (paper Eq. 1 as shaped in the supplement), batched torch, every weight a config value.
+
+``r = − w_track · (w_palm_pos·e_palm + w_palm_rot·e_palm_rot + w_joint·e_joint + w_tip·e_tip)``
+``    + w_prox · proximity − w_goal · d_goal + w_bonus · bonus``
+
+* tracking errors: palm position (m) and rotation (rad, :func:`adadex.quat.quat_diff` angle),
+  mean absolute joint error (rad), mean fingertip position error (m);
+* proximity: −min(d_palm, palm_clip) − gate · min(d_tip, tip_clip), distances from the robot's palm
+  and fingertips (mean) to the object centre; the fingertip term is on only once the palm is within
+  ``palm_gate`` of the object, and the whole term only while the reference hand is within
+  ``contact_distance`` of the reference object (approach and contact phases of the reference —
+  pulling the hand to the object while the reference hand is far away would fight the tracking);
+* d_goal: object position error + ``goal_rot_weight`` · object rotation error;
+* bonus: 1[e_palm ≤ τ_palm, e_tip ≤ τ_tip, d_goal ≤ τ_goal] · 1 / (1 + 10·d_goal).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from adadex.quat import quat_angle, quat_diff
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Weights and thresholds of the tracking reward (lengths in m, angles in rad)."""
+
+    w_track: float = 1.0
+    w_palm_pos: float = 1.0
+    w_palm_rot: float = 0.1
+    w_joint: float = 0.1
+    w_tip: float = 1.0
+    w_prox: float = 0.5
+    palm_clip: float = 0.2
+    tip_clip: float = 0.1
+    palm_gate: float = 0.08
+    contact_distance: float = 0.12
+    w_goal: float = 1.0
+    goal_rot_weight: float = 0.1
+    w_bonus: float = 1.0
+    tau_palm: float = 0.05
+    tau_tip: float = 0.05
+    tau_goal: float = 0.05
+
+    def __post_init__(self):
+        for k, v in self.__dict__.items():
+            if not (isinstance(v, (int, float)) and v == v and abs(v) != float("inf") and v >= 0):
+                raise ValueError(f"RewardConfig.{k} must be a finite number ≥ 0, got {v!r}")
+
+
+def tracking_reward(cfg: RewardConfig, *, joint_pos, link_pose, object_pose, ref_joint_pos, ref_link_pose,
+                    ref_object_pose) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """(B,) reward and its terms from (B, 22) joints, (B, 5, 7) link poses, (B, 7) object poses and
+    the reference at the same frame."""
+    e_palm = torch.linalg.vector_norm(link_pose[:, 0, :3] - ref_link_pose[:, 0, :3], dim=-1)
+    e_palm_rot = quat_angle(quat_diff(link_pose[:, 0, 3:], ref_link_pose[:, 0, 3:]))
+    e_joint = (joint_pos - ref_joint_pos).abs().mean(-1)
+    e_tip = torch.linalg.vector_norm(link_pose[:, 1:, :3] - ref_link_pose[:, 1:, :3], dim=-1).mean(-1)
+    tracking = cfg.w_palm_pos * e_palm + cfg.w_palm_rot * e_palm_rot + cfg.w_joint * e_joint + cfg.w_tip * e_tip
+
+    d_palm = torch.linalg.vector_norm(link_pose[:, 0, :3] - object_pose[:, :3], dim=-1)
+    d_tip = torch.linalg.vector_norm(link_pose[:, 1:, :3] - object_pose[:, None, :3], dim=-1).mean(-1)
+    gate = (d_palm <= cfg.palm_gate).to(d_palm.dtype)
+    near = (torch.linalg.vector_norm(ref_link_pose[:, 0, :3] - ref_object_pose[:, :3], dim=-1)
+            <= cfg.contact_distance).to(d_palm.dtype)
+    proximity = -near * (d_palm.clamp(max=cfg.palm_clip) + gate * d_tip.clamp(max=cfg.tip_clip))
+
+    d_goal = (torch.linalg.vector_norm(object_pose[:, :3] - ref_object_pose[:, :3], dim=-1)
+              + cfg.goal_rot_weight * quat_angle(quat_diff(object_pose[:, 3:], ref_object_pose[:, 3:])))
+    hit = (e_palm <= cfg.tau_palm) & (e_tip <= cfg.tau_tip) & (d_goal <= cfg.tau_goal)
+    bonus = hit.to(d_goal.dtype) / (1.0 + 10.0 * d_goal)
+    reward = -cfg.w_track * tracking + cfg.w_prox * proximity - cfg.w_goal * d_goal + cfg.w_bonus * bonus
+    terms = {"tracking": tracking, "proximity": proximity, "goal": d_goal, "bonus": bonus}
+    return reward, terms

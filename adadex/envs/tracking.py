@@ -1,0 +1,274 @@
+"""``TrackingEnv``: B worlds tracking hand–object references, as one batched TorchRL environment.
+
+Each world holds the robot, the table and the object of its current reference (scenes built with
+``uniform_layout=True`` so worlds with different objects share one structure); all worlds advance
+together through one :class:`~adadex.sim.batched.BatchedSim` rollout call per 12 Hz control step.
+A reset draws a reference from a dataset split for each world being reset (partial resets reset
+only the worlds flagged in ``"_reset"``), places the robot at the reference's joints and the object
+at its pose at the episode's first frame.
+
+Per step:
+
+* action: 22-D change of the joint targets, ``q_target ← clip(q_target + action, joint limits)``,
+  held by the position servos (PD) for the control step;
+* observation: structured entries and the flat 273-D ``"observation"`` (see
+  :mod:`adadex.envs.observation`), plus the current joint targets ``("proprio", "joint_target")``
+  (not part of the 273-D vector), the object latent from ``latent_fn`` (default: the stand-in
+  :func:`adadex.envs.latent.fixed_object_latent` until a trained encoder exists);
+* reward: :func:`adadex.envs.reward.tracking_reward`;
+* ``"errors"``: the per-frame metric errors T_o, R_o, T_h, R_h, E_finger
+  (:func:`adadex.eval.metrics.frame_errors`), so evaluation never recomputes physics;
+* ``terminated`` when the object or the palm drifts beyond the configured errors, or when the
+  world's physics went unstable (then ``"unstable"`` is set, the world is put back to its
+  reference start at once so no NaN leaves the env, and :attr:`TrackingEnv.unstable_count` grows);
+  ``truncated`` at the end of the episode window.
+
+Example::
+
+    from adadex.envs.tracking import TrackingEnv
+    env = TrackingEnv("data/small", num_worlds=8)
+    td = env.rollout(20)                      # random actions
+    td["next", "errors", "T_o"].shape         # (8, 20)
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset
+from adadex.envs.latent import fixed_object_latent
+from adadex.envs.observation import LATENT_DIM, OBS_DIM, REF_OFFSETS, flat_observation
+from adadex.envs.reward import RewardConfig, tracking_reward
+from adadex.eval.metrics import ERROR_NAMES, frame_errors
+from adadex.sim.batched import BatchedSim
+from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES, joint_limits
+from adadex.sim.scene import OBJECT_QPOS, build_scene_model
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Episode, action and termination settings (lengths in m, angles in rad)."""
+
+    window: int = WINDOW_FRAMES          # frames tracked per episode
+    max_action: float = 0.1              # largest joint-target change per step, rad
+    terminate_object_error: float = 0.25  # end the episode when the object is this far off (0: never)
+    terminate_palm_error: float = 0.25    # … or the palm (0: never)
+    object_lift: float = 0.002           # start the object this much above its reference pose (no overlap)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+
+    def __post_init__(self):
+        if self.window < max(REF_OFFSETS) + 2:
+            raise ValueError(f"window must be at least {max(REF_OFFSETS) + 2} frames, got {self.window}")
+        for k in ("max_action", "terminate_object_error", "terminate_palm_error", "object_lift"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"TrackingConfig.{k} must be a finite number ≥ 0, got {v}")
+
+
+@functools.lru_cache(maxsize=None)
+def _scene(object_name: str):
+    return build_scene_model(object_name, uniform_layout=True)
+
+
+class TrackingEnv(EnvBase):
+    """See the module docstring.
+
+    Args:
+        dataset: a reference dataset (folder or :class:`ReferenceDataset`).
+        num_worlds: B, worlds stepped together.
+        split: ``(split name, part)`` to draw references from, or ``None`` for all references.
+        config: episode, action, termination and reward settings.
+        latent_fn: object name → (64,) latent.
+        nthread: rollout threads.
+        seed: seeds the reference draws.
+    """
+
+    batch_locked = True
+
+    def __init__(self, dataset, *, num_worlds: int = 8, split: tuple[str, str] | None = ("unseen_trajectory", "train"),
+                 config: TrackingConfig = TrackingConfig(),
+                 latent_fn: Callable[[str], np.ndarray] = fixed_object_latent, nthread: int = 2, seed: int = 0,
+                 device="cpu"):
+        if num_worlds < 1:
+            raise ValueError(f"num_worlds must be ≥ 1, got {num_worlds}")
+        super().__init__(device=device, batch_size=torch.Size([num_worlds]))
+        self.dataset = dataset if isinstance(dataset, ReferenceDataset) else ReferenceDataset(dataset)
+        self.config = config
+        self.latent_fn = latent_fn
+        self.references = self._usable(split)
+        frames = self.dataset.frames
+        self._ref_q = frames["hand_joint_pos"].to(torch.float64).clone()
+        self._ref_link = frames["hand_link_pose"].to(torch.float64).clone()
+        self._ref_obj = frames["object_pose"].to(torch.float64).clone()
+        B = num_worlds
+        self._base = torch.zeros(B, dtype=torch.long)       # frame index of each world's episode start
+        self._t = torch.zeros(B, dtype=torch.long)
+        self._ref_index = np.zeros(B, dtype=np.int64)
+        self._latent = torch.zeros(B, LATENT_DIM)
+        lim = torch.as_tensor(joint_limits())
+        self._lo, self._hi = lim[:, 0], lim[:, 1]
+        self._q_target = torch.zeros(B, NUM_JOINTS, dtype=torch.float64)
+        self.unstable_count = 0
+        self._rng = np.random.default_rng(seed)
+        first = self.dataset.entries[self.references[0]]["object"]
+        objects = sorted({self.dataset.entries[i]["object"] for i in self.references})
+        for name in objects:   # compile every scene once; the shared data is sized for the largest
+            _scene(name)
+        biggest = max((_scene(n) for n in objects), key=lambda m: (m.nC, m.nbvh, m.nbvhdynamic))
+        self.sim = BatchedSim([biggest] + [_scene(first)] * (B - 1), nthread=nthread)
+        self.sim.set_models([0], [_scene(first)])
+        self._make_specs()
+
+    # -- setup ------------------------------------------------------------------------------------
+    def _usable(self, split) -> list[int]:
+        idx = list(range(len(self.dataset))) if split is None else self.dataset.split(*split)
+        w = self.config.window
+        ok = [i for i in idx if self.dataset.entries[i]["window_start"] is not None
+              and self.dataset.entries[i]["window_start"] + w <= self.dataset.entries[i]["length"]]
+        if not ok:
+            raise ValueError(f"{self.dataset.path}: no reference in split {split} has a {w}-frame episode window")
+        return ok
+
+    def _make_specs(self) -> None:
+        B = self.batch_size
+
+        def u(*shape):
+            return Unbounded(shape=(*B, *shape), dtype=torch.float32, device=self.device)
+
+        K, L = len(REF_OFFSETS), len(TRACKED_SITES)
+        self.observation_spec = Composite(
+            proprio=Composite(joint_pos=u(NUM_JOINTS), joint_target=u(NUM_JOINTS), link_pose=u(L, 7), shape=B),
+            object=Composite(pose=u(7), latent=u(LATENT_DIM), shape=B),
+            reference=Composite(hand_joint_pos=u(K, NUM_JOINTS), hand_link_pose=u(K, L, 7), object_pose=u(K, 7),
+                                shape=B),
+            observation=u(OBS_DIM),
+            errors=Composite({k: u() for k in ERROR_NAMES}, shape=B),
+            unstable=Categorical(2, shape=(*B, 1), dtype=torch.bool, device=self.device),
+            shape=B, device=self.device)
+        m = self.config.max_action
+        self.action_spec = Bounded(low=-m, high=m, shape=(*B, NUM_JOINTS), dtype=torch.float32, device=self.device)
+        self.reward_spec = Unbounded(shape=(*B, 1), dtype=torch.float32, device=self.device)
+        self.done_spec = Composite(
+            done=Categorical(2, shape=(*B, 1), dtype=torch.bool, device=self.device),
+            terminated=Categorical(2, shape=(*B, 1), dtype=torch.bool, device=self.device),
+            truncated=Categorical(2, shape=(*B, 1), dtype=torch.bool, device=self.device),
+            shape=B, device=self.device)
+
+    def _set_seed(self, seed: int | None):
+        self._rng = np.random.default_rng(seed)
+        return seed
+
+    # -- references -------------------------------------------------------------------------------
+    def _frames_at(self, offsets) -> torch.Tensor:
+        """(B, K) frame indices of the reference at t + offsets, held at the window's last frame."""
+        t = (self._t[:, None] + torch.as_tensor(offsets)[None]).clamp(max=self.config.window - 1)
+        return self._base[:, None] + t
+
+    def _start_worlds(self, worlds: np.ndarray) -> None:
+        """Draw references for ``worlds`` and put them at their episode start."""
+        picks = self._rng.choice(self.references, size=len(worlds))
+        models = []
+        for w, r in zip(worlds, picks):
+            e = self.dataset.entries[r]
+            self._ref_index[w] = r
+            self._base[w] = e["offset"] + e["window_start"]
+            self._latent[w] = torch.tensor(np.array(self.latent_fn(e["object"]), dtype=np.float32))
+            models.append(_scene(e["object"]))
+        self.sim.set_models(worlds, models)
+        self._t[worlds] = 0
+        self._put_at_start(worlds)
+
+    def _put_at_start(self, worlds: np.ndarray) -> None:
+        b = self._base[worlds]
+        q = self._ref_q[b].clamp(self._lo, self._hi)
+        obj = self._ref_obj[b].clone()
+        obj[:, 2] += self.config.object_lift
+        qpos = np.zeros((len(worlds), self.sim.models[0].nq))
+        qpos[:, :NUM_JOINTS] = q.numpy()
+        qpos[:, OBJECT_QPOS] = obj.numpy()
+        for j, w in enumerate(worlds):
+            self.sim.reset(qpos=qpos[j], worlds=[int(w)])
+        self._q_target[worlds] = q
+
+    # -- TorchRL ----------------------------------------------------------------------------------
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        worlds = np.arange(self.batch_size[0]) if mask is None else \
+            np.flatnonzero(mask.reshape(self.batch_size).cpu().numpy())
+        if len(worlds):
+            self._start_worlds(worlds)
+        out = self._observe(self.sim.readout())
+        out.set("unstable", torch.zeros(*self.batch_size, 1, dtype=torch.bool))
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action").to(torch.float64).clamp(-self.config.max_action, self.config.max_action)
+        self._q_target = torch.minimum(torch.maximum(self._q_target + action, self._lo), self._hi)
+        readout = self.sim.step(self._q_target.numpy())
+        self._t += 1
+        unstable = torch.as_tensor(readout.unstable)
+        if unstable.any():
+            worlds = np.flatnonzero(readout.unstable)
+            self.unstable_count += len(worlds)
+            self._put_at_start(worlds)          # no NaN leaves the env; the episode ends below
+            readout = self.sim.readout()
+        out = self._observe(readout)
+        cur = self._frames_at([0])[:, 0]
+        reward, _ = tracking_reward(
+            self.config.reward, joint_pos=self._joint_pos, link_pose=self._link_pose, object_pose=self._object_pose,
+            ref_joint_pos=self._ref_q[cur], ref_link_pose=self._ref_link[cur], ref_object_pose=self._ref_obj[cur])
+        err = out.get("errors")
+        cfg = self.config
+        terminated = unstable.clone()
+        if cfg.terminate_object_error > 0:
+            terminated |= err.get("T_o").to(torch.float64) > cfg.terminate_object_error
+        if cfg.terminate_palm_error > 0:
+            terminated |= err.get("T_h").to(torch.float64) > cfg.terminate_palm_error
+        truncated = self._t >= cfg.window - 1
+        out.set("reward", reward.to(torch.float32)[:, None])
+        out.set("terminated", terminated[:, None])
+        out.set("truncated", truncated[:, None])
+        out.set("done", (terminated | truncated)[:, None])
+        out.set("unstable", unstable[:, None])
+        return out
+
+    def _observe(self, readout) -> TensorDict:
+        """Structured and flat observation plus the frame errors, for the current frame of every world."""
+        self._joint_pos = torch.as_tensor(readout.joint_pos)
+        self._link_pose = torch.as_tensor(readout.link_pose)
+        self._object_pose = torch.as_tensor(readout.object_pose)
+        idx = self._frames_at(REF_OFFSETS)
+        ref_q, ref_link, ref_obj = self._ref_q[idx], self._ref_link[idx], self._ref_obj[idx]
+        latent = self._latent.to(torch.float64)
+        flat = flat_observation(self._joint_pos, self._link_pose, self._object_pose, latent, ref_q, ref_obj)
+        errors = frame_errors(self._object_pose, ref_obj[:, 0], self._link_pose[:, 0], ref_link[:, 0, 0],
+                              self._joint_pos, ref_q[:, 0])
+        B = self.batch_size
+        f32 = torch.float32
+        return TensorDict({
+            "proprio": {"joint_pos": self._joint_pos.to(f32), "joint_target": self._q_target.to(f32),
+                        "link_pose": self._link_pose.to(f32)},
+            "object": {"pose": self._object_pose.to(f32), "latent": self._latent.clone()},
+            "reference": {"hand_joint_pos": ref_q.to(f32), "hand_link_pose": ref_link.to(f32),
+                          "object_pose": ref_obj.to(f32)},
+            "observation": flat.to(f32),
+            "errors": TensorDict({k: v.to(f32) for k, v in errors.items()}, batch_size=B),
+        }, batch_size=B, device=self.device)
+
+    # -- info -------------------------------------------------------------------------------------
+    @property
+    def current_references(self) -> list[str]:
+        """Name of each world's current reference."""
+        return [self.dataset.entries[int(i)]["name"] for i in self._ref_index]
+
+    def close(self, **kwargs):
+        self.sim.close()
+        super().close(**kwargs)

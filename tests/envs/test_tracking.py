@@ -1,0 +1,114 @@
+"""TrackingEnv: specs, resets, stepping, unstable worlds, replay — on a tiny dataset built once."""
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from adadex.data.build import build_dataset
+from adadex.envs.replay import replay_policy
+from adadex.envs.tracking import TrackingConfig, TrackingEnv
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    path = tmp_path_factory.mktemp("tracking") / "tiny"
+    build_dataset("tiny", path, seed=4, progress=False)
+    return path
+
+
+@pytest.fixture
+def env(dataset):
+    e = TrackingEnv(dataset, num_worlds=4, split=None, seed=0)
+    yield e
+    e.close()
+
+
+@pytest.mark.parametrize("B", [1, 8])
+def test_check_env_specs(dataset, B):
+    env = TrackingEnv(dataset, num_worlds=B, split=None)
+    check_env_specs(env)
+    env.close()
+
+
+def test_reset_starts_on_the_reference(env):
+    td = env.reset()
+    assert td["observation"].shape == (4, 273)
+    assert (td["errors", "T_h"] < 1e-5).all() and (td["errors", "E_finger"] < 1e-6).all()
+    assert (td["errors", "T_o"] <= env.config.object_lift + 1e-5).all()
+    assert not td["unstable"].any()
+
+
+def test_worlds_may_hold_different_objects(dataset):
+    env = TrackingEnv(dataset, num_worlds=8, split=None, seed=1)
+    env.reset()
+    objects = {env.dataset.entries[int(i)]["object"] for i in env._ref_index}
+    assert len(objects) > 1
+    td = env.rollout(6, replay_policy(), break_when_any_done=False)
+    # The hand starts far away: every object stays where its reference puts it.
+    assert (td["next", "errors", "T_o"] < 0.01).all(), td["next", "errors", "T_o"]
+    env.close()
+
+
+def test_replay_tracks_the_hand_reference(env):
+    td = env.rollout(40, replay_policy(), break_when_any_done=False)
+    th = td["next", "errors", "T_h"]
+    assert th.shape == (4, 40) and th.max() < 0.05, th.max()
+    assert td["next", "errors", "E_finger"].mean() < 0.05
+    assert torch.isfinite(td["next", "reward"]).all()
+
+
+def test_partial_reset_touches_only_flagged_worlds(env):
+    env.reset()
+    td = env.rand_step(env.reset())
+    before = env._t.clone()
+    refs = env._ref_index.copy()
+    mask = torch.zeros(4, 1, dtype=torch.bool)
+    mask[2] = True
+    out = env.reset(td["next"].clone().set("_reset", mask))
+    assert env._t.tolist() == [int(before[0]), int(before[1]), 0, int(before[3])]
+    assert np.array_equal(np.delete(env._ref_index, 2), np.delete(refs, 2))
+    assert torch.equal(out["observation"][[0, 1, 3]], td["next", "observation"][[0, 1, 3]])
+
+
+def test_truncation_at_the_window_end(dataset):
+    env = TrackingEnv(dataset, num_worlds=2, split=None, config=TrackingConfig(window=20))
+    td = env.rollout(25, replay_policy(), break_when_any_done=False)
+    trunc = td["next", "truncated"][..., 0]
+    assert trunc[:, 18].all() and not trunc[:, :18].any()
+    env.close()
+
+
+def test_unstable_world_is_reset_alone_and_counted(env):
+    td = env.reset()
+    good = env.sim.models[1]
+    bad = copy.copy(good)
+    assert bad is not good
+    bad.opt.gravity[:] = (0.0, 0.0, -1e12)      # MuJoCo flags the huge accelerations and resets the world
+    env.sim.set_models([1], [bad])
+    td = env.rand_step(td)
+    nxt = td["next"]
+    assert nxt["unstable"][:, 0].tolist() == [False, True, False, False]
+    assert nxt["terminated"][:, 0].tolist()[1] is True and not nxt["terminated"][[0, 2, 3]].any()
+    assert torch.isfinite(nxt["observation"]).all()
+    assert env.unstable_count == 1
+
+
+def test_same_seed_same_rollout(dataset):
+    outs = []
+    for _ in range(2):
+        env = TrackingEnv(dataset, num_worlds=3, split=None, seed=7)
+        outs.append(env.rollout(5, replay_policy(), break_when_any_done=False))
+        env.close()
+    assert torch.equal(outs[0]["next", "observation"], outs[1]["next", "observation"])
+
+
+def test_bad_config(dataset):
+    with pytest.raises(ValueError, match="window"):
+        TrackingConfig(window=5)
+    with pytest.raises(ValueError, match="max_action"):
+        TrackingConfig(max_action=-1)
+    with pytest.raises(ValueError, match="num_worlds"):
+        TrackingEnv(dataset, num_worlds=0)

@@ -34,6 +34,7 @@ Example::
 from __future__ import annotations
 
 import functools
+import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -46,11 +47,15 @@ from torchrl.envs import EnvBase
 from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset
 from adadex.envs.latent import fixed_object_latent
 from adadex.envs.observation import LATENT_DIM, OBS_DIM, REF_OFFSETS, flat_observation
+from adadex.envs.randomization import ModelRandomizer, Randomization
 from adadex.envs.reward import RewardConfig, tracking_reward
 from adadex.eval.metrics import ERROR_NAMES, frame_errors
+from adadex.geometry import Rotation, quat, rotation
 from adadex.sim.batched import BatchedSim
+from adadex.sim.objects import get_object
+from adadex.sim.patch import EffectInstance, ModelPatch
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES, joint_limits
-from adadex.sim.scene import OBJECT_QPOS, build_scene_model
+from adadex.sim.scene import OBJECT_QPOS, build_scene_spec
 
 
 @dataclass(frozen=True)
@@ -73,9 +78,34 @@ class TrackingConfig:
                 raise ValueError(f"TrackingConfig.{k} must be a finite number ≥ 0, got {v}")
 
 
+_PATCHES: dict[str, ModelPatch] = {}
+
+
 @functools.lru_cache(maxsize=None)
-def _scene(object_name: str):
-    return build_scene_model(object_name, uniform_layout=True)
+def _scene(object_name: str, scale: float = 1.0, patch_key: str = ""):
+    """Uniform-layout scene of one object at one size, with a model patch applied (compiled once)."""
+    spec = build_scene_spec(object_name, uniform_layout=True, object_scale=scale)
+    patch = _PATCHES.get(patch_key)
+    if patch is not None:
+        patch.edit_spec(spec)
+    model = spec.compile()
+    if patch is not None:
+        patch.apply_model(model)
+    return model
+
+
+def _as_patch(patch, effects) -> ModelPatch:
+    out = ModelPatch() if patch is None else (patch if isinstance(patch, ModelPatch) else ModelPatch.load(patch))
+    for e in effects or ():
+        if isinstance(e, EffectInstance):
+            out = out + ModelPatch((e,))
+        else:
+            out = out.with_effect(*e)
+    for e in out.active().effects:
+        if e.spec.stage == "command":
+            raise NotImplementedError(f"effect {e.spec.name!r} acts on the command sequence; TrackingEnv does "
+                                      f"not apply command-stage effects online yet")
+    return out
 
 
 class TrackingEnv(EnvBase):
@@ -87,6 +117,9 @@ class TrackingEnv(EnvBase):
         split: ``(split name, part)`` to draw references from, or ``None`` for all references.
         config: episode, action, termination and reward settings.
         latent_fn: object name → (64,) latent.
+        randomize: per-world domain randomization (:class:`Randomization`), or ``None``.
+        patch: a model patch (file or :class:`ModelPatch`) applied to every world.
+        effects: effects applied to every world, as ``EffectInstance`` or ``(effect, joints, values)``.
         nthread: rollout threads.
         seed: seeds the reference draws.
     """
@@ -95,14 +128,23 @@ class TrackingEnv(EnvBase):
 
     def __init__(self, dataset, *, num_worlds: int = 8, split: tuple[str, str] | None = ("unseen_trajectory", "train"),
                  config: TrackingConfig = TrackingConfig(),
-                 latent_fn: Callable[[str], np.ndarray] = fixed_object_latent, nthread: int = 2, seed: int = 0,
-                 device="cpu"):
+                 latent_fn: Callable[[str], np.ndarray] = fixed_object_latent,
+                 randomize: Randomization | None = None, patch=None, effects=None,
+                 nthread: int = 2, seed: int = 0, device="cpu"):
         if num_worlds < 1:
             raise ValueError(f"num_worlds must be ≥ 1, got {num_worlds}")
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
         self.dataset = dataset if isinstance(dataset, ReferenceDataset) else ReferenceDataset(dataset)
         self.config = config
         self.latent_fn = latent_fn
+        self.randomize = randomize
+        self.patch = _as_patch(patch, effects)
+        self._patch_key = json.dumps(self.patch.to_dict(), sort_keys=True) if len(self.patch.active()) else ""
+        if self._patch_key:
+            _PATCHES[self._patch_key] = self.patch
+        self._scales = randomize.scale_levels() if randomize is not None else np.array([1.0])
+        self._scale = np.ones(num_worlds)
+        self._action_offset = torch.zeros(num_worlds, NUM_JOINTS, dtype=torch.float64)
         self.references = self._usable(split)
         frames = self.dataset.frames
         self._ref_q = frames["hand_joint_pos"].to(torch.float64).clone()
@@ -120,11 +162,12 @@ class TrackingEnv(EnvBase):
         self._rng = np.random.default_rng(seed)
         first = self.dataset.entries[self.references[0]]["object"]
         objects = sorted({self.dataset.entries[i]["object"] for i in self.references})
-        for name in objects:   # compile every scene once; the shared data is sized for the largest
-            _scene(name)
-        biggest = max((_scene(n) for n in objects), key=lambda m: (m.nC, m.nbvh, m.nbvhdynamic))
-        self.sim = BatchedSim([biggest] + [_scene(first)] * (B - 1), nthread=nthread)
-        self.sim.set_models([0], [_scene(first)])
+        # Compile every scene once; the data shared by the worlds is sized for the largest.
+        scenes = [_scene(n, 1.0, self._patch_key) for n in objects]
+        biggest = max(scenes, key=lambda m: (m.nC, m.nbvh, m.nbvhdynamic))
+        self.sim = BatchedSim([biggest] + [_scene(first, 1.0, self._patch_key)] * (B - 1), nthread=nthread)
+        self.sim.set_models([0], [_scene(first, 1.0, self._patch_key)])
+        self._randomizer = ModelRandomizer(biggest) if randomize is not None else None
         self._make_specs()
 
     # -- setup ------------------------------------------------------------------------------------
@@ -176,21 +219,35 @@ class TrackingEnv(EnvBase):
         """Draw references for ``worlds`` and put them at their episode start."""
         picks = self._rng.choice(self.references, size=len(worlds))
         models = []
+        cfg = self.randomize
         for w, r in zip(worlds, picks):
             e = self.dataset.entries[r]
             self._ref_index[w] = r
             self._base[w] = e["offset"] + e["window_start"]
             self._latent[w] = torch.tensor(np.array(self.latent_fn(e["object"]), dtype=np.float32))
-            models.append(_scene(e["object"]))
+            self._scale[w] = self._rng.choice(self._scales)
+            model = _scene(e["object"], float(self._scale[w]), self._patch_key)
+            if cfg is not None:
+                model = self._randomizer.apply(model, cfg, self._rng)
+                self._action_offset[w] = torch.as_tensor(self._rng.normal(0, cfg.action_noise_correlated, NUM_JOINTS))
+            models.append(model)
         self.sim.set_models(worlds, models)
         self._t[worlds] = 0
-        self._put_at_start(worlds)
+        self._put_at_start(worlds, perturb=cfg is not None)
 
-    def _put_at_start(self, worlds: np.ndarray) -> None:
+    def _put_at_start(self, worlds: np.ndarray, perturb: bool = False) -> None:
         b = self._base[worlds]
         q = self._ref_q[b].clamp(self._lo, self._hi)
         obj = self._ref_obj[b].clone()
         obj[:, 2] += self.config.object_lift
+        for j, w in enumerate(worlds):   # a resized object still rests on the table
+            half = get_object(self.dataset.entries[int(self._ref_index[w])]["object"]).half_height
+            obj[j, 2] += (self._scale[w] - 1.0) * half
+        if perturb and self.randomize is not None:
+            cfg = self.randomize
+            obj[:, :2] += torch.as_tensor(self._rng.normal(0, cfg.object_xy_std, (len(worlds), 2)))
+            yaw = Rotation.from_euler("z", self._rng.normal(0, cfg.object_yaw_std, (len(worlds), 1)))
+            obj[:, 3:] = torch.as_tensor(quat(yaw * rotation(obj[:, 3:].numpy())))
         qpos = np.zeros((len(worlds), self.sim.models[0].nq))
         qpos[:, :NUM_JOINTS] = q.numpy()
         qpos[:, OBJECT_QPOS] = obj.numpy()
@@ -211,6 +268,9 @@ class TrackingEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action").to(torch.float64).clamp(-self.config.max_action, self.config.max_action)
+        if self.randomize is not None:
+            action = action + self._action_offset + torch.as_tensor(
+                self._rng.normal(0, self.randomize.action_noise_uncorrelated, tuple(action.shape)))
         self._q_target = torch.minimum(torch.maximum(self._q_target + action, self._lo), self._hi)
         readout = self.sim.step(self._q_target.numpy())
         self._t += 1
@@ -248,14 +308,24 @@ class TrackingEnv(EnvBase):
         idx = self._frames_at(REF_OFFSETS)
         ref_q, ref_link, ref_obj = self._ref_q[idx], self._ref_link[idx], self._ref_obj[idx]
         latent = self._latent.to(torch.float64)
-        flat = flat_observation(self._joint_pos, self._link_pose, self._object_pose, latent, ref_q, ref_obj)
+        # What the policy sees: encoders (sensor-stage effects, noise) and noisy link positions.
+        seen_q = self._joint_pos
+        if self._patch_key:
+            seen_q = torch.as_tensor(self.patch.transform_measurement(seen_q.numpy()[:, None])[:, 0])
+        seen_link = self._link_pose
+        if self.randomize is not None and self.randomize.proprio_noise > 0:
+            sigma = self.randomize.proprio_noise
+            seen_q = seen_q + torch.as_tensor(self._rng.normal(0, sigma, tuple(seen_q.shape)))
+            seen_link = seen_link.clone()
+            seen_link[..., :3] += torch.as_tensor(self._rng.normal(0, sigma, tuple(seen_link[..., :3].shape)))
+        flat = flat_observation(seen_q, seen_link, self._object_pose, latent, ref_q, ref_obj)
         errors = frame_errors(self._object_pose, ref_obj[:, 0], self._link_pose[:, 0], ref_link[:, 0, 0],
                               self._joint_pos, ref_q[:, 0])
         B = self.batch_size
         f32 = torch.float32
         return TensorDict({
-            "proprio": {"joint_pos": self._joint_pos.to(f32), "joint_target": self._q_target.to(f32),
-                        "link_pose": self._link_pose.to(f32)},
+            "proprio": {"joint_pos": seen_q.to(f32), "joint_target": self._q_target.to(f32),
+                        "link_pose": seen_link.to(f32)},
             "object": {"pose": self._object_pose.to(f32), "latent": self._latent.clone()},
             "reference": {"hand_joint_pos": ref_q.to(f32), "hand_link_pose": ref_link.to(f32),
                           "object_pose": ref_obj.to(f32)},

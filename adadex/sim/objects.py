@@ -486,9 +486,11 @@ MAX_OBJECT_PARTS = 21
 
 
 def add_object_geoms(spec: mujoco.MjSpec, body: mujoco.MjsBody, name: str, *,
-                     friction=(1.0, 0.01, 0.001), rgba=None, pad_to: int | None = None) -> None:
+                     friction=(1.0, 0.01, 0.001), rgba=None, pad_to: int | None = None,
+                     scale: float = 1.0) -> None:
     """Add object ``name`` to ``body``: one mesh asset and one collision geom per convex part.
 
+    ``scale`` scales the object uniformly (domain randomization; mass follows the volume).
     ``pad_to`` adds (nearly) massless, non-colliding, invisible placeholder geoms up to that many geoms, so
     scenes with different objects have the same structure (equal ``MjModel.signature``) and can
     be stepped together as per-world models of one :class:`~adadex.sim.batched.BatchedSim`.
@@ -502,10 +504,12 @@ def add_object_geoms(spec: mujoco.MjSpec, body: mujoco.MjsBody, name: str, *,
     info = get_object(name)
     color = list(rgba) if rgba is not None else list(_CATEGORY_RGBA[info.category])
     prefix = f"{body.name}_" if body.name else ""
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a positive number, got {scale}")
     for i, part in enumerate(_parts(info)):
-        mesh_name = f"{name}_part{i}"
+        mesh_name = f"{name}_part{i}" if scale == 1.0 else f"{name}_x{scale:.4f}_part{i}"
         if spec.mesh(mesh_name) is None:
-            spec.add_mesh(name=mesh_name, uservert=part.vertices.flatten(), userface=part.faces.flatten(),
+            spec.add_mesh(name=mesh_name, uservert=(scale * part.vertices).flatten(), userface=part.faces.flatten(),
                           inertia=mujoco.mjtMeshInertia.mjMESH_INERTIA_EXACT)
         body.add_geom(name=f"{prefix}{mesh_name}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh_name,
                       density=info.density, condim=4, friction=list(friction), contype=1,

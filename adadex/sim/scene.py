@@ -83,13 +83,15 @@ def apply_physics_options(spec: mujoco.MjSpec, opts: PhysicsOptions = PhysicsOpt
 
 def build_scene_spec(object_name: str | None = "box_00", *,
                      object_xy: tuple[float, float] = OBJECT_HOME_XY,
-                     options: PhysicsOptions = PhysicsOptions(), uniform_layout: bool = False) -> mujoco.MjSpec:
+                     options: PhysicsOptions = PhysicsOptions(), uniform_layout: bool = False,
+                     object_scale: float = 1.0) -> mujoco.MjSpec:
     """Robot + table + one object (or none with ``object_name=None``) as an ``MjSpec``.
 
     The object body is named :data:`OBJECT_BODY`; it rests on the table at ``object_xy``. With
     ``uniform_layout`` the object's geoms are padded to :data:`~adadex.sim.objects.MAX_OBJECT_PARTS`,
     so scenes of any two objects share one structure (``MjModel.signature``) and one
     ``BatchedSim`` can step worlds holding different objects in a single rollout call.
+    ``object_scale`` scales the object uniformly (it still rests on the table).
     """
     spec = build_robot_spec()
     spec.modelname = f"adadex_scene_{object_name or 'empty'}"
@@ -111,14 +113,14 @@ def build_scene_spec(object_name: str | None = "box_00", *,
     if object_name is not None:
         info = objects.get_object(object_name)
         body = spec.worldbody.add_body(name=OBJECT_BODY,
-                                       pos=[object_xy[0], object_xy[1], info.half_height + 1e-3])
+                                       pos=[object_xy[0], object_xy[1], object_scale * info.half_height + 1e-3])
         body.add_freejoint(name="object_free")
         objects.add_object_geoms(spec, body, object_name,
-                                 pad_to=objects.MAX_OBJECT_PARTS if uniform_layout else None)
+                                 pad_to=objects.MAX_OBJECT_PARTS if uniform_layout else None, scale=object_scale)
     apply_physics_options(spec, options)
     key_qpos = list(HOME_QPOS)
     if object_name is not None:
-        key_qpos += [object_xy[0], object_xy[1], objects.get_object(object_name).half_height + 1e-3,
+        key_qpos += [object_xy[0], object_xy[1], object_scale * objects.get_object(object_name).half_height + 1e-3,
                      1.0, 0.0, 0.0, 0.0]
     spec.add_key(name="home", qpos=key_qpos, ctrl=list(HOME_QPOS))
     return spec

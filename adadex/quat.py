@@ -49,3 +49,10 @@ def quat_diff(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def quat_angle(q: torch.Tensor) -> torch.Tensor:
     """Rotation angle in [0, π] of (…, 4) unit quaternions, robust near 0 and π."""
     return 2.0 * torch.atan2(torch.linalg.vector_norm(q[..., 1:], dim=-1), q[..., 0].abs())
+
+
+def quat_angle_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``quat_angle(quat_diff(a, b))`` computed from the dot product alone (the relative rotation's w
+    is a·b for unit quaternions): the same value, a fraction of the work, for rewards and metrics."""
+    w = (a * b).sum(-1).abs()
+    return 2.0 * torch.atan2(torch.sqrt((1.0 - w * w).clamp(min=0.0)), w)

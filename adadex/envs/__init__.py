@@ -1,1 +1,6 @@
-"""TorchRL environments: the tracking environment and its observation layout."""
+"""TorchRL environments: the batched tracking environment, its observation layout and reward;
+importing this package registers ``adadex/Tracking-v0`` with gymnasium."""
+
+from adadex.envs.gym import register as _register
+
+_register()

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from adadex.quat import quat_angle, quat_diff
+from adadex.quat import quat_angle_between
 
 
 @dataclass(frozen=True)
@@ -51,11 +51,17 @@ class RewardConfig:
 
 
 def tracking_reward(cfg: RewardConfig, *, joint_pos, link_pose, object_pose, ref_joint_pos, ref_link_pose,
-                    ref_object_pose) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+                    ref_object_pose, errors: dict | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """(B,) reward and its terms from (B, 22) joints, (B, 5, 7) link poses, (B, 7) object poses and
-    the reference at the same frame."""
-    e_palm = torch.linalg.vector_norm(link_pose[:, 0, :3] - ref_link_pose[:, 0, :3], dim=-1)
-    e_palm_rot = quat_angle(quat_diff(link_pose[:, 0, 3:], ref_link_pose[:, 0, 3:]))
+    the reference at the same frame. ``errors`` (the frame's metric errors, if already computed)
+    saves recomputing the palm and object errors."""
+    if errors is not None:
+        e_palm, e_palm_rot, t_o, r_o = errors["T_h"], errors["R_h"], errors["T_o"], errors["R_o"]
+    else:
+        e_palm = torch.linalg.vector_norm(link_pose[:, 0, :3] - ref_link_pose[:, 0, :3], dim=-1)
+        e_palm_rot = quat_angle_between(link_pose[:, 0, 3:], ref_link_pose[:, 0, 3:])
+        t_o = torch.linalg.vector_norm(object_pose[:, :3] - ref_object_pose[:, :3], dim=-1)
+        r_o = quat_angle_between(object_pose[:, 3:], ref_object_pose[:, 3:])
     e_joint = (joint_pos - ref_joint_pos).abs().mean(-1)
     e_tip = torch.linalg.vector_norm(link_pose[:, 1:, :3] - ref_link_pose[:, 1:, :3], dim=-1).mean(-1)
     tracking = cfg.w_palm_pos * e_palm + cfg.w_palm_rot * e_palm_rot + cfg.w_joint * e_joint + cfg.w_tip * e_tip
@@ -67,8 +73,7 @@ def tracking_reward(cfg: RewardConfig, *, joint_pos, link_pose, object_pose, ref
             <= cfg.contact_distance).to(d_palm.dtype)
     proximity = -near * (d_palm.clamp(max=cfg.palm_clip) + gate * d_tip.clamp(max=cfg.tip_clip))
 
-    d_goal = (torch.linalg.vector_norm(object_pose[:, :3] - ref_object_pose[:, :3], dim=-1)
-              + cfg.goal_rot_weight * quat_angle(quat_diff(object_pose[:, 3:], ref_object_pose[:, 3:])))
+    d_goal = t_o + cfg.goal_rot_weight * r_o
     hit = (e_palm <= cfg.tau_palm) & (e_tip <= cfg.tau_tip) & (d_goal <= cfg.tau_goal)
     bonus = hit.to(d_goal.dtype) / (1.0 + 10.0 * d_goal)
     reward = -cfg.w_track * tracking + cfg.w_prox * proximity - cfg.w_goal * d_goal + cfg.w_bonus * bonus

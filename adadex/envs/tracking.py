@@ -284,7 +284,8 @@ class TrackingEnv(EnvBase):
         cur = self._frames_at([0])[:, 0]
         reward, _ = tracking_reward(
             self.config.reward, joint_pos=self._joint_pos, link_pose=self._link_pose, object_pose=self._object_pose,
-            ref_joint_pos=self._ref_q[cur], ref_link_pose=self._ref_link[cur], ref_object_pose=self._ref_obj[cur])
+            ref_joint_pos=self._ref_q[cur], ref_link_pose=self._ref_link[cur], ref_object_pose=self._ref_obj[cur],
+            errors=self._errors)
         err = out.get("errors")
         cfg = self.config
         terminated = unstable.clone()
@@ -321,17 +322,22 @@ class TrackingEnv(EnvBase):
         flat = flat_observation(seen_q, seen_link, self._object_pose, latent, ref_q, ref_obj)
         errors = frame_errors(self._object_pose, ref_obj[:, 0], self._link_pose[:, 0], ref_link[:, 0, 0],
                               self._joint_pos, ref_q[:, 0])
+        self._errors = errors
         B = self.batch_size
         f32 = torch.float32
-        return TensorDict({
-            "proprio": {"joint_pos": seen_q.to(f32), "joint_target": self._q_target.to(f32),
-                        "link_pose": seen_link.to(f32)},
-            "object": {"pose": self._object_pose.to(f32), "latent": self._latent.clone()},
-            "reference": {"hand_joint_pos": ref_q.to(f32), "hand_link_pose": ref_link.to(f32),
-                          "object_pose": ref_obj.to(f32)},
+
+        def td(entries):  # shapes are right by construction: skip TensorDict's per-entry validation
+            return TensorDict._new_unsafe(entries, batch_size=B, device=self.device)
+
+        return td({
+            "proprio": td({"joint_pos": seen_q.to(f32), "joint_target": self._q_target.to(f32),
+                           "link_pose": seen_link.to(f32)}),
+            "object": td({"pose": self._object_pose.to(f32), "latent": self._latent.clone()}),
+            "reference": td({"hand_joint_pos": ref_q.to(f32), "hand_link_pose": ref_link.to(f32),
+                             "object_pose": ref_obj.to(f32)}),
             "observation": flat.to(f32),
-            "errors": TensorDict({k: v.to(f32) for k, v in errors.items()}, batch_size=B),
-        }, batch_size=B, device=self.device)
+            "errors": td({k: v.to(f32) for k, v in errors.items()}),
+        })
 
     # -- info -------------------------------------------------------------------------------------
     @property

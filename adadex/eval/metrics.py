@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import torch
 
-from adadex.quat import quat_angle, quat_diff
+from adadex.quat import quat_angle_between
 from adadex.sim.robot import ARM_JOINTS, NUM_JOINTS
 
 ERROR_NAMES = ("T_o", "R_o", "T_h", "R_h", "E_finger")
@@ -62,9 +62,9 @@ def frame_errors(object_pose: torch.Tensor, ref_object_pose: torch.Tensor, palm_
     """Per-frame errors from (…, 7) poses and (…, 22) joint positions; each output has shape (…)."""
     return {
         "T_o": torch.linalg.vector_norm(object_pose[..., :3] - ref_object_pose[..., :3], dim=-1),
-        "R_o": quat_angle(quat_diff(object_pose[..., 3:], ref_object_pose[..., 3:])),
+        "R_o": quat_angle_between(object_pose[..., 3:], ref_object_pose[..., 3:]),
         "T_h": torch.linalg.vector_norm(palm_pose[..., :3] - ref_palm_pose[..., :3], dim=-1),
-        "R_h": quat_angle(quat_diff(palm_pose[..., 3:], ref_palm_pose[..., 3:])),
+        "R_h": quat_angle_between(palm_pose[..., 3:], ref_palm_pose[..., 3:]),
         "E_finger": (joint_pos[..., _FINGERS] - ref_joint_pos[..., _FINGERS]).abs().mean(-1),
     }
 

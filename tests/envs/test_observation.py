@@ -91,3 +91,21 @@ def test_extra_batch_dims_and_bad_shapes():
         flat_observation(td[JOINT_POS], td[LINK_POSE], td[OBJECT_POSE], td[OBJECT_LATENT][:, :32],
                          td[REF_JOINT_POS], td[REF_OBJECT_POSE])
     assert math.isfinite(float(flat_from_tensordict(td).sum()))
+
+
+def test_reward_with_and_without_precomputed_errors():
+    from adadex.envs.reward import RewardConfig, tracking_reward
+    from adadex.eval.metrics import frame_errors
+
+    td = structured(B=4, seed=3)
+    q, link, obj = td[JOINT_POS], td[LINK_POSE], td[OBJECT_POSE]
+    rq, rlink, robj = td[REF_JOINT_POS][:, 0], td[REF_LINK_POSE][:, 0], td[REF_OBJECT_POSE][:, 0]
+    kw = dict(joint_pos=q, link_pose=link, object_pose=obj, ref_joint_pos=rq, ref_link_pose=rlink, ref_object_pose=robj)
+    r1, _ = tracking_reward(RewardConfig(), **kw)
+    r2, _ = tracking_reward(RewardConfig(), **kw, errors=frame_errors(obj, robj, link[:, 0], rlink[:, 0], q, rq))
+    assert torch.allclose(r1, r2)
+    # Perfect tracking earns the full bonus and no penalty but the proximity term.
+    perfect, terms = tracking_reward(RewardConfig(), joint_pos=rq, link_pose=rlink, object_pose=robj, ref_joint_pos=rq,
+                                     ref_link_pose=rlink, ref_object_pose=robj)
+    assert torch.allclose(terms["bonus"], torch.ones(4, dtype=perfect.dtype))
+    assert torch.allclose(terms["tracking"], torch.zeros(4, dtype=perfect.dtype), atol=1e-6)

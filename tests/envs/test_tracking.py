@@ -170,3 +170,18 @@ def test_effects_and_patches_reach_every_world(dataset, tmp_path):
         TrackingEnv(dataset, num_worlds=1, split=None, effects=[("backlash", ["if_pip"], [[0.01]])])
     for e in (env, plain, env2):
         e.close()
+
+
+def test_gymnasium_registration_and_env_checker(dataset):
+    import gymnasium
+    from gymnasium.utils.env_checker import check_env
+
+    import adadex.envs  # noqa: F401  (registers the id)
+
+    env = gymnasium.make("adadex/Tracking-v0", dataset=str(dataset), split=None)
+    check_env(env.unwrapped, skip_render_check=True)
+    obs, info = env.reset(seed=0)
+    assert obs.shape == (273,) and set(info) >= {"T_o", "R_o", "T_h", "R_h", "E_finger", "reference"}
+    obs2, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert np.isfinite(obs2).all() and np.isfinite(reward) and not truncated
+    env.close()

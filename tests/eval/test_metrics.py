@@ -162,3 +162,16 @@ def test_bad_input():
 def test_paper_defaults():
     th = Thresholds()
     assert th.position == 0.10 and np.degrees(th.rotation) == pytest.approx(60) and np.degrees(th.finger) == pytest.approx(40)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.floats(-1, 1, allow_nan=False), min_size=8, max_size=8))
+def test_angle_between_equals_angle_of_the_difference(v):
+    from adadex.quat import quat_angle_between
+
+    a = torch.tensor(v[:4], dtype=torch.float64)
+    b = torch.tensor(v[4:], dtype=torch.float64)
+    if a.norm() < 1e-3 or b.norm() < 1e-3:
+        return
+    a, b = a / a.norm(), b / b.norm()
+    assert quat_angle_between(a, b).item() == pytest.approx(quat_angle(quat_diff(a, b)).item(), abs=1e-6)

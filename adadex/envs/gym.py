@@ -1,0 +1,77 @@
+"""Single-world gymnasium access to the tracking environment: ``gymnasium.make("adadex/Tracking-v0", …)``.
+
+The environment is registered when :mod:`adadex.envs` is imported (or use the module form
+``gymnasium.make("adadex.envs:adadex/Tracking-v0", dataset=…)``). Observations are the flat 273-D
+vector, actions the 22-D joint-target change; ``info`` holds the frame's metric errors and the
+reference name. For batched training use :class:`~adadex.envs.tracking.TrackingEnv` directly:
+it steps all worlds in one rollout call, which this one-world wrapper cannot.
+
+Example::
+
+    import gymnasium, adadex.envs
+    env = gymnasium.make("adadex/Tracking-v0", dataset="data/small")
+    obs, info = env.reset(seed=0)
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+"""
+
+from __future__ import annotations
+
+import gymnasium
+import numpy as np
+import torch
+
+from adadex.envs.observation import OBS_DIM
+from adadex.envs.tracking import TrackingConfig, TrackingEnv
+from adadex.eval.metrics import ERROR_NAMES
+from adadex.sim.robot import NUM_JOINTS
+
+ENV_ID = "adadex/Tracking-v0"
+
+
+class TrackingGymEnv(gymnasium.Env):
+    """One world of :class:`TrackingEnv` behind the gymnasium API (keyword arguments pass through)."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, dataset, *, split=("unseen_trajectory", "train"), config: TrackingConfig = TrackingConfig(),
+                 **kwargs):
+        self._env = TrackingEnv(dataset, num_worlds=1, split=split, config=config, nthread=0, **kwargs)
+        high = np.full(OBS_DIM, np.inf, dtype=np.float32)
+        self.observation_space = gymnasium.spaces.Box(-high, high, dtype=np.float32)
+        m = np.float32(config.max_action)
+        self.action_space = gymnasium.spaces.Box(-m, m, shape=(NUM_JOINTS,), dtype=np.float32)
+        self._td = None
+
+    def _info(self, td) -> dict:
+        info = {k: float(td["errors", k][0]) for k in ERROR_NAMES}
+        info["reference"] = self._env.current_references[0]
+        info["unstable"] = bool(td["unstable"][0, 0])
+        return info
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self._env.set_seed(seed)
+        self._td = self._env.reset()
+        return self._td["observation"][0].numpy().copy(), self._info(self._td)
+
+    def step(self, action):
+        if self._td is None:
+            raise RuntimeError("call reset() before step()")
+        act = torch.as_tensor(np.asarray(action, dtype=np.float32).reshape(1, NUM_JOINTS))
+        td = self._env.step(self._td.set("action", act))["next"]
+        self._td = td.exclude("reward", "done", "terminated", "truncated")
+        return (td["observation"][0].numpy().copy(), float(td["reward"][0, 0]), bool(td["terminated"][0, 0]),
+                bool(td["truncated"][0, 0]), self._info(td))
+
+    def close(self):
+        self._env.close()
+
+
+def register() -> None:
+    """Register :data:`ENV_ID` with gymnasium (idempotent)."""
+    if ENV_ID not in gymnasium.registry:
+        gymnasium.register(id=ENV_ID, entry_point="adadex.envs.gym:TrackingGymEnv", disable_env_checker=True)
+
+
+__all__ = ["ENV_ID", "TrackingGymEnv", "register"]

@@ -122,6 +122,8 @@ class TrackingEnv(EnvBase):
         effects: effects applied to every world, as ``EffectInstance`` or ``(effect, joints, values)``.
         nthread: rollout threads.
         seed: seeds the reference draws.
+        draw: ``"random"`` (each reset draws a reference at random) or ``"cycle"`` (world ``w`` takes
+            the split's references ``w, w + B, w + 2B, …`` in turn: every reference once, for evaluation).
     """
 
     batch_locked = True
@@ -130,13 +132,17 @@ class TrackingEnv(EnvBase):
                  config: TrackingConfig = TrackingConfig(),
                  latent_fn: Callable[[str], np.ndarray] = fixed_object_latent,
                  randomize: Randomization | None = None, patch=None, effects=None,
-                 nthread: int = 2, seed: int = 0, device="cpu"):
+                 nthread: int = 2, seed: int = 0, draw: str = "random", device="cpu"):
         if num_worlds < 1:
             raise ValueError(f"num_worlds must be ≥ 1, got {num_worlds}")
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
         self.dataset = dataset if isinstance(dataset, ReferenceDataset) else ReferenceDataset(dataset)
         self.config = config
         self.latent_fn = latent_fn
+        if draw not in ("random", "cycle"):
+            raise ValueError(f"draw must be 'random' or 'cycle', got {draw!r}")
+        self.draw = draw
+        self._resets = np.zeros(num_worlds, dtype=np.int64)
         self.randomize = randomize
         self.patch = _as_patch(patch, effects)
         self._patch_key = json.dumps(self.patch.to_dict(), sort_keys=True) if len(self.patch.active()) else ""
@@ -217,7 +223,12 @@ class TrackingEnv(EnvBase):
 
     def _start_worlds(self, worlds: np.ndarray) -> None:
         """Draw references for ``worlds`` and put them at their episode start."""
-        picks = self._rng.choice(self.references, size=len(worlds))
+        if self.draw == "random":
+            picks = self._rng.choice(self.references, size=len(worlds))
+        else:
+            B = self.batch_size[0]
+            picks = [self.references[(w + B * self._resets[w]) % len(self.references)] for w in worlds]
+        self._resets[worlds] += 1
         models = []
         cfg = self.randomize
         for w, r in zip(worlds, picks):

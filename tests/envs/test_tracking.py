@@ -185,3 +185,16 @@ def test_gymnasium_registration_and_env_checker(dataset):
     obs2, reward, terminated, truncated, info = env.step(env.action_space.sample())
     assert np.isfinite(obs2).all() and np.isfinite(reward) and not truncated
     env.close()
+
+
+def test_cycle_draws_every_reference_once(dataset):
+    env = TrackingEnv(dataset, num_worlds=2, split=None, draw="cycle")
+    env.reset()
+    first = list(env._ref_index)
+    env.reset()
+    second = list(env._ref_index)
+    n = len(env.references)
+    assert first == env.references[:2] and second == [env.references[2 % n], env.references[3 % n]]
+    with pytest.raises(ValueError, match="draw"):
+        TrackingEnv(dataset, num_worlds=1, draw="sometimes")
+    env.close()

@@ -55,7 +55,7 @@ from adadex.sim.batched import BatchedSim
 from adadex.sim.objects import get_object
 from adadex.sim.patch import EffectInstance, ModelPatch
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES, joint_limits
-from adadex.sim.scene import OBJECT_QPOS, build_scene_spec
+from adadex.sim.scene import CONTROL_HZ, OBJECT_QPOS, build_scene_spec
 
 
 @dataclass(frozen=True)
@@ -101,10 +101,6 @@ def _as_patch(patch, effects) -> ModelPatch:
             out = out + ModelPatch((e,))
         else:
             out = out.with_effect(*e)
-    for e in out.active().effects:
-        if e.spec.stage == "command":
-            raise NotImplementedError(f"effect {e.spec.name!r} acts on the command sequence; TrackingEnv does "
-                                      f"not apply command-stage effects online yet")
     return out
 
 
@@ -151,6 +147,8 @@ class TrackingEnv(EnvBase):
         self._scales = randomize.scale_levels() if randomize is not None else np.array([1.0])
         self._scale = np.ones(num_worlds)
         self._action_offset = torch.zeros(num_worlds, NUM_JOINTS, dtype=torch.float64)
+        self._has_command_effects = any(e.spec.stage == "command" for e in self.patch.active().effects)
+        self._servo_cmd = np.zeros((num_worlds, NUM_JOINTS))   # what the servos last received
         self.references = self._usable(split)
         frames = self.dataset.frames
         self._ref_q = frames["hand_joint_pos"].to(torch.float64).clone()
@@ -265,6 +263,7 @@ class TrackingEnv(EnvBase):
         for j, w in enumerate(worlds):
             self.sim.reset(qpos=qpos[j], worlds=[int(w)])
         self._q_target[worlds] = q
+        self._servo_cmd[worlds] = q.numpy()
 
     # -- TorchRL ----------------------------------------------------------------------------------
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -283,7 +282,7 @@ class TrackingEnv(EnvBase):
             action = action + self._action_offset + torch.as_tensor(
                 self._rng.normal(0, self.randomize.action_noise_uncorrelated, tuple(action.shape)))
         self._q_target = torch.minimum(torch.maximum(self._q_target + action, self._lo), self._hi)
-        readout = self.sim.step(self._q_target.numpy())
+        readout = self.sim.step(self._servo_command())
         self._t += 1
         unstable = torch.as_tensor(readout.unstable)
         if unstable.any():
@@ -311,6 +310,16 @@ class TrackingEnv(EnvBase):
         out.set("done", (terminated | truncated)[:, None])
         out.set("unstable", unstable[:, None])
         return out
+
+    def _servo_command(self) -> np.ndarray:
+        """Targets → what the servos receive: command-stage effects (backlash …) run online, as the
+        workbench's sequence transform applied to (last servo command, new target)."""
+        cmd = self._q_target.numpy()
+        if self._has_command_effects:
+            seq = np.stack([self._servo_cmd, cmd], axis=1)
+            cmd = self.patch.transform_command(seq, 1.0 / CONTROL_HZ)[:, 1]
+            self._servo_cmd = cmd.copy()
+        return cmd
 
     def _observe(self, readout) -> TensorDict:
         """Structured and flat observation plus the frame errors, for the current frame of every world."""

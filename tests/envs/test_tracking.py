@@ -166,10 +166,24 @@ def test_effects_and_patches_reach_every_world(dataset, tmp_path):
     td = env2.reset()
     # The encoder reports 0.05 rad more than the joint: seen in the observation, not in the errors.
     assert torch.allclose(td["proprio", "joint_pos"][:, 8] - env2._joint_pos[:, 8].float(), torch.tensor(0.05))
-    with pytest.raises(NotImplementedError, match="backlash"):
-        TrackingEnv(dataset, num_worlds=1, split=None, effects=[("backlash", ["if_pip"], [[0.01]])])
     for e in (env, plain, env2):
         e.close()
+
+
+def test_backlash_runs_online(dataset):
+    """A command-stage effect: the servo target trails the commanded target by the play b."""
+    b = 0.03
+    env = TrackingEnv(dataset, num_worlds=1, split=None, effects=[("backlash", ["if_pip"], [[b]])])
+    td = env.reset()
+    start = float(env._servo_cmd[0, 8])
+    for k in range(1, 4):                     # command if_pip up by 0.02 rad per step
+        act = torch.zeros(1, 22)
+        act[0, 8] = 0.02
+        td = env.step(td.set("action", act))["next"]
+        target = float(env._q_target[0, 8])
+        assert target == pytest.approx(start + 0.02 * k)
+        assert float(env._servo_cmd[0, 8]) == pytest.approx(max(start, target - b))
+    env.close()
 
 
 def test_gymnasium_registration_and_env_checker(dataset):

@@ -19,7 +19,8 @@ Per step:
 * ``"errors"``: the per-frame metric errors T_o, R_o, T_h, R_h, E_finger
   (:func:`adadex.eval.metrics.frame_errors`), so evaluation never recomputes physics;
 * ``terminated`` when the object or the palm drifts beyond the configured errors, or when the
-  world's physics went unstable (then ``"unstable"`` is set, the world is put back to its
+  world's physics went unstable — NaN, a MuJoCo reset, or the object flung faster than
+  ``max_object_speed`` (then ``"unstable"`` is set, the world is put back to its
   reference start at once so no NaN leaves the env, and :attr:`TrackingEnv.unstable_count` grows);
   ``truncated`` at the end of the episode window.
 
@@ -67,12 +68,13 @@ class TrackingConfig:
     terminate_object_error: float = 0.25  # end the episode when the object is this far off (0: never)
     terminate_palm_error: float = 0.25    # … or the palm (0: never)
     object_lift: float = 0.002           # start the object this much above its reference pose (no overlap)
+    max_object_speed: float = 4.0        # m/s; faster means the contact solver blew up: treated as unstable
     reward: RewardConfig = field(default_factory=RewardConfig)
 
     def __post_init__(self):
         if self.window < max(REF_OFFSETS) + 2:
             raise ValueError(f"window must be at least {max(REF_OFFSETS) + 2} frames, got {self.window}")
-        for k in ("max_action", "terminate_object_error", "terminate_palm_error", "object_lift"):
+        for k in ("max_action", "terminate_object_error", "terminate_palm_error", "object_lift", "max_object_speed"):
             v = getattr(self, k)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"TrackingConfig.{k} must be a finite number ≥ 0, got {v}")
@@ -284,10 +286,13 @@ class TrackingEnv(EnvBase):
         self._q_target = torch.minimum(torch.maximum(self._q_target + action, self._lo), self._hi)
         readout = self.sim.step(self._servo_command())
         self._t += 1
-        unstable = torch.as_tensor(readout.unstable)
+        # MuJoCo flags diverging worlds; an object flung faster than any tabletop motion is one too.
+        unstable = torch.as_tensor(readout.unstable | (np.linalg.norm(readout.object_vel[:, :3], axis=1)
+                                                        > self.config.max_object_speed))
         if unstable.any():
-            worlds = np.flatnonzero(readout.unstable)
+            worlds = np.flatnonzero(unstable.numpy())
             self.unstable_count += len(worlds)
+            self._t[worlds] = 0
             self._put_at_start(worlds)          # no NaN leaves the env; the episode ends below
             readout = self.sim.readout()
         out = self._observe(readout)

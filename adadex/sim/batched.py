@@ -77,6 +77,7 @@ class SimReadout:
     joint_vel: np.ndarray     # (B, 22)
     link_pose: np.ndarray     # (B, 5, 7) palm + 4 fingertips, position + wxyz quaternion
     object_pose: np.ndarray   # (B, 7); zeros when the scene has no object
+    object_vel: np.ndarray    # (B, 6) linear (world) and angular velocity; zeros without an object
     unstable: np.ndarray      # (B,) bool
 
 
@@ -234,8 +235,10 @@ class BatchedSim(RolloutPool):
         qvel = self.state[:, self._qvel0:self._qvel0 + self._models[0].nv]
         if self._has_object:
             obj = qpos[:, NUM_JOINTS:NUM_JOINTS + 7].copy()
+            obj_vel = qvel[:, NUM_JOINTS:NUM_JOINTS + 6].copy()
         else:
             obj = np.zeros((self.batch_size, 7))
+            obj_vel = np.zeros((self.batch_size, 6))
         unstable = ~np.isfinite(self.state).all(axis=1)
         return SimReadout(
             time=self.state[:, 0].copy(),
@@ -243,5 +246,6 @@ class BatchedSim(RolloutPool):
             joint_vel=qvel[:, :NUM_JOINTS].copy(),
             link_pose=self._last_sens[:, self._link_idx],
             object_pose=obj,
+            object_vel=obj_vel,
             unstable=unstable,
         )

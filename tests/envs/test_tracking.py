@@ -212,3 +212,12 @@ def test_cycle_draws_every_reference_once(dataset):
     with pytest.raises(ValueError, match="draw"):
         TrackingEnv(dataset, num_worlds=1, draw="sometimes")
     env.close()
+
+
+def test_flung_object_counts_as_unstable(dataset):
+    """Object speed above max_object_speed is a solver blow-up: flagged, put back, counted."""
+    env = TrackingEnv(dataset, num_worlds=3, split=None, config=TrackingConfig(max_object_speed=1e-9))
+    td = env.rand_step(env.reset())["next"]     # the objects settle the 2 mm they start above the table
+    assert td["unstable"].all() and td["terminated"].all() and env.unstable_count == 3
+    assert (td["errors", "T_o"] <= env.config.object_lift + 1e-5).all()   # back at the start pose
+    env.close()

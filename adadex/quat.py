@@ -56,3 +56,21 @@ def quat_angle_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     is a·b for unit quaternions): the same value, a fraction of the work, for rewards and metrics."""
     w = (a * b).sum(-1).abs()
     return 2.0 * torch.atan2(torch.sqrt((1.0 - w * w).clamp(min=0.0)), w)
+
+
+def quat_from_rotvec(v: torch.Tensor) -> torch.Tensor:
+    """(…, 3) rotation vectors (axis · angle, rad) → (…, 4) unit quaternions; exact at 0."""
+    angle = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+    half = 0.5 * angle
+    # sin(θ/2)/θ → 1/2 as θ → 0; the Taylor form keeps the gradient finite there.
+    k = torch.where(angle > 1e-6, torch.sin(half) / angle.clamp(min=1e-6), 0.5 - angle * angle / 48.0)
+    return torch.cat([torch.cos(half), k * v], dim=-1)
+
+
+def rotvec_from_quat(q: torch.Tensor) -> torch.Tensor:
+    """(…, 4) unit quaternions → (…, 3) rotation vectors with angle in [0, π] (q and −q agree)."""
+    q = quat_canonical(q)
+    s = torch.linalg.vector_norm(q[..., 1:], dim=-1, keepdim=True)
+    angle = 2.0 * torch.atan2(s, q[..., :1])
+    k = torch.where(s > 1e-6, angle / s.clamp(min=1e-6), 2.0 + s * s / 3.0)
+    return k * q[..., 1:]

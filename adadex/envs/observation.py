@@ -45,6 +45,7 @@ REF_OFFSETS = (0, 1, 2, 4, 12)
 LATENT_DIM = 64
 OBS_DIM = 273
 
+OBSERVATION = "observation"                 # the flat 273-D vector
 JOINT_POS = ("proprio", "joint_pos")
 JOINT_TARGET = ("proprio", "joint_target")
 LINK_POSE = ("proprio", "link_pose")

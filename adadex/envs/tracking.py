@@ -279,7 +279,7 @@ class TrackingEnv(EnvBase):
         return out
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action").to(torch.float64).clamp(-self.config.max_action, self.config.max_action)
+        action = tensordict.get("action").detach().to(torch.float64).clamp(-self.config.max_action, self.config.max_action)
         if self.randomize is not None:
             action = action + self._action_offset + torch.as_tensor(
                 self._rng.normal(0, self.randomize.action_noise_uncorrelated, tuple(action.shape)))

@@ -14,7 +14,7 @@ from adadex.data.synth import VERBS
 from adadex.sim.objects import get_object, held_out_objects
 from adadex.sim.robot import HOME_QPOS, JOINT_NAMES
 
-SEED = 4   # a seed whose tiny build keeps references on seen and held-out objects
+SEED = 4   # = conftest.TINY_SEED: the session dataset is built with it
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -27,10 +27,9 @@ def one_torch_thread():
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory, one_torch_thread):
-    """(report, dataset) of the tiny preset, built once."""
-    out = tmp_path_factory.mktemp("build") / "tiny"
-    report = build_dataset("tiny", out, seed=SEED, progress=False)
+def tiny(tiny_build):
+    """(report, dataset) of the tiny preset (built once per session, see conftest)."""
+    report, out = tiny_build
     return report, ReferenceDataset(out)
 
 

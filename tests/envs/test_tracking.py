@@ -7,17 +7,14 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
-from adadex.data.build import build_dataset
 from adadex.envs.replay import replay_policy
 from adadex.envs.randomization import Randomization
 from adadex.envs.tracking import TrackingConfig, TrackingEnv
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    path = tmp_path_factory.mktemp("tracking") / "tiny"
-    build_dataset("tiny", path, seed=4, progress=False)
-    return path
+def dataset(tiny_dataset):
+    return tiny_dataset
 
 
 @pytest.fixture

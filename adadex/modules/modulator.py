@@ -1,0 +1,73 @@
+"""The modulator: actor + critic that read the tracker's observation and output the modulation.
+
+One flat action in [−1, 1]^D (``"action"``), D set by the channels that are on
+(:class:`adadex.modules.channels.ModulationLayout`): a shared trunk and one head per active
+channel — R: reference residuals for the future offsets (hand joints 4×22; object pose 4×6,
+rotation as a small rotation vector), O: a latent residual (64), T: an action residual (22).
+Heads start near zero, so an untrained modulator leaves the tracker almost untouched.
+
+* ``modulator.actor`` — in: ``"observation"``; out: ``"action"`` (D), ``"action_log_prob"``,
+  ``("modulator", "loc")``, ``("modulator", "scale")``.
+* ``modulator.critic`` — in: ``"observation"``; out: ``"state_value"``.
+
+Use it on ``TransformedEnv(TrackingEnv(…), modulation(channels, tracker))`` with any TorchRL loss,
+or with the tracker in one policy graph via :func:`adadex.transforms.policy.make_policy`.
+
+Example
+-------
+>>> import torch
+>>> from tensordict import TensorDict
+>>> mod = Modulator("R+T", hidden=(64, 64))
+>>> mod.layout.dim
+134
+>>> mod(TensorDict({"observation": torch.zeros(2, 273)}, batch_size=[2]))["action"].shape
+torch.Size([2, 134])
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from torch import nn
+
+from adadex.envs.observation import OBS_DIM, OBSERVATION
+from adadex.modules.channels import ModulationLayout
+from adadex.modules.nets import make_actor, make_critic
+from adadex.modules.tracker import load_checkpoint, save_checkpoint
+
+
+class Modulator(nn.Module):
+    """Actor + critic with one head per active channel (see the module docstring).
+
+    Args:
+        channels: ``"R+O+T"``, ``"R+T"``, … (not ``"none"``: no channel, no modulator).
+        hidden: widths of the trunk / critic hidden layers.
+        init_scale: initial exploration scale (pre-tanh).
+    """
+
+    def __init__(self, channels="R+O+T", hidden: Sequence[int] = (512, 256, 128), init_scale: float = 0.5):
+        super().__init__()
+        self.layout = ModulationLayout(channels)
+        if not self.layout.dim:
+            raise ValueError("a Modulator needs at least one channel (R, O or T); for 'none' use the tracker alone")
+        self.config = {"channels": self.layout.name, "hidden": list(hidden), "init_scale": float(init_scale)}
+        self.actor = make_actor(OBSERVATION, OBS_DIM, self.layout.channel_sizes, -1.0, 1.0, hidden, namespace="modulator",
+                                init_scale=init_scale)
+        self.critic = make_critic(OBSERVATION, OBS_DIM, hidden)
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return self.layout.channels
+
+    def forward(self, tensordict):
+        return self.actor(tensordict)
+
+    def save(self, path):
+        return save_checkpoint(path, "modulator", self.config, self.state_dict())
+
+    @classmethod
+    def load(cls, path) -> Modulator:
+        cfg, state = load_checkpoint(path, "modulator")
+        out = cls(**cfg)
+        out.load_state_dict(state)
+        return out

@@ -1,0 +1,98 @@
+"""Network pieces shared by the tracker and the modulator: observation normalization, a Gaussian
+policy body with one or more heads, a value body, and the TorchRL actor/critic built from them.
+
+The actor is a :class:`torchrl.modules.ProbabilisticActor` with a ``TanhNormal`` between ``low``
+and ``high``: it samples under ``ExplorationType.RANDOM`` (set by TorchRL's collectors for
+training) and otherwise returns the deterministic ``tanh(loc)`` (evaluation, behaviour cloning). The critic is a
+:class:`torchrl.modules.ValueOperator`. Both read one flat observation key and normalize it with
+their own :class:`Normalizer`, so a saved module carries its statistics.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.data import Bounded
+from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
+
+
+class Normalizer(nn.Module):
+    """``(x − loc) / scale``, clipped to ±``clip``; identity until :meth:`fit` sets the statistics.
+
+    The statistics are buffers: they travel with ``state_dict`` and never receive gradients.
+    """
+
+    def __init__(self, dim: int, clip: float = 10.0, eps: float = 1e-3):
+        super().__init__()
+        self.register_buffer("loc", torch.zeros(dim))
+        self.register_buffer("scale", torch.ones(dim))
+        self.clip, self.eps = clip, eps
+
+    @torch.no_grad()
+    def fit(self, samples: torch.Tensor) -> Normalizer:
+        """Set loc/scale to the mean and standard deviation of ``samples`` (…, dim); constant
+        entries (the std below ``eps``) get scale 1 so they pass unchanged up to the shift."""
+        x = samples.reshape(-1, samples.shape[-1]).to(self.loc.dtype)
+        if x.shape[0] < 2 or not torch.isfinite(x).all():
+            raise ValueError(f"Normalizer.fit needs ≥ 2 finite samples, got shape {tuple(samples.shape)}")
+        std = x.std(0)
+        self.loc.copy_(x.mean(0))
+        self.scale.copy_(torch.where(std > self.eps, std, torch.ones_like(std)))
+        return self
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return ((x - self.loc) / self.scale).clamp(-self.clip, self.clip)
+
+
+class GaussianHeads(nn.Module):
+    """obs → (loc, scale): a shared trunk, then one linear head per output group, concatenated in
+    order. The last layers start small (``init_gain``) so the initial mean action is near 0."""
+
+    def __init__(self, obs_dim: int, head_sizes: Sequence[int], hidden: Sequence[int], *,
+                 init_gain: float = 0.01, init_scale: float = 1.0, activation=nn.ELU):
+        super().__init__()
+        self.norm = Normalizer(obs_dim)
+        self.trunk = MLP(in_features=obs_dim, out_features=hidden[-1], num_cells=list(hidden[:-1]),
+                         activation_class=activation, activate_last_layer=True)
+        self.heads = nn.ModuleList(nn.Linear(hidden[-1], 2 * n) for n in head_sizes)
+        for h in self.heads:
+            nn.init.orthogonal_(h.weight, gain=init_gain)
+            nn.init.zeros_(h.bias)
+        self.extract = NormalParamExtractor(scale_mapping=f"biased_softplus_{init_scale}")
+        self.head_sizes = tuple(head_sizes)
+
+    def forward(self, obs: torch.Tensor):
+        z = self.trunk(self.norm(obs))
+        locs, scales = zip(*(self.extract(h(z)) for h in self.heads))
+        return torch.cat(locs, -1), torch.cat(scales, -1)
+
+
+def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, high: float, hidden: Sequence[int], *,
+               namespace: str, action_key="action", init_scale: float = 1.0) -> ProbabilisticActor:
+    """A TanhNormal actor reading ``obs_key`` (flat), writing ``action_key`` and its log-prob, with
+    the distribution parameters under ``(namespace, "loc")`` / ``(namespace, "scale")``."""
+    net = GaussianHeads(obs_dim, head_sizes, hidden, init_scale=init_scale)
+    loc, scale = (namespace, "loc"), (namespace, "scale")
+    module = TensorDictModule(net, in_keys=[obs_key], out_keys=[loc, scale])
+    dim = sum(head_sizes)
+    return ProbabilisticActor(
+        module, in_keys={"loc": loc, "scale": scale}, out_keys=[action_key],
+        spec=Bounded(low=low, high=high, shape=(dim,)), distribution_class=TanhNormal,
+        distribution_kwargs={"low": low, "high": high}, return_log_prob=True)
+
+
+def make_critic(obs_key, obs_dim: int, hidden: Sequence[int], *, value_key="state_value") -> ValueOperator:
+    """A value network reading ``obs_key`` (flat) and writing ``value_key``."""
+    net = nn.Sequential(Normalizer(obs_dim), MLP(in_features=obs_dim, out_features=1, num_cells=list(hidden),
+                                                 activation_class=nn.ELU))
+    return ValueOperator(net, in_keys=[obs_key], out_keys=[value_key])
+
+
+def fit_normalizers(module: nn.Module, observations: torch.Tensor) -> None:
+    """Fit every :class:`Normalizer` inside ``module`` (actor and critic) to sampled observations."""
+    for m in module.modules():
+        if isinstance(m, Normalizer):
+            m.fit(observations)

@@ -1,0 +1,327 @@
+"""The three modulation channels as TorchRL transforms, and the tracker in the loop.
+
+Each channel is its own :class:`~torchrl.envs.transforms.Transform`, adds its input to the env's
+action spec (an entry under ``"modulation"``, in [−1, 1], see :mod:`adadex.modules.channels`) and
+acts on the *inverse* path, i.e. on what goes into the environment:
+
+* :class:`ReferenceModulation` (R): ŝ_{t+k} ← ŝ_{t+k} + λ_x · a_ref for k ∈ {1, 2, 4, 12},
+  x ∈ {hand joints, object pose}; the object rotation residual is a rotation vector, composed on
+  the left. By default the edit *persists*: the edited future frames stay edited as the episode
+  moves on (PAPER.md decision). The edit is state carried in the tensordict,
+  ``("modulation", "hand_edit")`` (…, 13, 22) and ``("modulation", "object_edit")`` (…, 13, 6),
+  for frames t … t+12, shifted by one frame per step and zero after a reset; the observation
+  leaving the env shows the edited reference (structured entries and the 273-D vector), the
+  reward still scores the original one. ``persistent=False`` edits the current step only.
+* :class:`LatentModulation` (O): the object latent becomes f̃ = clip(f + λ · a, −1, 1).
+* :class:`ActionModulation` (T): action ← action + bound · clip(Δa, −1, 1).
+* :class:`TrackerInTheLoop`: runs a frozen tracker (deterministic, no gradient) on the modulated
+  observation and writes its action; the env's own 22-D action leaves the outer action spec.
+* :class:`FlatModulationAction`: the outer action becomes one flat vector in [−1, 1]^D, split into
+  the channels' entries, so a modulator can be trained with any TorchRL loss.
+
+R and O edit the structured entries and reassemble ``"observation"`` with the env's one function
+(:func:`adadex.envs.observation.flat_from_tensordict`) so the tracker reads the modulated vector.
+The tracker's action is clipped by the env to ``max_action`` after T's residual is added.
+
+:func:`modulation` builds the whole chain for a set of channels::
+
+    env = TransformedEnv(TrackingEnv(data, num_worlds=8), modulation("R+O+T", tracker=frozen))
+    env.action_spec.shape          # (8, 198): the modulator's action
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs import Compose, Transform
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from adadex.envs.observation import OBJECT_LATENT, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, REF_OFFSETS, \
+    flat_from_tensordict
+from adadex.modules.channels import ACTION_RESIDUAL, HAND_EDIT, HORIZON, LATENT, MOD, OBJECT_EDIT, REF_HAND, REF_OBJECT, \
+    ModulationConfig, ModulationLayout, entry_shape
+from adadex.quat import quat_from_rotvec, quat_mul, rotvec_from_quat
+
+_FUTURE_ROWS = list(REF_OFFSETS[1:])      # rows of the 13-frame edit that the R action moves
+_OBS_ROWS = list(REF_OFFSETS)             # rows of the edit seen by the reference entries
+
+
+def _unit_box(batch: torch.Size, shape, device) -> Bounded:
+    return Bounded(low=-1.0, high=1.0, shape=(*batch, *shape), dtype=torch.float32, device=device)
+
+
+class _ActionEntry(Transform):
+    """A transform whose input is one or more ``"modulation"`` entries in [−1, 1] (added to the action spec)."""
+
+    entries: tuple = ()
+
+    def __init__(self):
+        super().__init__(in_keys=[], out_keys=[])
+
+    def transform_action_spec(self, action_spec: Composite) -> Composite:
+        for key in self.entries:
+            action_spec[key] = _unit_box(action_spec.shape, entry_shape(key), action_spec.device)
+        return action_spec
+
+    def _inputs(self, td: TensorDictBase):
+        """The entries, clipped to [−1, 1]; None (with missing tolerance) when absent."""
+        out = []
+        for key in self.entries:
+            v = td.get(key, None)
+            if v is None:
+                if self.missing_tolerance:
+                    return None
+                raise KeyError(f"{type(self).__name__}: the modulation entry {key} is missing from the input "
+                               f"tensordict (keys: {list(td.keys(True, True))})")
+            out.append(v.clamp(-1.0, 1.0))
+        return out
+
+
+def _compose_pose_edit(edit: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """Object edits (…, 6) = position (3) + rotation vector (3): ``delta`` applied after ``edit``."""
+    rot = rotvec_from_quat(quat_mul(quat_from_rotvec(delta[..., 3:]), quat_from_rotvec(edit[..., 3:])))
+    return torch.cat([edit[..., :3] + delta[..., :3], rot], dim=-1)
+
+
+def _edit_pose(pose: torch.Tensor, edit: torch.Tensor) -> torch.Tensor:
+    """Poses (…, 7) moved by edits (…, 6): shift the position, rotate on the left."""
+    q = quat_mul(quat_from_rotvec(edit[..., 3:]), pose[..., 3:])
+    return torch.cat([pose[..., :3] + edit[..., :3], q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)], dim=-1)
+
+
+class ReferenceModulation(_ActionEntry):
+    """Channel R: residuals on the future reference (see the module docstring).
+
+    Args:
+        config: λ_hand, λ_object (position, rotation) and ``persistent``.
+    """
+
+    entries = (REF_HAND, REF_OBJECT)
+
+    def __init__(self, config: ModulationConfig = ModulationConfig()):
+        super().__init__()
+        self.config = config
+
+    @property
+    def persistent(self) -> bool:
+        return self.config.persistent
+
+    # -- specs ------------------------------------------------------------------------------------
+    def _state_specs(self, spec: Composite) -> Composite:
+        for key, width in ((HAND_EDIT, entry_shape(REF_HAND)[-1]), (OBJECT_EDIT, 6)):
+            spec[key] = Unbounded(shape=(*spec.shape, HORIZON, width), dtype=torch.float32, device=spec.device)
+        return spec
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        return self._state_specs(observation_spec) if self.persistent else observation_spec
+
+    def transform_state_spec(self, state_spec: Composite) -> Composite:
+        return self._state_specs(state_spec) if self.persistent else state_spec
+
+    # -- the edit ---------------------------------------------------------------------------------
+    def deltas(self, td: TensorDictBase):
+        """(hand (…, 4, 22), object (…, 4, 6)) residuals of this step, scaled by λ; None if absent."""
+        a = self._inputs(td)
+        if a is None:
+            return None
+        c = self.config
+        scale = torch.tensor([c.lambda_object_pos] * 3 + [c.lambda_object_rot] * 3, dtype=a[1].dtype,
+                             device=a[1].device)
+        return c.lambda_hand * a[0], a[1] * scale
+
+    def _state(self, td: TensorDictBase):
+        ref = td.get(REF_JOINT_POS)
+        lead = ref.shape[:-2]
+        hand = td.get(HAND_EDIT, None)
+        obj = td.get(OBJECT_EDIT, None)
+        if hand is None:
+            hand = ref.new_zeros(*lead, HORIZON, ref.shape[-1])
+        if obj is None:
+            obj = ref.new_zeros(*lead, HORIZON, 6)
+        return hand, obj
+
+    @staticmethod
+    def _move_reference(td: TensorDictBase, hand: torch.Tensor, obj: torch.Tensor) -> TensorDictBase:
+        """Move the reference entries (offsets 0, 1, 2, 4, 12) by per-offset edits and reassemble the 273-D vector."""
+        td.set(REF_JOINT_POS, td.get(REF_JOINT_POS) + hand)
+        td.set(REF_OBJECT_POSE, _edit_pose(td.get(REF_OBJECT_POSE), obj))
+        if OBSERVATION in td.keys():
+            td.set(OBSERVATION, flat_from_tensordict(td))
+        return td
+
+    def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
+        d = self.deltas(td)
+        if d is None:
+            return td
+        d_hand, d_obj = d
+        if self.persistent:
+            hand, obj = self._state(td)
+            hand, obj = hand.clone(), obj.clone()
+            hand[..., _FUTURE_ROWS, :] += d_hand
+            obj[..., _FUTURE_ROWS, :] = _compose_pose_edit(obj[..., _FUTURE_ROWS, :], d_obj)
+            td.set(HAND_EDIT, hand)
+            td.set(OBJECT_EDIT, obj)
+        # The entries already show the carried edit; add this step's residual on top.
+        zero_h, zero_o = d_hand[..., :1, :] * 0, d_obj[..., :1, :] * 0
+        return self._move_reference(td, torch.cat([zero_h, d_hand], -2), torch.cat([zero_o, d_obj], -2))
+
+    def _call(self, next_td: TensorDictBase) -> TensorDictBase:
+        """Show the carried edit in raw env output (structured reference and the 273-D vector)."""
+        if not self.persistent or next_td.get(HAND_EDIT, None) is None:
+            return next_td
+        hand, obj = self._state(next_td)
+        return self._move_reference(next_td, hand[..., _OBS_ROWS, :], obj[..., _OBS_ROWS, :])
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        if not self.persistent:
+            return next_tensordict
+        hand, obj = self._state(tensordict)
+        next_tensordict.set(HAND_EDIT, shift_edit(hand))
+        next_tensordict.set(OBJECT_EDIT, shift_edit(obj))
+        return self._call(next_tensordict)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        """Reset worlds start unedited; with a partial reset the others keep their edit."""
+        if not self.persistent:
+            return tensordict_reset
+        hand, obj = self._state(tensordict_reset)
+        mask, prev_hand, prev_obj = (tensordict.get(k, None) for k in ("_reset", HAND_EDIT, OBJECT_EDIT))
+        if mask is not None and prev_hand is not None and prev_obj is not None:
+            keep = ~mask.reshape(hand.shape[:-2])[..., None, None]
+            hand, obj = torch.where(keep, prev_hand, hand), torch.where(keep, prev_obj, obj)
+        tensordict_reset.set(HAND_EDIT, hand)
+        tensordict_reset.set(OBJECT_EDIT, obj)
+        return self._call(tensordict_reset)
+
+
+def shift_edit(edit: torch.Tensor) -> torch.Tensor:
+    """Edits for frames t … t+12 → for frames t+1 … t+13 (the new last frame unedited)."""
+    return torch.cat([edit[..., 1:, :], torch.zeros_like(edit[..., :1, :])], dim=-2)
+
+
+class LatentModulation(_ActionEntry):
+    """Channel O: the object latent the tracker sees becomes f̃ = clip(f + λ_latent · a, −1, 1)."""
+
+    entries = (LATENT,)
+
+    def __init__(self, config: ModulationConfig = ModulationConfig()):
+        super().__init__()
+        self.config = config
+
+    def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
+        a = self._inputs(td)
+        if a is None:
+            return td
+        td.set(OBJECT_LATENT, (td.get(OBJECT_LATENT) + self.config.lambda_latent * a[0]).clamp(-1.0, 1.0))
+        if OBSERVATION in td.keys():
+            td.set(OBSERVATION, flat_from_tensordict(td))
+        return td
+
+
+class ActionModulation(_ActionEntry):
+    """Channel T: a bounded residual on the action, action + bound · clip(Δa, −1, 1)."""
+
+    entries = (ACTION_RESIDUAL,)
+
+    def __init__(self, config: ModulationConfig = ModulationConfig(), action_key="action"):
+        super().__init__()
+        self.config = config
+        self.action_key = action_key
+
+    def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
+        a = self._inputs(td)
+        if a is None:
+            return td
+        td.set(self.action_key, td.get(self.action_key) + self.config.action_bound * a[0])
+        return td
+
+
+class TrackerInTheLoop(Transform):
+    """Runs a frozen tracker on the (modulated) observation and writes the env's action.
+
+    The tracker runs deterministically under ``torch.no_grad`` with its parameters frozen, so no
+    gradient reaches it; the env's ``action`` entry leaves the outer action spec.
+
+    Args:
+        tracker: a :class:`adadex.modules.tracker.Tracker` or any module writing ``"action"``
+            from ``"observation"``.
+    """
+
+    def __init__(self, tracker, action_key="action"):
+        super().__init__(in_keys=[], out_keys=[])
+        actor = getattr(tracker, "actor", tracker)
+        actor.requires_grad_(False)
+        self.tracker = actor.eval()
+        self.action_key = action_key
+
+    def transform_action_spec(self, action_spec: Composite) -> Composite:
+        spec = action_spec.clone()
+        del spec[self.action_key]
+        return spec
+
+    def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            out = self.tracker(td.select(*self.tracker.in_keys).copy())
+        td.set(self.action_key, out.get(self.action_key))
+        return td
+
+
+class FlatModulationAction(Transform):
+    """The outer action: one flat ``"action"`` in [−1, 1]^D, split into the channels' entries
+    (:class:`adadex.modules.channels.ModulationLayout`). Outermost transform of :func:`modulation`."""
+
+    def __init__(self, layout: ModulationLayout, action_key="action"):
+        super().__init__(in_keys=[], out_keys=[])
+        self.layout = layout
+        self.action_key = action_key
+
+    def transform_action_spec(self, action_spec: Composite) -> Composite:
+        spec = action_spec.clone()
+        for key, _, _ in self.layout.segments:
+            del spec[key]
+        if MOD in spec.keys() and spec[MOD].is_empty():   # batched envs refuse empty sub-specs
+            del spec[MOD]
+        spec[self.action_key] = _unit_box(spec.shape, (self.layout.dim,), spec.device)
+        return spec
+
+    def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
+        flat = td.get(self.action_key, None)
+        if flat is None:
+            if self.missing_tolerance:
+                return td
+            raise KeyError(f"FlatModulationAction: no {self.action_key!r} entry in the input tensordict")
+        td = td.exclude(self.action_key)
+        for key, value in self.layout.split(flat).items():
+            td.set(key, value)
+        return td
+
+
+def channel_transforms(channels, config: ModulationConfig = ModulationConfig()) -> list[Transform]:
+    """The channel transforms for ``channels``, in inverse-path order (R, O then T)."""
+    layout = ModulationLayout(channels)
+    out: list[Transform] = []
+    if "R" in layout:
+        out.append(ReferenceModulation(config))
+    if "O" in layout:
+        out.append(LatentModulation(config))
+    if "T" in layout:
+        out.append(ActionModulation(config))
+    return out
+
+
+def modulation(channels="R+O+T", tracker=None, config: ModulationConfig = ModulationConfig()) -> Compose:
+    """The modulator's env as one transform: ``TransformedEnv(TrackingEnv(…), modulation(channels, tracker))``.
+
+    Inverse path (what the modulator's action goes through): split the flat action → R → O →
+    frozen tracker → T → env. Every subset of channels works, ``"none"`` included (the outer action
+    is then empty and the env runs the tracker alone).
+    """
+    if tracker is None:
+        raise ValueError("modulation() needs the frozen tracker (tracker=…)")
+    layout = ModulationLayout(channels)
+    chain = channel_transforms(layout.channels, config)
+    ref_latent = [t for t in chain if not isinstance(t, ActionModulation)]
+    action = [t for t in chain if isinstance(t, ActionModulation)]
+    # Compose runs inverses last-to-first and specs first-to-last.
+    return Compose(*action, TrackerInTheLoop(tracker), *reversed(ref_latent), FlatModulationAction(layout))

@@ -1,0 +1,148 @@
+"""Tracker, Modulator, channel layout: shapes, bounds, modes, checkpoints, bad input."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from adadex.modules.channels import ModulationConfig, ModulationLayout, parse_channels
+from adadex.modules.modulator import Modulator
+from adadex.modules.nets import Normalizer, fit_normalizers
+from adadex.modules.tracker import Tracker
+
+
+def _obs(n=6, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return TensorDict({"observation": torch.randn(n, 273, generator=g)}, batch_size=[n])
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("R+O+T", ("R", "O", "T")), ("T+R", ("R", "T")), ("none", ()), ("", ()), (" o ", ("O",)),
+    (("T", "O"), ("O", "T")), ("R,T", ("R", "T"))])
+def test_parse_channels(text, expected):
+    assert parse_channels(text) == expected
+
+
+@pytest.mark.parametrize("bad", ["R+X", "R+R", "ROT", "all"])
+def test_bad_channels_are_named(bad):
+    with pytest.raises(ValueError, match="channel"):
+        parse_channels(bad)
+
+
+def test_layout_sizes_and_split_round_trip():
+    assert ModulationLayout("R+O+T").dim == 4 * 22 + 4 * 6 + 64 + 22
+    assert ModulationLayout("none").dim == 0
+    layout = ModulationLayout("R+O+T")
+    flat = torch.arange(2 * layout.dim, dtype=torch.float32).reshape(2, layout.dim)
+    parts = layout.split(flat)
+    assert parts[("modulation", "ref_hand")].shape == (2, 4, 22)
+    assert parts[("modulation", "ref_object")].shape == (2, 4, 6)
+    assert parts[("modulation", "latent")].shape == (2, 64)
+    assert parts[("modulation", "action")].shape == (2, 22)
+    assert torch.equal(torch.cat([v.reshape(2, -1) for v in parts.values()], -1), flat)
+    with pytest.raises(ValueError, match="198 entries"):
+        layout.split(torch.zeros(2, 100))
+
+
+def test_modulation_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="lambda_hand"):
+        ModulationConfig(lambda_hand=-0.1)
+    with pytest.raises(ValueError, match="action_bound"):
+        ModulationConfig(action_bound=float("nan"))
+
+
+def test_tracker_actor_bounds_modes_and_critic():
+    torch.manual_seed(0)
+    tracker = Tracker(hidden=(32, 32), max_action=0.1)
+    td = tracker(_obs())
+    assert td["action"].shape == (6, 22) and (td["action"].abs() <= 0.1).all()
+    assert td["action_log_prob"].shape == (6,) and torch.isfinite(td["action_log_prob"]).all()
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        a1 = tracker(_obs())["action"]
+        a2 = tracker(_obs())["action"]
+        loc = tracker(_obs())["tracker", "loc"]
+    assert torch.equal(a1, a2)
+    torch.testing.assert_close(a1, 0.1 * torch.tanh(loc))
+    with set_exploration_type(ExplorationType.RANDOM):   # as TorchRL's collectors run it
+        b1, b2 = tracker(_obs())["action"], tracker(_obs())["action"]
+    assert not torch.equal(b1, b2)
+    assert tracker.critic(_obs())["state_value"].shape == (6, 1)
+
+
+def test_deterministic_action_is_differentiable_for_behaviour_cloning():
+    torch.manual_seed(0)
+    tracker = Tracker(hidden=(32, 32))
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        loss = (tracker(_obs())["action"] - 0.05).pow(2).mean()
+    loss.backward()
+    grads = [p.grad for p in tracker.actor.parameters() if p.requires_grad]
+    assert grads and all(g is not None for g in grads) and any(g.abs().sum() > 0 for g in grads)
+
+
+def test_freeze_stops_gradients():
+    tracker = Tracker(hidden=(16,)).freeze()
+    assert not any(p.requires_grad for p in tracker.parameters()) and not tracker.training
+
+
+def test_tracker_checkpoint_round_trip(tmp_path):
+    torch.manual_seed(1)
+    tracker = Tracker(hidden=(32, 16), max_action=0.08)
+    fit_normalizers(tracker, torch.randn(100, 273) * 3 + 1)
+    path = tracker.save(tmp_path / "t.pt")
+    again = Tracker.load(path)
+    assert again.config == tracker.config
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        assert torch.equal(tracker(_obs())["action"], again(_obs())["action"])
+    assert torch.equal(tracker.critic(_obs())["state_value"], again.critic(_obs())["state_value"])
+
+
+def test_bad_checkpoints_are_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match="missing.pt"):
+        Tracker.load(tmp_path / "missing.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="junk.pt"):
+        Tracker.load(tmp_path / "junk.pt")
+    Modulator("T", hidden=(8,)).save(tmp_path / "m.pt")
+    with pytest.raises(ValueError, match="not a tracker checkpoint"):
+        Tracker.load(tmp_path / "m.pt")
+
+
+def test_normalizer_fit_and_clip():
+    x = torch.randn(500, 4) * torch.tensor([1.0, 10.0, 0.0, 2.0]) + torch.tensor([0.0, 5.0, 3.0, -1.0])
+    n = Normalizer(4).fit(x)
+    y = n(x)
+    assert y[:, [0, 1, 3]].std(0).sub(1).abs().max() < 0.05 and y.mean(0).abs().max() < 0.05
+    assert torch.equal(n.scale[2], torch.tensor(1.0))            # constant entry: shifted, not blown up
+    assert n(torch.full((1, 4), 1e6)).max() == n.clip
+    with pytest.raises(ValueError, match="finite"):
+        n.fit(torch.full((3, 4), float("nan")))
+
+
+@pytest.mark.parametrize("channels, dim", [("R+O+T", 198), ("R", 112), ("O", 64), ("T", 22), ("R+T", 134),
+                                           ("O+T", 86), ("R+O", 176)])
+def test_modulator_is_sized_by_its_channels(channels, dim):
+    torch.manual_seed(0)
+    mod = Modulator(channels, hidden=(32, 32))
+    assert mod.layout.dim == dim
+    td = mod(_obs())
+    assert td["action"].shape == (6, dim) and (td["action"].abs() <= 1).all()
+    assert mod.critic(_obs())["state_value"].shape == (6, 1)
+
+
+def test_untrained_modulator_starts_near_identity():
+    torch.manual_seed(0)
+    mod = Modulator("R+O+T", hidden=(64, 64))
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        a = mod(_obs(32))["action"]
+    assert a.abs().max() < 0.1, a.abs().max()
+
+
+def test_modulator_needs_a_channel_and_round_trips(tmp_path):
+    with pytest.raises(ValueError, match="at least one channel"):
+        Modulator("none")
+    torch.manual_seed(0)
+    mod = Modulator("R+T", hidden=(16, 16))
+    again = Modulator.load(mod.save(tmp_path / "m.pt"))
+    assert again.channels == ("R", "T")
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        assert torch.equal(mod(_obs())["action"], again(_obs())["action"])

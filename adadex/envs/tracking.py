@@ -106,6 +106,14 @@ def _as_patch(patch, effects) -> ModelPatch:
     return out
 
 
+def episode_references(dataset: ReferenceDataset, split: tuple[str, str] | None, window: int = WINDOW_FRAMES
+                       ) -> list[int]:
+    """Indices of the references in ``split`` (``None``: all) long enough for a ``window``-frame episode."""
+    idx = list(range(len(dataset))) if split is None else dataset.split(*split)
+    return [i for i in idx if dataset.entries[i]["window_start"] is not None
+            and dataset.entries[i]["window_start"] + window <= dataset.entries[i]["length"]]
+
+
 class TrackingEnv(EnvBase):
     """See the module docstring.
 
@@ -113,6 +121,7 @@ class TrackingEnv(EnvBase):
         dataset: a reference dataset (folder or :class:`ReferenceDataset`).
         num_worlds: B, worlds stepped together.
         split: ``(split name, part)`` to draw references from, or ``None`` for all references.
+        references: dataset indices to draw from instead of a split (e.g. one evaluation chunk).
         config: episode, action, termination and reward settings.
         latent_fn: object name → (64,) latent.
         randomize: per-world domain randomization (:class:`Randomization`), or ``None``.
@@ -130,7 +139,7 @@ class TrackingEnv(EnvBase):
                  config: TrackingConfig = TrackingConfig(),
                  latent_fn: Callable[[str], np.ndarray] = fixed_object_latent,
                  randomize: Randomization | None = None, patch=None, effects=None,
-                 nthread: int = 2, seed: int = 0, draw: str = "random", device="cpu"):
+                 nthread: int = 2, seed: int = 0, draw: str = "random", references=None, device="cpu"):
         if num_worlds < 1:
             raise ValueError(f"num_worlds must be ≥ 1, got {num_worlds}")
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
@@ -151,7 +160,7 @@ class TrackingEnv(EnvBase):
         self._action_offset = torch.zeros(num_worlds, NUM_JOINTS, dtype=torch.float64)
         self._has_command_effects = any(e.spec.stage == "command" for e in self.patch.active().effects)
         self._servo_cmd = np.zeros((num_worlds, NUM_JOINTS))   # what the servos last received
-        self.references = self._usable(split)
+        self.references = self._usable(split, references)
         frames = self.dataset.frames
         self._ref_q = frames["hand_joint_pos"].to(torch.float64).clone()
         self._ref_link = frames["hand_link_pose"].to(torch.float64).clone()
@@ -177,13 +186,21 @@ class TrackingEnv(EnvBase):
         self._make_specs()
 
     # -- setup ------------------------------------------------------------------------------------
-    def _usable(self, split) -> list[int]:
-        idx = list(range(len(self.dataset))) if split is None else self.dataset.split(*split)
-        w = self.config.window
-        ok = [i for i in idx if self.dataset.entries[i]["window_start"] is not None
-              and self.dataset.entries[i]["window_start"] + w <= self.dataset.entries[i]["length"]]
+    def _usable(self, split, references=None) -> list[int]:
+        if references is not None:
+            bad = [i for i in references if not 0 <= int(i) < len(self.dataset)]
+            if bad or not len(references):
+                raise ValueError(f"{self.dataset.path}: references must be a non-empty list of indices in "
+                                 f"[0, {len(self.dataset)}), got {list(references)[:10]}")
+            usable = set(episode_references(self.dataset, None, self.config.window))
+            short = [int(i) for i in references if int(i) not in usable]
+            if short:
+                raise ValueError(f"{self.dataset.path}: references {short} have no {self.config.window}-frame window")
+            return [int(i) for i in references]
+        ok = episode_references(self.dataset, split, self.config.window)
         if not ok:
-            raise ValueError(f"{self.dataset.path}: no reference in split {split} has a {w}-frame episode window")
+            raise ValueError(f"{self.dataset.path}: no reference in split {split} has a "
+                             f"{self.config.window}-frame episode window")
         return ok
 
     def _make_specs(self) -> None:

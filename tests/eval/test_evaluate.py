@@ -1,0 +1,78 @@
+"""The evaluation loop and the latent-smoothness measure."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+
+from adadex.envs.replay import replay_policy
+from adadex.envs.tracking import TrackingConfig
+from adadex.eval.evaluate import evaluate
+from adadex.eval.latent_smoothness import latent_smoothness, plot_latent_smoothness
+from adadex.modules.modulator import Modulator
+from adadex.modules.tracker import Tracker
+from adadex.transforms.policy import make_policy
+
+CFG = TrackingConfig(window=24)
+
+
+def test_every_reference_once_whatever_the_chunking(tiny_dataset):
+    one = evaluate(replay_policy(), tiny_dataset, split=None, config=CFG, progress=False)
+    chunked = evaluate(replay_policy(), tiny_dataset, split=None, config=CFG, max_worlds=2, progress=False)
+    assert one["references"] == len(one["per_reference"]) >= 3
+    assert one["per_reference"] == chunked["per_reference"]
+    s = one["summary"]
+    assert s["trajectories"] == one["references"]
+    # Kinematic replay follows the hand reference closely over a short window.
+    assert s["T_h"] < 5.0 and 0 <= s["completion_pct"] <= 100
+
+
+def test_a_policy_that_drifts_fails(tiny_dataset):
+    drift = TensorDictModule(lambda q: torch.full_like(q, 0.1), in_keys=[("proprio", "joint_pos")], out_keys=["action"])
+    res = evaluate(drift, tiny_dataset, split=None, config=CFG, progress=False)
+    floor = evaluate(replay_policy(), tiny_dataset, split=None, config=CFG, progress=False)
+    assert res["summary"]["E_finger"] > floor["summary"]["E_finger"] + 0.1
+    assert res["summary"]["completion_pct"] < floor["summary"]["completion_pct"]
+
+
+def test_a_modulated_policy_evaluates_with_its_primer(tiny_dataset):
+    torch.manual_seed(0)
+    policy = make_policy(Tracker(hidden=(32, 32)), Modulator("R+O+T", hidden=(32, 32)))
+    res = evaluate(policy, tiny_dataset, split=None, config=CFG, env_transform=policy.primer, progress=False)
+    assert res["summary"]["trajectories"] == res["references"]
+
+
+def test_bad_arguments(tiny_dataset):
+    with pytest.raises(ValueError, match="max_worlds"):
+        evaluate(replay_policy(), tiny_dataset, split=None, max_worlds=0)
+    with pytest.raises(ValueError, match="episode window"):
+        evaluate(replay_policy(), tiny_dataset, split=None, config=TrackingConfig(window=5000))
+
+
+def _obs(n=20, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return TensorDict({"observation": torch.randn(n, 273, generator=g)}, batch_size=[n])
+
+
+def test_smoothness_of_known_policies():
+    blind = TensorDictModule(lambda x: x[:, :22] * 2, in_keys=["observation"], out_keys=["action"])
+    assert latent_smoothness(blind, _obs())["max"] == 0.0
+    # Linear in the latent: a = 3·latent[:22] → ρ = 3·‖δ[:22]‖/ε ≤ 3, and its mean ≈ 3·sqrt(22/64).
+    linear = TensorDictModule(lambda x: 3 * x[:, 209:231], in_keys=["observation"], out_keys=["action"])
+    out = latent_smoothness(linear, _obs(200), eps=0.01, perturbations=8, seed=1)
+    assert out["rho"].shape == (1600,) and out["max"] <= 3.0 + 1e-4
+    assert abs(out["mean"] - 3 * (22 / 64) ** 0.5) < 0.1
+
+
+def test_smoothness_is_seeded_and_checks_input(tmp_path):
+    tracker = Tracker(hidden=(32, 32))
+    a = latent_smoothness(tracker.actor, _obs(), seed=3)
+    b = latent_smoothness(tracker.actor, _obs(), seed=3)
+    c = latent_smoothness(tracker.actor, _obs(), seed=4)
+    assert torch.equal(a["rho"], b["rho"]) and not torch.equal(a["rho"], c["rho"])
+    with pytest.raises(ValueError, match="eps"):
+        latent_smoothness(tracker.actor, _obs(), eps=0)
+    with pytest.raises(KeyError, match="observation"):
+        latent_smoothness(tracker.actor, TensorDict({"x": torch.zeros(2)}, batch_size=[2]))
+    plot_latent_smoothness({"tracker": a, "other": c}, tmp_path / "rho.png")
+    assert (tmp_path / "rho.png").read_bytes()[:4] == b"\x89PNG"

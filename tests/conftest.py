@@ -2,9 +2,19 @@ import os
 
 import pytest
 
-# Tests use at most the machine's 2 cores and no network (wandb offline).
+# Tests use at most the machine's 2 cores and no network (wandb offline). Torch gets one thread:
+# the tests' networks and batches are small, and a second intra-op thread only spins against
+# MuJoCo's rollout threads (an evaluation ran 4x slower with two); subprocesses inherit it.
 os.environ.setdefault("WANDB_MODE", "offline")
-os.environ.setdefault("OMP_NUM_THREADS", "2")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _one_torch_thread():
+    import torch
+
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+
 
 TINY_SEED = 4   # a seed whose tiny build keeps references on seen and held-out objects
 
@@ -12,17 +22,10 @@ TINY_SEED = 4   # a seed whose tiny build keeps references on seen and held-out 
 @pytest.fixture(scope="session")
 def tiny_build(tmp_path_factory):
     """(build report, folder) of the ``tiny`` reference dataset, built once for the whole session."""
-    import torch
-
     from adadex.data.build import build_dataset
 
     out = tmp_path_factory.mktemp("tiny") / "tiny"
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)   # batched retargeting of a few sequences gains nothing from a busy second thread
-    try:
-        report = build_dataset("tiny", out, seed=TINY_SEED, progress=False)
-    finally:
-        torch.set_num_threads(n)
+    report = build_dataset("tiny", out, seed=TINY_SEED, progress=False)
     return report, out
 
 

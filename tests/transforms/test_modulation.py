@@ -2,6 +2,7 @@
 own transforms: alone and in Compose, on SerialEnv/ParallelEnv, with a replay buffer, the inverse
 path, check_env_specs for every channel subset, bounds under random inputs."""
 
+import functools
 import itertools
 
 import pytest
@@ -17,7 +18,7 @@ from torchrl.objectives.value import GAE
 
 from adadex.envs.observation import LAYOUT, REF_JOINT_POS, REF_OBJECT_POSE, REF_OFFSETS, flat_observation
 from adadex.envs.tracking import TrackingConfig, TrackingEnv
-from adadex.modules.channels import HAND_EDIT, OBJECT_EDIT, ModulationConfig, ModulationLayout
+from adadex.modules.channels import HAND_EDIT, ModulationConfig, ModulationLayout, entry_shape
 from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
 from adadex.quat import quat_angle_between
@@ -335,37 +336,50 @@ def _make_tracking_env(dataset):
     return TrackingEnv(dataset, num_worlds=1, split=None, seed=3, nthread=0)
 
 
-def test_on_a_serial_env(tiny_dataset, tracker):
-    env = TransformedEnv(SerialEnv(2, lambda: _make_tracking_env(tiny_dataset)), modulation("R+O+T", tracker))
-    check_env_specs(env)
-    td = env.rollout(4)
-    assert td["action"].shape == (2, 1, 4, 198)
-    env.close()
+_ALONE = {"R": lambda tracker: ReferenceModulation(), "O": lambda tracker: LatentModulation(),
+          "T": lambda tracker: ActionModulation(), "R+O+T": lambda tracker: modulation("R+O+T", tracker)}
 
 
-def test_on_a_parallel_env_of_two_workers(tiny_dataset, tracker):
-    import functools
+def _transformed(dataset, tracker, which):
+    return TransformedEnv(_make_tracking_env(dataset), _ALONE[which](tracker))
 
-    make = functools.partial(_make_transformed, str(tiny_dataset), tracker)
-    env = ParallelEnv(2, make, mp_start_method="fork")
-    try:
+
+@pytest.mark.parametrize("which", list(_ALONE))
+def test_on_a_serial_env(tiny_dataset, tracker, which):
+    # The transform outside the batched env, and inside each of its workers.
+    outside = TransformedEnv(SerialEnv(2, lambda: _make_tracking_env(tiny_dataset)), _ALONE[which](tracker))
+    inside = SerialEnv(2, functools.partial(_transformed, tiny_dataset, tracker, which))
+    for env in (outside, inside):
         check_env_specs(env)
         td = env.rollout(4)
-        assert td["action"].shape == (2, 1, 4, 198) and torch.isfinite(td["next", "reward"]).all()
-    finally:
+        assert td.batch_size == (2, 1, 4) and torch.isfinite(td["next", "reward"]).all()
         env.close()
 
 
-def _make_transformed(dataset, tracker):
-    return TransformedEnv(_make_tracking_env(dataset), modulation("R+O+T", tracker))
+@pytest.mark.parametrize("which", ["R", "R+O+T"])
+def test_on_a_parallel_env_of_two_workers(tiny_dataset, tracker, which):
+    outside = TransformedEnv(ParallelEnv(2, functools.partial(_make_tracking_env, str(tiny_dataset)),
+                                         mp_start_method="fork"), _ALONE[which](tracker))
+    inside = ParallelEnv(2, functools.partial(_transformed, str(tiny_dataset), tracker, which), mp_start_method="fork")
+    for env in (outside, inside):
+        try:
+            check_env_specs(env)
+            td = env.rollout(4)
+            assert td.batch_size == (2, 1, 4) and torch.isfinite(td["next", "reward"]).all()
+            if which == "R+O+T":
+                assert td["action"].shape == (2, 1, 4, 198)
+        finally:
+            env.close()
 
 
 def test_with_a_replay_buffer():
     """``ReplayBuffer.extend`` runs the inverse path: what is stored is what the env would receive."""
-    for t, key in [(ActionModulation(), "action"), (LatentModulation(), ("object", "latent"))]:
+    for t, key, entry in [(ActionModulation(), "action", ("modulation", "action")),
+                          (LatentModulation(), ("object", "latent"), ("modulation", "latent")),
+                          (ReferenceModulation(), REF_JOINT_POS, ("modulation", "ref_hand"))]:
         td = _fake_obs(B=4)
-        entry = ("modulation", "action") if key == "action" else ("modulation", "latent")
-        td.set(entry, torch.rand(4, *td[key].shape[1:]) * 2 - 1)
+        td.set(entry, torch.rand(4, *entry_shape(entry)) * 2 - 1)
+        td.set(("modulation", "ref_object"), torch.rand(4, 4, 6) * 2 - 1)
         rb = ReplayBuffer(storage=LazyTensorStorage(16), transform=t, batch_size=4)
         rb.extend(td)
         stored = rb[:4]

@@ -4,6 +4,7 @@
 ``adadex sim export``          write the robot's MJCF to assets/robot/robot.xml
 ``adadex data …``              reference datasets: build, info, show, import
 ``adadex sysid …``             model vs measurement: excite, simulate, compare, diagnose, fit, report, demo
+``adadex encoder …``           point-cloud encoder (object latent): train, eval
 ``adadex demo``                a short simulation demo (settle objects, grasp and lift a cube)
 """
 
@@ -104,10 +105,12 @@ def build_parser() -> argparse.ArgumentParser:
     exp.set_defaults(func=_cmd_sim_export)
 
     from adadex.data import cli as data_cli
+    from adadex.modules import encoder as encoder_cli
     from adadex.sysid import cli as sysid_cli
 
     data_cli.add_parser(sub)
     sysid_cli.add_parser(sub)
+    encoder_cli.add_parser(sub)
 
     demo = sub.add_parser("demo", help="short simulation demo: objects settle, the hand grasps and lifts a cube")
     demo.add_argument("--worlds", type=int, default=16, help="worlds stepped together (default 16)")
@@ -125,6 +128,10 @@ def main(argv: list[str] | None = None) -> int:
         return run(args)
     if args.command == "data":
         from adadex.data.cli import run
+
+        return run(args)
+    if args.command == "encoder":
+        from adadex.modules.encoder import run
 
         return run(args)
     return args.func(args)

@@ -1,22 +1,32 @@
-"""The object latent until a trained point-cloud encoder exists: a fixed 64-D vector per object.
+"""The object latent hook of the environment: object name → fixed 64-D vector.
 
-:func:`fixed_object_latent` describes an object's shape with a few deterministic point-cloud
-statistics — bounding-box extents, principal spreads, histograms of the points' distance from the
-centre and of their height — and maps them to 64 dimensions with a fixed random projection
-(seed 0) and ``tanh``. Similar shapes get similar latents, every object gets a distinct one, and
-the same object always gets the same one. It is a stand-in, not a learned embedding: the
-point-cloud encoder (``adadex.modules``) replaces it as the environment's latent hook.
+Two latents, both deterministic, bounded in (−1, 1), (64,) float32 and read-only:
+
+* :func:`encoder_latent` (the default ``latent_fn`` of :class:`~adadex.envs.tracking.TrackingEnv`):
+  the paper's object latent — the trained point-cloud encoder
+  (:class:`adadex.modules.encoder.PointCloudAutoencoder`, shipped as ``assets/encoder/encoder.pt``)
+  applied to each object's surface point cloud (fixed sampling seed), read from the table
+  ``assets/encoder/latents.npz`` written with the checkpoint. :class:`EncoderLatents` reads the
+  table of any other training run (``EncoderLatents("run/latents.npz")`` is a ``latent_fn``).
+* :func:`fixed_object_latent`: the stand-in used before (and without) a trained encoder. It
+  describes an object's shape with a few deterministic point-cloud statistics — bounding-box
+  extents, principal spreads, histograms of the points' distance from the centre and of their
+  height — and maps them to 64 dimensions with a fixed random projection (seed 0) and ``tanh``.
+  Similar shapes get similar latents and every object a distinct one, but it is not learned.
 
 Example
 -------
->>> z = fixed_object_latent("cube_050")
->>> z.shape, bool((abs(z) < 1).all())
-((64,), True)
+>>> z = encoder_latent("cube_050")
+>>> z.shape, z.dtype, bool((abs(z) < 1).all()), z.flags.writeable
+((64,), dtype('float32'), True, False)
+>>> fixed_object_latent("cube_050").shape
+(64,)
 """
 
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 
 import numpy as np
 
@@ -24,6 +34,10 @@ from adadex.envs.observation import LATENT_DIM
 from adadex.sim.objects import get_object
 
 _BINS = 16
+
+#: The trained encoder shipped with adadex (see ``adadex encoder train``) and its latent table.
+SHIPPED_ENCODER = Path(__file__).resolve().parents[2] / "assets" / "encoder" / "encoder.pt"
+SHIPPED_LATENTS = SHIPPED_ENCODER.with_name("latents.npz")
 
 
 def shape_features(points: np.ndarray) -> np.ndarray:
@@ -54,5 +68,56 @@ def _latent(object_name: str) -> np.ndarray:
 
 
 def fixed_object_latent(object_name: str) -> np.ndarray:
-    """(64,) float32, read-only: the stand-in latent of ``object_name`` (see the module docstring)."""
+    """(64,) float32, read-only: the stand-in latent of ``object_name``, used before/without a trained
+    encoder (see the module docstring)."""
     return _latent(object_name)
+
+
+class EncoderLatents:
+    """``latent_fn`` from a table of trained-encoder latents: object name → (64,) float32, read-only.
+
+    The table (``latents.npz``: ``names`` (N,), ``latents`` (N, 64)) is written next to the
+    checkpoint by ``adadex encoder train`` (:func:`adadex.modules.encoder.object_latents`, point
+    clouds sampled with a fixed seed) and read here on first use. Reading a table rather than
+    running the network keeps the environment free of the model code (lower layers never import
+    upper ones) and makes the latent of each object a fixed, inspectable number.
+    """
+
+    def __init__(self, path=SHIPPED_LATENTS):
+        self.path = Path(path)
+        self._table: dict[str, np.ndarray] | None = None
+
+    @property
+    def table(self) -> dict[str, np.ndarray]:
+        if self._table is None:
+            if not self.path.is_file():
+                raise FileNotFoundError(f"{self.path}: no latent table there (adadex encoder train writes latents.npz)")
+            try:
+                with np.load(self.path, allow_pickle=False) as f:
+                    names, latents = [str(n) for n in f["names"]], np.asarray(f["latents"], dtype=np.float32)
+            except (OSError, KeyError, ValueError) as e:
+                raise ValueError(f"{self.path}: not a latent table ({type(e).__name__}: {e})") from e
+            if latents.shape != (len(names), LATENT_DIM) or not np.isfinite(latents).all():
+                raise ValueError(f"{self.path}: latents must be finite with shape ({len(names)}, {LATENT_DIM}), "
+                                 f"got {latents.shape}")
+            latents.setflags(write=False)
+            self._table = dict(zip(names, latents))
+        return self._table
+
+    def __call__(self, object_name: str) -> np.ndarray:
+        z = self.table.get(object_name)
+        if z is None:
+            get_object(object_name)   # an unknown object is named as such
+            raise KeyError(f"{self.path}: no latent for {object_name!r} (retrain or re-export the encoder's latents)")
+        return z
+
+    def __repr__(self) -> str:
+        return f"EncoderLatents({str(self.path)!r})"
+
+
+_shipped = EncoderLatents()
+
+
+def encoder_latent(object_name: str) -> np.ndarray:
+    """(64,) float32, read-only: ``object_name``'s latent from the shipped encoder (cached)."""
+    return _shipped(object_name)

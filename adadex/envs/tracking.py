@@ -13,8 +13,8 @@ Per step:
   held by the position servos (PD) for the control step;
 * observation: structured entries and the flat 273-D ``"observation"`` (see
   :mod:`adadex.envs.observation`), plus the current joint targets ``("proprio", "joint_target")``
-  (not part of the 273-D vector), the object latent from ``latent_fn`` (default: the stand-in
-  :func:`adadex.envs.latent.fixed_object_latent` until a trained encoder exists);
+  (not part of the 273-D vector), the object latent from ``latent_fn`` (default: the shipped point-cloud
+  encoder's latent, :func:`adadex.envs.latent.encoder_latent`);
 * reward: :func:`adadex.envs.reward.tracking_reward`;
 * ``"errors"``: the per-frame metric errors T_o, R_o, T_h, R_h, E_finger
   (:func:`adadex.eval.metrics.frame_errors`), so evaluation never recomputes physics;
@@ -46,7 +46,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset
-from adadex.envs.latent import fixed_object_latent
+from adadex.envs.latent import encoder_latent
 from adadex.envs.observation import LATENT_DIM, OBS_DIM, REF_OFFSETS, flat_observation
 from adadex.envs.randomization import ModelRandomizer, Randomization
 from adadex.envs.reward import RewardConfig, tracking_reward
@@ -137,7 +137,7 @@ class TrackingEnv(EnvBase):
 
     def __init__(self, dataset, *, num_worlds: int = 8, split: tuple[str, str] | None = ("unseen_trajectory", "train"),
                  config: TrackingConfig = TrackingConfig(),
-                 latent_fn: Callable[[str], np.ndarray] = fixed_object_latent,
+                 latent_fn: Callable[[str], np.ndarray] = encoder_latent,
                  randomize: Randomization | None = None, patch=None, effects=None,
                  nthread: int = 2, seed: int = 0, draw: str = "random", references=None, device="cpu"):
         if num_worlds < 1:

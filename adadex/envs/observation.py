@@ -73,20 +73,20 @@ def _layout() -> dict[str, slice]:
 LAYOUT: dict[str, slice] = _layout()
 
 
+_TAILS = tuple(torch.Size(t) for t in ((NUM_JOINTS,), (len(TRACKED_SITES), 7), (7,), (LATENT_DIM,),
+                                       (len(REF_OFFSETS), NUM_JOINTS), (len(REF_OFFSETS), 7)))
+
+
 def flat_observation(joint_pos: torch.Tensor, link_pose: torch.Tensor, object_pose: torch.Tensor,
                      latent: torch.Tensor, ref_joint_pos: torch.Tensor, ref_object_pose: torch.Tensor) -> torch.Tensor:
     """(…, 273) from the structured entries (shapes in the module docstring; reference arrays
     hold the frames at :data:`REF_OFFSETS`, the current one first)."""
     lead = joint_pos.shape[:-1]
-    expect = {"joint_pos": (NUM_JOINTS,), "link_pose": (len(TRACKED_SITES), 7), "object_pose": (7,),
-              "latent": (LATENT_DIM,), "ref_joint_pos": (len(REF_OFFSETS), NUM_JOINTS),
-              "ref_object_pose": (len(REF_OFFSETS), 7)}
-    got = {"joint_pos": joint_pos, "link_pose": link_pose, "object_pose": object_pose, "latent": latent,
-           "ref_joint_pos": ref_joint_pos, "ref_object_pose": ref_object_pose}
-    for name, tail in expect.items():
-        shape = tuple(got[name].shape)
-        if shape != (*lead, *tail):
-            raise ValueError(f"{name}: expected shape {(*lead, *tail)}, got {shape}")
+    for name, x, tail in (("joint_pos", joint_pos, _TAILS[0]), ("link_pose", link_pose, _TAILS[1]),
+                          ("object_pose", object_pose, _TAILS[2]), ("latent", latent, _TAILS[3]),
+                          ("ref_joint_pos", ref_joint_pos, _TAILS[4]), ("ref_object_pose", ref_object_pose, _TAILS[5])):
+        if x.shape != lead + tail:
+            raise ValueError(f"{name}: expected shape {tuple(lead + tail)}, got {tuple(x.shape)}")
     ref_obj_now = ref_object_pose[..., 0, :]
     object_error = torch.cat([object_pose[..., :3] - ref_obj_now[..., :3],
                               quat_diff(object_pose[..., 3:], ref_obj_now[..., 3:])], dim=-1)

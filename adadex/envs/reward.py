@@ -55,22 +55,26 @@ def tracking_reward(cfg: RewardConfig, *, joint_pos, link_pose, object_pose, ref
     """(B,) reward and its terms from (B, 22) joints, (B, 5, 7) link poses, (B, 7) object poses and
     the reference at the same frame. ``errors`` (the frame's metric errors, if already computed)
     saves recomputing the palm and object errors."""
+    # Every distance the reward needs, in one norm over stacked (B, 12, 3) differences.
+    palm, tips, obj = link_pose[:, 0, :3], link_pose[:, 1:, :3], object_pose[:, None, :3]
+    diffs = torch.cat([tips - ref_link_pose[:, 1:, :3],                       # 0–3  fingertip tracking
+                       palm[:, None] - obj, tips - obj,                        # 4, 5–8  hand to object
+                       (ref_link_pose[:, 0, :3] - ref_object_pose[:, :3])[:, None],  # 9  reference hand to object
+                       (palm - ref_link_pose[:, 0, :3])[:, None],              # 10  palm tracking
+                       obj - ref_object_pose[:, None, :3]], dim=1)             # 11  object tracking
+    dist = torch.linalg.vector_norm(diffs, dim=-1)
+    e_tip, d_palm, d_tip, d_ref = dist[:, 0:4].mean(-1), dist[:, 4], dist[:, 5:9].mean(-1), dist[:, 9]
     if errors is not None:
         e_palm, e_palm_rot, t_o, r_o = errors["T_h"], errors["R_h"], errors["T_o"], errors["R_o"]
     else:
-        e_palm = torch.linalg.vector_norm(link_pose[:, 0, :3] - ref_link_pose[:, 0, :3], dim=-1)
+        e_palm, t_o = dist[:, 10], dist[:, 11]
         e_palm_rot = quat_angle_between(link_pose[:, 0, 3:], ref_link_pose[:, 0, 3:])
-        t_o = torch.linalg.vector_norm(object_pose[:, :3] - ref_object_pose[:, :3], dim=-1)
         r_o = quat_angle_between(object_pose[:, 3:], ref_object_pose[:, 3:])
     e_joint = (joint_pos - ref_joint_pos).abs().mean(-1)
-    e_tip = torch.linalg.vector_norm(link_pose[:, 1:, :3] - ref_link_pose[:, 1:, :3], dim=-1).mean(-1)
     tracking = cfg.w_palm_pos * e_palm + cfg.w_palm_rot * e_palm_rot + cfg.w_joint * e_joint + cfg.w_tip * e_tip
 
-    d_palm = torch.linalg.vector_norm(link_pose[:, 0, :3] - object_pose[:, :3], dim=-1)
-    d_tip = torch.linalg.vector_norm(link_pose[:, 1:, :3] - object_pose[:, None, :3], dim=-1).mean(-1)
     gate = (d_palm <= cfg.palm_gate).to(d_palm.dtype)
-    near = (torch.linalg.vector_norm(ref_link_pose[:, 0, :3] - ref_object_pose[:, :3], dim=-1)
-            <= cfg.contact_distance).to(d_palm.dtype)
+    near = (d_ref <= cfg.contact_distance).to(d_palm.dtype)
     proximity = -near * (d_palm.clamp(max=cfg.palm_clip) + gate * d_tip.clamp(max=cfg.tip_clip))
 
     d_goal = t_o + cfg.goal_rot_weight * r_o

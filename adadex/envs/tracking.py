@@ -162,9 +162,11 @@ class TrackingEnv(EnvBase):
         self._servo_cmd = np.zeros((num_worlds, NUM_JOINTS))   # what the servos last received
         self.references = self._usable(split, references)
         frames = self.dataset.frames
-        self._ref_q = frames["hand_joint_pos"].to(torch.float64).clone()
-        self._ref_link = frames["hand_link_pose"].to(torch.float64).clone()
-        self._ref_obj = frames["object_pose"].to(torch.float64).clone()
+        # Observations, errors and rewards are float32 end to end (no per-step casts); the joint
+        # targets and the start states stay float64.
+        self._ref_q = frames["hand_joint_pos"].to(torch.float32).clone()
+        self._ref_link = frames["hand_link_pose"].to(torch.float32).clone()
+        self._ref_obj = frames["object_pose"].to(torch.float32).clone()
         B = num_worlds
         self._base = torch.zeros(B, dtype=torch.long)       # frame index of each world's episode start
         self._t = torch.zeros(B, dtype=torch.long)
@@ -265,8 +267,8 @@ class TrackingEnv(EnvBase):
 
     def _put_at_start(self, worlds: np.ndarray, perturb: bool = False) -> None:
         b = self._base[worlds]
-        q = self._ref_q[b].clamp(self._lo, self._hi)
-        obj = self._ref_obj[b].clone()
+        q = self._ref_q[b].double().clamp(self._lo, self._hi)
+        obj = self._ref_obj[b].double()
         obj[:, 2] += self.config.object_lift
         for j, w in enumerate(worlds):   # a resized object still rests on the table
             half = get_object(self.dataset.entries[int(self._ref_index[w])]["object"]).half_height
@@ -313,20 +315,20 @@ class TrackingEnv(EnvBase):
             self._put_at_start(worlds)          # no NaN leaves the env; the episode ends below
             readout = self.sim.readout()
         out = self._observe(readout)
-        cur = self._frames_at([0])[:, 0]
+        ref = out.get("reference")   # offset 0 is the current frame
         reward, _ = tracking_reward(
             self.config.reward, joint_pos=self._joint_pos, link_pose=self._link_pose, object_pose=self._object_pose,
-            ref_joint_pos=self._ref_q[cur], ref_link_pose=self._ref_link[cur], ref_object_pose=self._ref_obj[cur],
-            errors=self._errors)
+            ref_joint_pos=ref.get("hand_joint_pos")[:, 0], ref_link_pose=ref.get("hand_link_pose")[:, 0],
+            ref_object_pose=ref.get("object_pose")[:, 0], errors=self._errors)
         err = out.get("errors")
         cfg = self.config
         terminated = unstable.clone()
         if cfg.terminate_object_error > 0:
-            terminated |= err.get("T_o").to(torch.float64) > cfg.terminate_object_error
+            terminated |= err.get("T_o") > cfg.terminate_object_error
         if cfg.terminate_palm_error > 0:
-            terminated |= err.get("T_h").to(torch.float64) > cfg.terminate_palm_error
+            terminated |= err.get("T_h") > cfg.terminate_palm_error
         truncated = self._t >= cfg.window - 1
-        out.set("reward", reward.to(torch.float32)[:, None])
+        out.set("reward", reward[:, None])
         out.set("terminated", terminated[:, None])
         out.set("truncated", truncated[:, None])
         out.set("done", (terminated | truncated)[:, None])
@@ -345,40 +347,37 @@ class TrackingEnv(EnvBase):
 
     def _observe(self, readout) -> TensorDict:
         """Structured and flat observation plus the frame errors, for the current frame of every world."""
-        self._joint_pos = torch.as_tensor(readout.joint_pos)
-        self._link_pose = torch.as_tensor(readout.link_pose)
-        self._object_pose = torch.as_tensor(readout.object_pose)
+        f32 = torch.float32
+        self._joint_pos = torch.as_tensor(readout.joint_pos, dtype=f32)     # copies: the readout is reused
+        self._link_pose = torch.as_tensor(readout.link_pose, dtype=f32)
+        self._object_pose = torch.as_tensor(readout.object_pose, dtype=f32)
         idx = self._frames_at(REF_OFFSETS)
         ref_q, ref_link, ref_obj = self._ref_q[idx], self._ref_link[idx], self._ref_obj[idx]
-        latent = self._latent.to(torch.float64)
         # What the policy sees: encoders (sensor-stage effects, noise) and noisy link positions.
         seen_q = self._joint_pos
         if self._patch_key:
-            seen_q = torch.as_tensor(self.patch.transform_measurement(seen_q.numpy()[:, None])[:, 0])
+            seen_q = torch.as_tensor(self.patch.transform_measurement(seen_q.double().numpy()[:, None])[:, 0], dtype=f32)
         seen_link = self._link_pose
         if self.randomize is not None and self.randomize.proprio_noise > 0:
             sigma = self.randomize.proprio_noise
-            seen_q = seen_q + torch.as_tensor(self._rng.normal(0, sigma, tuple(seen_q.shape)))
+            seen_q = seen_q + torch.as_tensor(self._rng.normal(0, sigma, tuple(seen_q.shape)), dtype=f32)
             seen_link = seen_link.clone()
-            seen_link[..., :3] += torch.as_tensor(self._rng.normal(0, sigma, tuple(seen_link[..., :3].shape)))
-        flat = flat_observation(seen_q, seen_link, self._object_pose, latent, ref_q, ref_obj)
+            seen_link[..., :3] += torch.as_tensor(self._rng.normal(0, sigma, tuple(seen_link[..., :3].shape)), dtype=f32)
+        flat = flat_observation(seen_q, seen_link, self._object_pose, self._latent, ref_q, ref_obj)
         errors = frame_errors(self._object_pose, ref_obj[:, 0], self._link_pose[:, 0], ref_link[:, 0, 0],
                               self._joint_pos, ref_q[:, 0])
         self._errors = errors
         B = self.batch_size
-        f32 = torch.float32
 
         def td(entries):  # shapes are right by construction: skip TensorDict's per-entry validation
             return TensorDict._new_unsafe(entries, batch_size=B, device=self.device)
 
         return td({
-            "proprio": td({"joint_pos": seen_q.to(f32), "joint_target": self._q_target.to(f32),
-                           "link_pose": seen_link.to(f32)}),
-            "object": td({"pose": self._object_pose.to(f32), "latent": self._latent.clone()}),
-            "reference": td({"hand_joint_pos": ref_q.to(f32), "hand_link_pose": ref_link.to(f32),
-                             "object_pose": ref_obj.to(f32)}),
-            "observation": flat.to(f32),
-            "errors": td({k: v.to(f32) for k, v in errors.items()}),
+            "proprio": td({"joint_pos": seen_q, "joint_target": self._q_target.to(f32), "link_pose": seen_link}),
+            "object": td({"pose": self._object_pose, "latent": self._latent.clone()}),
+            "reference": td({"hand_joint_pos": ref_q, "hand_link_pose": ref_link, "object_pose": ref_obj}),
+            "observation": flat,
+            "errors": td(dict(errors)),
         })
 
     # -- info -------------------------------------------------------------------------------------

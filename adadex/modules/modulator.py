@@ -28,15 +28,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from torch import nn
-
 from adadex.envs.observation import OBS_DIM, OBSERVATION
 from adadex.modules.channels import ModulationLayout
-from adadex.modules.nets import make_actor, make_critic
-from adadex.modules.tracker import load_checkpoint, save_checkpoint
+from adadex.modules.nets import ActorCritic, make_actor, make_critic
 
 
-class Modulator(nn.Module):
+class Modulator(ActorCritic):
     """Actor + critic with one head per active channel (see the module docstring).
 
     Args:
@@ -44,6 +41,8 @@ class Modulator(nn.Module):
         hidden: widths of the trunk / critic hidden layers.
         init_scale: initial exploration scale (pre-tanh).
     """
+
+    kind = "modulator"
 
     def __init__(self, channels="R+O+T", hidden: Sequence[int] = (512, 256, 128), init_scale: float = 0.5):
         super().__init__()
@@ -58,16 +57,3 @@ class Modulator(nn.Module):
     @property
     def channels(self) -> tuple[str, ...]:
         return self.layout.channels
-
-    def forward(self, tensordict):
-        return self.actor(tensordict)
-
-    def save(self, path):
-        return save_checkpoint(path, "modulator", self.config, self.state_dict())
-
-    @classmethod
-    def load(cls, path) -> Modulator:
-        cfg, state = load_checkpoint(path, "modulator")
-        out = cls(**cfg)
-        out.load_state_dict(state)
-        return out

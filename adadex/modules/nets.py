@@ -11,12 +11,15 @@ their own :class:`Normalizer`, so a saved module carries its statistics.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import torch
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
+
+from adadex.io import atomic_write
 
 
 class Normalizer(nn.Module):
@@ -89,6 +92,44 @@ def make_critic(obs_key, obs_dim: int, hidden: Sequence[int], *, value_key="stat
     net = nn.Sequential(Normalizer(obs_dim), MLP(in_features=obs_dim, out_features=1, num_cells=list(hidden),
                                                  activation_class=nn.ELU))
     return ValueOperator(net, in_keys=[obs_key], out_keys=[value_key])
+
+
+class ActorCritic(nn.Module):
+    """An ``actor`` + ``critic`` pair with a ``config`` dict that rebuilds it: forward = the actor,
+    :meth:`freeze`, and checkpoints (``save`` / ``load``, atomic, refusing another kind's file)."""
+
+    kind = "actor_critic"
+    config: dict
+
+    def forward(self, tensordict):
+        """The actor's forward pass (the module used as a policy)."""
+        return self.actor(tensordict)
+
+    def freeze(self):
+        """No gradients, eval mode (e.g. the tracker as the modulator's frozen generalist)."""
+        self.requires_grad_(False)
+        return self.eval()
+
+    def save(self, path) -> Path:
+        """Write config + weights to ``path`` atomically."""
+        return atomic_write(path, lambda f: torch.save(
+            {"kind": self.kind, "config": self.config, "state_dict": self.state_dict()}, f))
+
+    @classmethod
+    def load(cls, path):
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no {cls.kind} checkpoint there")
+        try:
+            blob = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:  # torch raises several types for a damaged file
+            raise ValueError(f"{path}: not a readable {cls.kind} checkpoint ({e})") from e
+        kind = blob.get("kind") if isinstance(blob, dict) else None
+        if kind != cls.kind:
+            raise ValueError(f"{path}: not a {cls.kind} checkpoint (kind={kind!r})")
+        out = cls(**blob["config"])
+        out.load_state_dict(blob["state_dict"])
+        return out
 
 
 def fit_normalizers(module: nn.Module, observations: torch.Tensor) -> None:

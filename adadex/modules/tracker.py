@@ -28,18 +28,13 @@ Example
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
-
-import torch
-from torch import nn
 
 from adadex.envs.observation import OBS_DIM, OBSERVATION
-from adadex.io import atomic_write
-from adadex.modules.nets import make_actor, make_critic
+from adadex.modules.nets import ActorCritic, make_actor, make_critic
 from adadex.sim.robot import NUM_JOINTS
 
 
-class Tracker(nn.Module):
+class Tracker(ActorCritic):
     """Actor + critic over the 273-D observation (see the module docstring).
 
     Args:
@@ -47,6 +42,8 @@ class Tracker(nn.Module):
         max_action: bound of the joint-target change, rad (``TrackingConfig.max_action``).
         init_scale: initial exploration scale (pre-tanh) of the Gaussian.
     """
+
+    kind = "tracker"
 
     def __init__(self, hidden: Sequence[int] = (512, 256, 128), max_action: float = 0.1, init_scale: float = 1.0):
         super().__init__()
@@ -57,39 +54,3 @@ class Tracker(nn.Module):
                                 namespace="tracker", init_scale=init_scale)
         self.critic = make_critic(OBSERVATION, OBS_DIM, hidden)
 
-    def forward(self, tensordict):
-        """The actor's forward pass (a tracker used as a policy)."""
-        return self.actor(tensordict)
-
-    def freeze(self) -> Tracker:
-        """No gradients, eval mode: the tracker as the modulator's frozen generalist."""
-        self.requires_grad_(False)
-        return self.eval()
-
-    def save(self, path) -> Path:
-        """Write config + weights to ``path`` atomically."""
-        return save_checkpoint(path, "tracker", self.config, self.state_dict())
-
-    @classmethod
-    def load(cls, path) -> Tracker:
-        cfg, state = load_checkpoint(path, "tracker")
-        out = cls(**cfg)
-        out.load_state_dict(state)
-        return out
-
-
-def save_checkpoint(path, kind: str, config: dict, state: dict) -> Path:
-    return atomic_write(path, lambda f: torch.save({"kind": kind, "config": config, "state_dict": state}, f))
-
-
-def load_checkpoint(path, kind: str) -> tuple[dict, dict]:
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no {kind} checkpoint there")
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # torch raises several types for a damaged file
-        raise ValueError(f"{path}: not a readable {kind} checkpoint ({e})") from e
-    if not isinstance(blob, dict) or blob.get("kind") != kind:
-        raise ValueError(f"{path}: not a {kind} checkpoint (kind={blob.get('kind') if isinstance(blob, dict) else None!r})")
-    return blob["config"], blob["state_dict"]

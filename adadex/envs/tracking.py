@@ -174,6 +174,7 @@ class TrackingEnv(EnvBase):
         self._latent = torch.zeros(B, LATENT_DIM)
         lim = torch.as_tensor(joint_limits())
         self._lo, self._hi = lim[:, 0], lim[:, 1]
+        self._offsets = torch.as_tensor(REF_OFFSETS)[None]
         self._q_target = torch.zeros(B, NUM_JOINTS, dtype=torch.float64)
         self.unstable_count = 0
         self._rng = np.random.default_rng(seed)
@@ -235,10 +236,9 @@ class TrackingEnv(EnvBase):
         return seed
 
     # -- references -------------------------------------------------------------------------------
-    def _frames_at(self, offsets) -> torch.Tensor:
-        """(B, K) frame indices of the reference at t + offsets, held at the window's last frame."""
-        t = (self._t[:, None] + torch.as_tensor(offsets)[None]).clamp(max=self.config.window - 1)
-        return self._base[:, None] + t
+    def _frames_at(self) -> torch.Tensor:
+        """(B, 5) frame indices of the reference at t + REF_OFFSETS, held at the window's last frame."""
+        return self._base[:, None] + (self._t[:, None] + self._offsets).clamp_(max=self.config.window - 1)
 
     def _start_worlds(self, worlds: np.ndarray) -> None:
         """Draw references for ``worlds`` and put them at their episode start."""
@@ -294,15 +294,15 @@ class TrackingEnv(EnvBase):
         if len(worlds):
             self._start_worlds(worlds)
         out = self._observe(self.sim.readout())
-        out.set("unstable", torch.zeros(*self.batch_size, 1, dtype=torch.bool))
-        return out
+        out["unstable"] = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
+        return self._td(out)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action").detach().to(torch.float64).clamp(-self.config.max_action, self.config.max_action)
         if self.randomize is not None:
             action = action + self._action_offset + torch.as_tensor(
                 self._rng.normal(0, self.randomize.action_noise_uncorrelated, tuple(action.shape)))
-        self._q_target = torch.minimum(torch.maximum(self._q_target + action, self._lo), self._hi)
+        self._q_target = (self._q_target + action).clamp_(self._lo, self._hi)
         readout = self.sim.step(self._servo_command())
         self._t += 1
         # MuJoCo flags diverging worlds; an object flung faster than any tabletop motion is one too.
@@ -315,25 +315,27 @@ class TrackingEnv(EnvBase):
             self._put_at_start(worlds)          # no NaN leaves the env; the episode ends below
             readout = self.sim.readout()
         out = self._observe(readout)
-        ref = out.get("reference")   # offset 0 is the current frame
+        ref = out["reference"]   # offset 0 is the current frame
         reward, _ = tracking_reward(
             self.config.reward, joint_pos=self._joint_pos, link_pose=self._link_pose, object_pose=self._object_pose,
             ref_joint_pos=ref.get("hand_joint_pos")[:, 0], ref_link_pose=ref.get("hand_link_pose")[:, 0],
             ref_object_pose=ref.get("object_pose")[:, 0], errors=self._errors)
-        err = out.get("errors")
+        err = self._errors
         cfg = self.config
-        terminated = unstable.clone()
+        terminated = unstable
         if cfg.terminate_object_error > 0:
-            terminated |= err.get("T_o") > cfg.terminate_object_error
+            terminated = terminated | (err["T_o"] > cfg.terminate_object_error)
         if cfg.terminate_palm_error > 0:
-            terminated |= err.get("T_h") > cfg.terminate_palm_error
+            terminated = terminated | (err["T_h"] > cfg.terminate_palm_error)
         truncated = self._t >= cfg.window - 1
-        out.set("reward", reward[:, None])
-        out.set("terminated", terminated[:, None])
-        out.set("truncated", truncated[:, None])
-        out.set("done", (terminated | truncated)[:, None])
-        out.set("unstable", unstable[:, None])
-        return out
+        out.update(reward=reward[:, None], terminated=terminated[:, None], truncated=truncated[:, None],
+                   done=(terminated | truncated)[:, None], unstable=unstable[:, None])
+        return self._td(out)
+
+    def _td(self, entries: dict) -> TensorDict:
+        """A TensorDict of the env's batch size from entries whose shapes are right by construction
+        (skips TensorDict's per-entry validation: this runs every step)."""
+        return TensorDict._new_unsafe(entries, batch_size=self.batch_size, device=self.device)
 
     def _servo_command(self) -> np.ndarray:
         """Targets → what the servos receive: command-stage effects (backlash …) run online, as the
@@ -345,13 +347,13 @@ class TrackingEnv(EnvBase):
             self._servo_cmd = cmd.copy()
         return cmd
 
-    def _observe(self, readout) -> TensorDict:
-        """Structured and flat observation plus the frame errors, for the current frame of every world."""
+    def _observe(self, readout) -> dict:
+        """Entries of the structured and flat observation plus the frame errors, for the current frame of every world."""
         f32 = torch.float32
         self._joint_pos = torch.as_tensor(readout.joint_pos, dtype=f32)     # copies: the readout is reused
         self._link_pose = torch.as_tensor(readout.link_pose, dtype=f32)
         self._object_pose = torch.as_tensor(readout.object_pose, dtype=f32)
-        idx = self._frames_at(REF_OFFSETS)
+        idx = self._frames_at()
         ref_q, ref_link, ref_obj = self._ref_q[idx], self._ref_link[idx], self._ref_obj[idx]
         # What the policy sees: encoders (sensor-stage effects, noise) and noisy link positions.
         seen_q = self._joint_pos
@@ -367,18 +369,14 @@ class TrackingEnv(EnvBase):
         errors = frame_errors(self._object_pose, ref_obj[:, 0], self._link_pose[:, 0], ref_link[:, 0, 0],
                               self._joint_pos, ref_q[:, 0])
         self._errors = errors
-        B = self.batch_size
-
-        def td(entries):  # shapes are right by construction: skip TensorDict's per-entry validation
-            return TensorDict._new_unsafe(entries, batch_size=B, device=self.device)
-
-        return td({
+        td = self._td
+        return {
             "proprio": td({"joint_pos": seen_q, "joint_target": self._q_target.to(f32), "link_pose": seen_link}),
             "object": td({"pose": self._object_pose, "latent": self._latent.clone()}),
             "reference": td({"hand_joint_pos": ref_q, "hand_link_pose": ref_link, "object_pose": ref_obj}),
             "observation": flat,
             "errors": td(dict(errors)),
-        })
+        }
 
     # -- info -------------------------------------------------------------------------------------
     @property

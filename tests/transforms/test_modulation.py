@@ -16,7 +16,7 @@ from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from adadex.envs.observation import LAYOUT, REF_JOINT_POS, REF_OBJECT_POSE, REF_OFFSETS, flat_observation
+from adadex.envs.observation import LAYOUT, REF_JOINT_POS, REF_OBJECT_POSE, flat_observation
 from adadex.envs.tracking import TrackingConfig, TrackingEnv
 from adadex.modules.channels import HAND_EDIT, ModulationConfig, ModulationLayout, entry_shape
 from adadex.modules.modulator import Modulator

@@ -39,7 +39,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adadex.envs.observation import OBJECT_LATENT, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, REF_OFFSETS, \
     flat_from_tensordict
-from adadex.modules.channels import ACTION_RESIDUAL, HAND_EDIT, HORIZON, LATENT, MOD, OBJECT_EDIT, REF_HAND, REF_OBJECT, \
+from adadex.modules.channels import ACTION_RESIDUAL, EDIT_SHAPES, HAND_EDIT, LATENT, MOD, OBJECT_EDIT, REF_HAND, REF_OBJECT, \
     ModulationConfig, ModulationLayout, entry_shape
 from adadex.quat import quat_from_rotvec, quat_mul, rotvec_from_quat
 
@@ -109,8 +109,8 @@ class ReferenceModulation(_ActionEntry):
 
     # -- specs ------------------------------------------------------------------------------------
     def _state_specs(self, spec: Composite) -> Composite:
-        for key, width in ((HAND_EDIT, entry_shape(REF_HAND)[-1]), (OBJECT_EDIT, 6)):
-            spec[key] = Unbounded(shape=(*spec.shape, HORIZON, width), dtype=torch.float32, device=spec.device)
+        for key, shape in EDIT_SHAPES.items():
+            spec[key] = Unbounded(shape=(*spec.shape, *shape), dtype=torch.float32, device=spec.device)
         return spec
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
@@ -136,9 +136,9 @@ class ReferenceModulation(_ActionEntry):
         hand = td.get(HAND_EDIT, None)
         obj = td.get(OBJECT_EDIT, None)
         if hand is None:
-            hand = ref.new_zeros(*lead, HORIZON, ref.shape[-1])
+            hand = ref.new_zeros(*lead, *EDIT_SHAPES[HAND_EDIT])
         if obj is None:
-            obj = ref.new_zeros(*lead, HORIZON, 6)
+            obj = ref.new_zeros(*lead, *EDIT_SHAPES[OBJECT_EDIT])
         return hand, obj
 
     @staticmethod

@@ -36,8 +36,7 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 
 from adadex.envs.observation import OBSERVATION
-from adadex.modules.channels import HAND_EDIT, HORIZON, MOD, OBJECT_EDIT, ModulationConfig, ModulationLayout
-from adadex.sim.robot import NUM_JOINTS
+from adadex.modules.channels import EDIT_SHAPES, HAND_EDIT, MOD, OBJECT_EDIT, ModulationConfig, ModulationLayout
 from adadex.transforms.modulation import ReferenceModulation, modulation, shift_edit
 
 SAMPLE = (MOD, "sample")
@@ -94,7 +93,7 @@ class ModulatedPolicy(TensorDictSequential):
         """The state the env must carry for this policy (zeros at reset); empty without persistent R."""
         spec = {}
         if self.persistent:
-            spec = {HAND_EDIT: Unbounded(shape=(HORIZON, NUM_JOINTS)), OBJECT_EDIT: Unbounded(shape=(HORIZON, 6))}
+            spec = {key: Unbounded(shape=shape) for key, shape in EDIT_SHAPES.items()}
         return TensorDictPrimer(Composite(spec), default_value=0.0, expand_specs=True)
 
 

@@ -1,4 +1,7 @@
-"""Quaternion algebra on torch tensors, w-first (as MuJoCo stores them), batched over leading dims.
+"""Quaternion algebra, w-first (as MuJoCo stores them), batched over leading dims.
+
+The product, difference and angles run on torch tensors and numpy arrays alike
+(:mod:`adadex.arrays`); the rotation-vector maps are torch only.
 
 The *difference* of two orientations is defined here once and used everywhere (observation,
 reward, metrics): ``quat_diff(a, b)`` is the rotation that takes ``b`` to ``a``, ``a ⊗ b⁻¹``, as a
@@ -16,15 +19,20 @@ Example
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
+from adadex.arrays import namespace
 
-def _hamilton(dtype: torch.dtype, device) -> torch.Tensor:
-    """(16, 4) structure constants of the Hamilton product: (a ⊗ b)_i = Σ_jk C[4j + k, i] a_j b_k."""
-    key = (dtype, device)
+
+def _hamilton(like) -> torch.Tensor | np.ndarray:
+    """(16, 4) structure constants of the Hamilton product, (a ⊗ b)_i = Σ_jk C[4j + k, i] a_j b_k, in
+    ``like``'s namespace, dtype and device."""
+    is_torch = isinstance(like, torch.Tensor)
+    key = (like.dtype, like.device) if is_torch else like.dtype
     c = _HAMILTON.get(key)
     if c is None:
-        c = torch.zeros(4, 4, 4, dtype=dtype, device=device)
+        c = np.zeros((4, 4, 4))
         # (j, k) → (i, sign): e.g. w·x → +x, x·y → +z, y·x → −z.
         table = {(0, 0): (0, 1), (0, 1): (1, 1), (0, 2): (2, 1), (0, 3): (3, 1),
                  (1, 0): (1, 1), (1, 1): (0, -1), (1, 2): (3, 1), (1, 3): (2, -1),
@@ -32,47 +40,57 @@ def _hamilton(dtype: torch.dtype, device) -> torch.Tensor:
                  (3, 0): (3, 1), (3, 1): (2, 1), (3, 2): (1, -1), (3, 3): (0, -1)}
         for (j, k), (i, sign) in table.items():
             c[j, k, i] = sign
-        c = _HAMILTON[key] = c.reshape(16, 4)
+        c = c.reshape(16, 4)
+        c = _HAMILTON[key] = torch.as_tensor(c, dtype=like.dtype, device=like.device) if is_torch else c.astype(like.dtype)
     return c
 
 
 _HAMILTON: dict = {}
+_CONJ: dict = {}
 
 
-def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def quat_mul(a, b):
     """Hamilton product a ⊗ b of (…, 4) w-first quaternions (broadcast over leading dims).
 
     One outer product and one small matmul instead of 28 scalar ops: this runs in every env step."""
-    a, b = torch.broadcast_tensors(a, b)
-    outer = (a[..., :, None] * b[..., None, :]).reshape(*a.shape[:-1], 16)
-    return outer @ _hamilton(outer.dtype, outer.device)
+    outer = a[..., :, None] * b[..., None, :]
+    outer = outer.reshape(*outer.shape[:-2], 16)
+    return outer @ _hamilton(outer)
 
 
-def quat_conj(q: torch.Tensor) -> torch.Tensor:
+def quat_conj(q):
     """Conjugate (the inverse of a unit quaternion)."""
-    return torch.cat([q[..., :1], -q[..., 1:]], dim=-1)
+    key = (q.dtype, q.device) if isinstance(q, torch.Tensor) else q.dtype
+    sign = _CONJ.get(key)
+    if sign is None:
+        sign = np.array([1.0, -1.0, -1.0, -1.0])
+        sign = _CONJ[key] = torch.as_tensor(sign, dtype=q.dtype, device=q.device) if isinstance(q, torch.Tensor) \
+            else sign.astype(q.dtype)
+    return q * sign
 
 
-def quat_canonical(q: torch.Tensor) -> torch.Tensor:
+def quat_canonical(q):
     """The same rotation with w ≥ 0."""
-    return torch.where(q[..., :1] < 0, -q, q)
+    return namespace(q).where(q[..., :1] < 0, -q, q)
 
 
-def quat_diff(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def quat_diff(a, b):
     """Relative rotation a ⊗ b⁻¹ (takes ``b`` to ``a``), canonical (w ≥ 0). The one definition."""
     return quat_canonical(quat_mul(a, quat_conj(b)))
 
 
-def quat_angle(q: torch.Tensor) -> torch.Tensor:
+def quat_angle(q):
     """Rotation angle in [0, π] of (…, 4) unit quaternions, robust near 0 and π."""
-    return 2.0 * torch.atan2(torch.linalg.vector_norm(q[..., 1:], dim=-1), q[..., 0].abs())
+    xp = namespace(q)
+    return 2.0 * xp.arctan2(xp.linalg.vector_norm(q[..., 1:], axis=-1), abs(q[..., 0]))
 
 
-def quat_angle_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+def quat_angle_between(a, b):
     """``quat_angle(quat_diff(a, b))`` computed from the dot product alone (the relative rotation's w
     is a·b for unit quaternions): the same value, a fraction of the work, for rewards and metrics."""
-    w = (a * b).sum(-1).abs()
-    return 2.0 * torch.atan2(torch.sqrt((1.0 - w * w).clamp(min=0.0)), w)
+    xp = namespace(a)
+    w = abs((a * b).sum(axis=-1))
+    return 2.0 * xp.arctan2(xp.sqrt(xp.clip(1.0 - w * w, 0.0, None)), w)
 
 
 def quat_from_rotvec(v: torch.Tensor) -> torch.Tensor:

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import torch
 
+from adadex.arrays import namespace
 from adadex.quat import quat_diff
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 
@@ -73,33 +74,32 @@ def _layout() -> dict[str, slice]:
 LAYOUT: dict[str, slice] = _layout()
 
 
-_TAILS = tuple(torch.Size(t) for t in ((NUM_JOINTS,), (len(TRACKED_SITES), 7), (7,), (LATENT_DIM,),
+_TAILS = tuple(tuple(t) for t in ((NUM_JOINTS,), (len(TRACKED_SITES), 7), (7,), (LATENT_DIM,),
                                        (len(REF_OFFSETS), NUM_JOINTS), (len(REF_OFFSETS), 7)))
 
 
 def flat_observation(joint_pos: torch.Tensor, link_pose: torch.Tensor, object_pose: torch.Tensor,
                      latent: torch.Tensor, ref_joint_pos: torch.Tensor, ref_object_pose: torch.Tensor) -> torch.Tensor:
     """(…, 273) from the structured entries (shapes in the module docstring; reference arrays
-    hold the frames at :data:`REF_OFFSETS`, the current one first)."""
-    lead = joint_pos.shape[:-1]
+    hold the frames at :data:`REF_OFFSETS`, the current one first); torch tensors or numpy arrays."""
+    lead = tuple(joint_pos.shape[:-1])
     for name, x, tail in (("joint_pos", joint_pos, _TAILS[0]), ("link_pose", link_pose, _TAILS[1]),
                           ("object_pose", object_pose, _TAILS[2]), ("latent", latent, _TAILS[3]),
                           ("ref_joint_pos", ref_joint_pos, _TAILS[4]), ("ref_object_pose", ref_object_pose, _TAILS[5])):
-        if x.shape != lead + tail:
+        if tuple(x.shape) != lead + tail:
             raise ValueError(f"{name}: expected shape {tuple(lead + tail)}, got {tuple(x.shape)}")
     ref_obj_now = ref_object_pose[..., 0, :]
-    object_error = torch.cat([object_pose[..., :3] - ref_obj_now[..., :3],
-                              quat_diff(object_pose[..., 3:], ref_obj_now[..., 3:])], dim=-1)
-    return torch.cat([
+    return namespace(joint_pos).concatenate([
         joint_pos,
         link_pose.reshape(*lead, -1),
         object_pose,
-        object_error,
+        object_pose[..., :3] - ref_obj_now[..., :3],
+        quat_diff(object_pose[..., 3:], ref_obj_now[..., 3:]),
         ref_object_pose[..., 1:, :].reshape(*lead, -1),
         joint_pos - ref_joint_pos[..., 0, :],
         ref_joint_pos[..., 1:, :].reshape(*lead, -1),
         latent,
-    ], dim=-1)
+    ], axis=-1)
 
 
 def flat_from_tensordict(td) -> torch.Tensor:

@@ -1,4 +1,5 @@
-"""The tracking reward (paper Eq. 1 as shaped in the supplement), batched torch, every weight a config value.
+"""The tracking reward (paper Eq. 1 as shaped in the supplement), batched (torch or numpy),
+every weight a config value.
 
 ``r = − w_track · (w_palm_pos·e_palm + w_palm_rot·e_palm_rot + w_joint·e_joint + w_tip·e_tip)``
 ``    + w_prox · proximity − w_goal · d_goal + w_bonus · bonus``
@@ -18,8 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import torch
-
+from adadex.arrays import namespace, to_float
 from adadex.quat import quat_angle_between
 
 
@@ -51,35 +51,36 @@ class RewardConfig:
 
 
 def tracking_reward(cfg: RewardConfig, *, joint_pos, link_pose, object_pose, ref_joint_pos, ref_link_pose,
-                    ref_object_pose, errors: dict | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+                    ref_object_pose, errors: dict | None = None) -> tuple:
     """(B,) reward and its terms from (B, 22) joints, (B, 5, 7) link poses, (B, 7) object poses and
     the reference at the same frame. ``errors`` (the frame's metric errors, if already computed)
-    saves recomputing the palm and object errors."""
+    saves recomputing the palm and object errors. Torch tensors or numpy arrays."""
+    xp = namespace(joint_pos)
     # Every distance the reward needs, in one norm over stacked (B, 12, 3) differences.
     palm, tips, obj = link_pose[:, 0, :3], link_pose[:, 1:, :3], object_pose[:, None, :3]
-    diffs = torch.cat([tips - ref_link_pose[:, 1:, :3],                       # 0–3  fingertip tracking
+    diffs = xp.concatenate([tips - ref_link_pose[:, 1:, :3],                       # 0–3  fingertip tracking
                        palm[:, None] - obj, tips - obj,                        # 4, 5–8  hand to object
                        (ref_link_pose[:, 0, :3] - ref_object_pose[:, :3])[:, None],  # 9  reference hand to object
                        (palm - ref_link_pose[:, 0, :3])[:, None],              # 10  palm tracking
-                       obj - ref_object_pose[:, None, :3]], dim=1)             # 11  object tracking
-    dist = torch.linalg.vector_norm(diffs, dim=-1)
-    e_tip, d_palm, d_tip, d_ref = dist[:, 0:4].mean(-1), dist[:, 4], dist[:, 5:9].mean(-1), dist[:, 9]
+                       obj - ref_object_pose[:, None, :3]], axis=1)            # 11  object tracking
+    dist = xp.linalg.vector_norm(diffs, axis=-1)
+    e_tip, d_palm, d_tip, d_ref = dist[:, 0:4].mean(axis=-1), dist[:, 4], dist[:, 5:9].mean(axis=-1), dist[:, 9]
     if errors is not None:
         e_palm, e_palm_rot, t_o, r_o = errors["T_h"], errors["R_h"], errors["T_o"], errors["R_o"]
     else:
         e_palm, t_o = dist[:, 10], dist[:, 11]
         e_palm_rot = quat_angle_between(link_pose[:, 0, 3:], ref_link_pose[:, 0, 3:])
         r_o = quat_angle_between(object_pose[:, 3:], ref_object_pose[:, 3:])
-    e_joint = (joint_pos - ref_joint_pos).abs().mean(-1)
+    e_joint = abs(joint_pos - ref_joint_pos).mean(axis=-1)
     tracking = cfg.w_palm_pos * e_palm + cfg.w_palm_rot * e_palm_rot + cfg.w_joint * e_joint + cfg.w_tip * e_tip
 
-    gate = (d_palm <= cfg.palm_gate).to(d_palm.dtype)
-    near = (d_ref <= cfg.contact_distance).to(d_palm.dtype)
-    proximity = -near * (d_palm.clamp(max=cfg.palm_clip) + gate * d_tip.clamp(max=cfg.tip_clip))
+    gate = to_float(d_palm <= cfg.palm_gate, d_palm)
+    near = to_float(d_ref <= cfg.contact_distance, d_palm)
+    proximity = -near * (xp.clip(d_palm, None, cfg.palm_clip) + gate * xp.clip(d_tip, None, cfg.tip_clip))
 
     d_goal = t_o + cfg.goal_rot_weight * r_o
     hit = (e_palm <= cfg.tau_palm) & (e_tip <= cfg.tau_tip) & (d_goal <= cfg.tau_goal)
-    bonus = hit.to(d_goal.dtype) / (1.0 + 10.0 * d_goal)
+    bonus = to_float(hit, d_goal) / (1.0 + 10.0 * d_goal)
     reward = -cfg.w_track * tracking + cfg.w_prox * proximity - cfg.w_goal * d_goal + cfg.w_bonus * bonus
     terms = {"tracking": tracking, "proximity": proximity, "goal": d_goal, "bonus": bonus}
     return reward, terms

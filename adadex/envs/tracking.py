@@ -157,25 +157,26 @@ class TrackingEnv(EnvBase):
             _PATCHES[self._patch_key] = self.patch
         self._scales = randomize.scale_levels() if randomize is not None else np.array([1.0])
         self._scale = np.ones(num_worlds)
-        self._action_offset = torch.zeros(num_worlds, NUM_JOINTS, dtype=torch.float64)
+        self._action_offset = np.zeros((num_worlds, NUM_JOINTS))
         self._has_command_effects = any(e.spec.stage == "command" for e in self.patch.active().effects)
         self._servo_cmd = np.zeros((num_worlds, NUM_JOINTS))   # what the servos last received
         self.references = self._usable(split, references)
+        # The step runs on numpy arrays (the per-frame functions it calls take numpy or torch, see
+        # adadex.arrays) and hands torch views of them to TorchRL. Observations, errors and rewards
+        # are float32 end to end (no per-step casts); the joint targets and start states are float64.
         frames = self.dataset.frames
-        # Observations, errors and rewards are float32 end to end (no per-step casts); the joint
-        # targets and the start states stay float64.
-        self._ref_q = frames["hand_joint_pos"].to(torch.float32).clone()
-        self._ref_link = frames["hand_link_pose"].to(torch.float32).clone()
-        self._ref_obj = frames["object_pose"].to(torch.float32).clone()
+        self._ref_q = frames["hand_joint_pos"].to(torch.float32).numpy().copy()
+        self._ref_link = frames["hand_link_pose"].to(torch.float32).numpy().copy()
+        self._ref_obj = frames["object_pose"].to(torch.float32).numpy().copy()
         B = num_worlds
-        self._base = torch.zeros(B, dtype=torch.long)       # frame index of each world's episode start
-        self._t = torch.zeros(B, dtype=torch.long)
+        self._base = np.zeros(B, dtype=np.int64)       # frame index of each world's episode start
+        self._t = np.zeros(B, dtype=np.int64)
         self._ref_index = np.zeros(B, dtype=np.int64)
-        self._latent = torch.zeros(B, LATENT_DIM)
-        lim = torch.as_tensor(joint_limits())
-        self._lo, self._hi = lim[:, 0], lim[:, 1]
-        self._offsets = torch.as_tensor(REF_OFFSETS)[None]
-        self._q_target = torch.zeros(B, NUM_JOINTS, dtype=torch.float64)
+        self._latent = np.zeros((B, LATENT_DIM), dtype=np.float32)
+        lim = joint_limits()
+        self._lo, self._hi = lim[:, 0].copy(), lim[:, 1].copy()
+        self._offsets = np.asarray(REF_OFFSETS)[None]
+        self._q_target = np.zeros((B, NUM_JOINTS))
         self.unstable_count = 0
         self._rng = np.random.default_rng(seed)
         first = self.dataset.entries[self.references[0]]["object"]
@@ -236,9 +237,9 @@ class TrackingEnv(EnvBase):
         return seed
 
     # -- references -------------------------------------------------------------------------------
-    def _frames_at(self) -> torch.Tensor:
+    def _frames_at(self) -> np.ndarray:
         """(B, 5) frame indices of the reference at t + REF_OFFSETS, held at the window's last frame."""
-        return self._base[:, None] + (self._t[:, None] + self._offsets).clamp_(max=self.config.window - 1)
+        return self._base[:, None] + np.minimum(self._t[:, None] + self._offsets, self.config.window - 1)
 
     def _start_worlds(self, worlds: np.ndarray) -> None:
         """Draw references for ``worlds`` and put them at their episode start."""
@@ -254,12 +255,12 @@ class TrackingEnv(EnvBase):
             e = self.dataset.entries[r]
             self._ref_index[w] = r
             self._base[w] = e["offset"] + e["window_start"]
-            self._latent[w] = torch.tensor(np.array(self.latent_fn(e["object"]), dtype=np.float32))
+            self._latent[w] = np.asarray(self.latent_fn(e["object"]), dtype=np.float32)
             self._scale[w] = self._rng.choice(self._scales)
             model = _scene(e["object"], float(self._scale[w]), self._patch_key)
             if cfg is not None:
                 model = self._randomizer.apply(model, cfg, self._rng)
-                self._action_offset[w] = torch.as_tensor(self._rng.normal(0, cfg.action_noise_correlated, NUM_JOINTS))
+                self._action_offset[w] = self._rng.normal(0, cfg.action_noise_correlated, NUM_JOINTS)
             models.append(model)
         self.sim.set_models(worlds, models)
         self._t[worlds] = 0
@@ -267,24 +268,24 @@ class TrackingEnv(EnvBase):
 
     def _put_at_start(self, worlds: np.ndarray, perturb: bool = False) -> None:
         b = self._base[worlds]
-        q = self._ref_q[b].double().clamp(self._lo, self._hi)
-        obj = self._ref_obj[b].double()
+        q = np.clip(self._ref_q[b].astype(np.float64), self._lo, self._hi)
+        obj = self._ref_obj[b].astype(np.float64)
         obj[:, 2] += self.config.object_lift
         for j, w in enumerate(worlds):   # a resized object still rests on the table
             half = get_object(self.dataset.entries[int(self._ref_index[w])]["object"]).half_height
             obj[j, 2] += (self._scale[w] - 1.0) * half
         if perturb and self.randomize is not None:
             cfg = self.randomize
-            obj[:, :2] += torch.as_tensor(self._rng.normal(0, cfg.object_xy_std, (len(worlds), 2)))
+            obj[:, :2] += self._rng.normal(0, cfg.object_xy_std, (len(worlds), 2))
             yaw = Rotation.from_euler("z", self._rng.normal(0, cfg.object_yaw_std, (len(worlds), 1)))
-            obj[:, 3:] = torch.as_tensor(quat(yaw * rotation(obj[:, 3:].numpy())))
+            obj[:, 3:] = quat(yaw * rotation(obj[:, 3:]))
         qpos = np.zeros((len(worlds), self.sim.models[0].nq))
-        qpos[:, :NUM_JOINTS] = q.numpy()
-        qpos[:, OBJECT_QPOS] = obj.numpy()
+        qpos[:, :NUM_JOINTS] = q
+        qpos[:, OBJECT_QPOS] = obj
         for j, w in enumerate(worlds):
             self.sim.reset(qpos=qpos[j], worlds=[int(w)])
         self._q_target[worlds] = q
-        self._servo_cmd[worlds] = q.numpy()
+        self._servo_cmd[worlds] = q
 
     # -- TorchRL ----------------------------------------------------------------------------------
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -293,43 +294,40 @@ class TrackingEnv(EnvBase):
             np.flatnonzero(mask.reshape(self.batch_size).cpu().numpy())
         if len(worlds):
             self._start_worlds(worlds)
-        out = self._observe(self.sim.readout())
+        out, _ = self._observe(self.sim.readout())
         out["unstable"] = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
         return self._td(out)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action").detach().to(torch.float64).clamp(-self.config.max_action, self.config.max_action)
+        cfg = self.config
+        action = np.clip(tensordict.get("action").detach().cpu().numpy(), -cfg.max_action, cfg.max_action)
         if self.randomize is not None:
-            action = action + self._action_offset + torch.as_tensor(
-                self._rng.normal(0, self.randomize.action_noise_uncorrelated, tuple(action.shape)))
-        self._q_target = (self._q_target + action).clamp_(self._lo, self._hi)
+            action = action + self._action_offset + self._rng.normal(0, self.randomize.action_noise_uncorrelated,
+                                                                     action.shape)
+        np.clip(self._q_target + action, self._lo, self._hi, out=self._q_target)
         readout = self.sim.step(self._servo_command())
         self._t += 1
         # MuJoCo flags diverging worlds; an object flung faster than any tabletop motion is one too.
-        unstable = torch.as_tensor(readout.unstable | (np.linalg.norm(readout.object_vel[:, :3], axis=1)
-                                                        > self.config.max_object_speed))
+        speed = readout.object_vel[:, :3]
+        unstable = readout.unstable | ((speed * speed).sum(axis=1) > cfg.max_object_speed ** 2)
         if unstable.any():
-            worlds = np.flatnonzero(unstable.numpy())
+            worlds = np.flatnonzero(unstable)
             self.unstable_count += len(worlds)
             self._t[worlds] = 0
             self._put_at_start(worlds)          # no NaN leaves the env; the episode ends below
             readout = self.sim.readout()
-        out = self._observe(readout)
-        ref = out["reference"]   # offset 0 is the current frame
-        reward, _ = tracking_reward(
-            self.config.reward, joint_pos=self._joint_pos, link_pose=self._link_pose, object_pose=self._object_pose,
-            ref_joint_pos=ref.get("hand_joint_pos")[:, 0], ref_link_pose=ref.get("hand_link_pose")[:, 0],
-            ref_object_pose=ref.get("object_pose")[:, 0], errors=self._errors)
-        err = self._errors
-        cfg = self.config
+        out, frame = self._observe(readout)
+        err = frame["errors"]
+        reward, _ = tracking_reward(cfg.reward, **frame)
         terminated = unstable
         if cfg.terminate_object_error > 0:
             terminated = terminated | (err["T_o"] > cfg.terminate_object_error)
         if cfg.terminate_palm_error > 0:
             terminated = terminated | (err["T_h"] > cfg.terminate_palm_error)
         truncated = self._t >= cfg.window - 1
-        out.update(reward=reward[:, None], terminated=terminated[:, None], truncated=truncated[:, None],
-                   done=(terminated | truncated)[:, None], unstable=unstable[:, None])
+        t = torch.from_numpy
+        out.update(reward=t(reward[:, None]), terminated=t(terminated[:, None]), truncated=t(truncated[:, None]),
+                   done=t((terminated | truncated)[:, None]), unstable=t(unstable[:, None]))
         return self._td(out)
 
     def _td(self, entries: dict) -> TensorDict:
@@ -340,43 +338,49 @@ class TrackingEnv(EnvBase):
     def _servo_command(self) -> np.ndarray:
         """Targets → what the servos receive: command-stage effects (backlash …) run online, as the
         workbench's sequence transform applied to (last servo command, new target)."""
-        cmd = self._q_target.numpy()
+        cmd = self._q_target
         if self._has_command_effects:
             seq = np.stack([self._servo_cmd, cmd], axis=1)
             cmd = self.patch.transform_command(seq, 1.0 / CONTROL_HZ)[:, 1]
             self._servo_cmd = cmd.copy()
         return cmd
 
-    def _observe(self, readout) -> dict:
-        """Entries of the structured and flat observation plus the frame errors, for the current frame of every world."""
-        f32 = torch.float32
-        self._joint_pos = torch.as_tensor(readout.joint_pos, dtype=f32)     # copies: the readout is reused
-        self._link_pose = torch.as_tensor(readout.link_pose, dtype=f32)
-        self._object_pose = torch.as_tensor(readout.object_pose, dtype=f32)
+    def _observe(self, readout) -> tuple[dict, dict]:
+        """Entries of the structured and flat observation plus the frame errors, for the current frame
+        of every world, and the true (not sensed) state with the current reference frame and errors
+        as numpy arrays, the reward's arguments. Computed on numpy arrays, handed out as torch tensors
+        sharing their memory (every array here is new this step, so no output aliases the env's state)."""
+        f32 = np.float32
+        joint_pos = readout.joint_pos.astype(f32)     # copies: the readout is reused
+        link_pose = readout.link_pose.astype(f32)
+        object_pose = readout.object_pose.astype(f32)
         idx = self._frames_at()
         ref_q, ref_link, ref_obj = self._ref_q[idx], self._ref_link[idx], self._ref_obj[idx]
         # What the policy sees: encoders (sensor-stage effects, noise) and noisy link positions.
-        seen_q = self._joint_pos
+        seen_q = joint_pos
         if self._patch_key:
-            seen_q = torch.as_tensor(self.patch.transform_measurement(seen_q.double().numpy()[:, None])[:, 0], dtype=f32)
-        seen_link = self._link_pose
+            seen_q = self.patch.transform_measurement(seen_q.astype(np.float64)[:, None])[:, 0].astype(f32)
+        seen_link = link_pose
         if self.randomize is not None and self.randomize.proprio_noise > 0:
             sigma = self.randomize.proprio_noise
-            seen_q = seen_q + torch.as_tensor(self._rng.normal(0, sigma, tuple(seen_q.shape)), dtype=f32)
-            seen_link = seen_link.clone()
-            seen_link[..., :3] += torch.as_tensor(self._rng.normal(0, sigma, tuple(seen_link[..., :3].shape)), dtype=f32)
-        flat = flat_observation(seen_q, seen_link, self._object_pose, self._latent, ref_q, ref_obj)
-        errors = frame_errors(self._object_pose, ref_obj[:, 0], self._link_pose[:, 0], ref_link[:, 0, 0],
-                              self._joint_pos, ref_q[:, 0])
-        self._errors = errors
-        td = self._td
-        return {
-            "proprio": td({"joint_pos": seen_q, "joint_target": self._q_target.to(f32), "link_pose": seen_link}),
-            "object": td({"pose": self._object_pose, "latent": self._latent.clone()}),
-            "reference": td({"hand_joint_pos": ref_q, "hand_link_pose": ref_link, "object_pose": ref_obj}),
-            "observation": flat,
-            "errors": td(dict(errors)),
+            seen_q = seen_q + self._rng.normal(0, sigma, seen_q.shape).astype(f32)
+            seen_link = seen_link.copy()
+            seen_link[..., :3] += self._rng.normal(0, sigma, seen_link[..., :3].shape).astype(f32)
+        latent = self._latent.copy()
+        flat = flat_observation(seen_q, seen_link, object_pose, latent, ref_q, ref_obj)
+        errors = frame_errors(object_pose, ref_obj[:, 0], link_pose[:, 0], ref_link[:, 0, 0], joint_pos, ref_q[:, 0])
+        frame = {"joint_pos": joint_pos, "link_pose": link_pose, "object_pose": object_pose, "ref_joint_pos": ref_q[:, 0],
+                 "ref_link_pose": ref_link[:, 0], "ref_object_pose": ref_obj[:, 0], "errors": errors}
+        t, td = torch.from_numpy, self._td
+        out = {
+            "proprio": td({"joint_pos": t(seen_q), "joint_target": t(self._q_target.astype(f32)),
+                           "link_pose": t(seen_link)}),
+            "object": td({"pose": t(object_pose), "latent": t(latent)}),
+            "reference": td({"hand_joint_pos": t(ref_q), "hand_link_pose": t(ref_link), "object_pose": t(ref_obj)}),
+            "observation": t(flat),
+            "errors": td({k: t(v) for k, v in errors.items()}),
         }
+        return out, frame
 
     # -- info -------------------------------------------------------------------------------------
     @property

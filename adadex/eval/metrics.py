@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import torch
 
+from adadex.arrays import namespace
 from adadex.quat import quat_angle_between
 from adadex.sim.robot import ARM_JOINTS, NUM_JOINTS
 
@@ -59,13 +60,15 @@ class Thresholds:
 def frame_errors(object_pose: torch.Tensor, ref_object_pose: torch.Tensor, palm_pose: torch.Tensor,
                  ref_palm_pose: torch.Tensor, joint_pos: torch.Tensor, ref_joint_pos: torch.Tensor
                  ) -> dict[str, torch.Tensor]:
-    """Per-frame errors from (…, 7) poses and (…, 22) joint positions; each output has shape (…)."""
+    """Per-frame errors from (…, 7) poses and (…, 22) joint positions (torch tensors or numpy
+    arrays); each output has shape (…)."""
+    norm = namespace(object_pose).linalg.vector_norm
     return {
-        "T_o": torch.linalg.vector_norm(object_pose[..., :3] - ref_object_pose[..., :3], dim=-1),
+        "T_o": norm(object_pose[..., :3] - ref_object_pose[..., :3], axis=-1),
         "R_o": quat_angle_between(object_pose[..., 3:], ref_object_pose[..., 3:]),
-        "T_h": torch.linalg.vector_norm(palm_pose[..., :3] - ref_palm_pose[..., :3], dim=-1),
+        "T_h": norm(palm_pose[..., :3] - ref_palm_pose[..., :3], axis=-1),
         "R_h": quat_angle_between(palm_pose[..., 3:], ref_palm_pose[..., 3:]),
-        "E_finger": (joint_pos[..., _FINGERS] - ref_joint_pos[..., _FINGERS]).abs().mean(-1),
+        "E_finger": abs(joint_pos[..., _FINGERS] - ref_joint_pos[..., _FINGERS]).mean(axis=-1),
     }
 
 

@@ -49,7 +49,7 @@ def _raw_reference(env):
     """The base env's unedited reference at offsets 0, 1, 2, 4, 12 (float32, like the observation)."""
     base = env.base_env
     idx = base._frames_at()
-    return base._ref_q[idx].float(), base._ref_obj[idx].float()
+    return torch.from_numpy(base._ref_q[idx]), torch.from_numpy(base._ref_obj[idx])
 
 
 # -- specs ----------------------------------------------------------------------------------------

@@ -330,6 +330,14 @@ class TrackingEnv(EnvBase):
                    done=t((terminated | truncated)[:, None]), unstable=t(unstable[:, None]))
         return self._td(out)
 
+    def _step_proc_data(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        """TorchRL's pass over a step's output reshapes the reward and fills in missing done keys;
+        ``_step`` writes them all in their spec shapes, so the pass is skipped unless
+        ``run_type_checks`` asks for TorchRL's checks."""
+        if self.run_type_checks:
+            return super()._step_proc_data(next_tensordict)
+        return next_tensordict
+
     def _td(self, entries: dict) -> TensorDict:
         """A TensorDict of the env's batch size from entries whose shapes are right by construction
         (skips TensorDict's per-entry validation: this runs every step)."""

@@ -103,6 +103,21 @@ def test_same_seed_same_rollout(dataset):
     assert torch.equal(outs[0]["next", "observation"], outs[1]["next", "observation"])
 
 
+def test_step_output_is_complete_without_torchrl_completion(dataset):
+    """The env skips TorchRL's reshape-and-fill pass over each step's output: with ``run_type_checks``
+    (which runs that pass and TorchRL's type checks) the rollout is the same, key for key."""
+    outs = []
+    for checks in (False, True):
+        env = TrackingEnv(dataset, num_worlds=3, split=None, seed=7)
+        env.run_type_checks = checks
+        outs.append(env.rollout(5, replay_policy(), break_when_any_done=False))
+        env.close()
+    fast, checked = outs
+    assert set(fast.keys(True, True)) == set(checked.keys(True, True))
+    assert (fast == checked).all()
+    assert fast["next", "reward"].shape == (3, 5, 1) and fast["next", "done"].dtype == torch.bool
+
+
 def test_bad_config(dataset):
     with pytest.raises(ValueError, match="window"):
         TrackingConfig(window=5)

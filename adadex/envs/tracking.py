@@ -26,8 +26,8 @@ Per step:
 
 The step itself runs on numpy arrays — the readouts MuJoCo fills, the reference frames — through the
 same observation, error and reward functions the torch modules use (:mod:`adadex.arrays`), and hands
-TorchRL tensors that share the arrays' memory: per step the env adds well under a tenth to the
-physics (``benchmarks/env_throughput.py``).
+TorchRL tensors that share the arrays' memory: at B = 64 the env runs at about 0.89 × the speed of
+its physics alone (``benchmarks/env_throughput.py``).
 
 Example::
 

@@ -25,28 +25,32 @@ import torch
 from adadex.arrays import namespace
 
 
-def _hamilton(like) -> torch.Tensor | np.ndarray:
-    """(16, 4) structure constants of the Hamilton product, (a ⊗ b)_i = Σ_jk C[4j + k, i] a_j b_k, in
-    ``like``'s namespace, dtype and device."""
+def _hamilton_table() -> np.ndarray:
+    """(16, 4) structure constants of the Hamilton product: (a ⊗ b)_i = Σ_jk C[4j + k, i] a_j b_k."""
+    c = np.zeros((4, 4, 4))
+    # (j, k) → (i, sign): e.g. w·x → +x, x·y → +z, y·x → −z.
+    table = {(0, 0): (0, 1), (0, 1): (1, 1), (0, 2): (2, 1), (0, 3): (3, 1),
+             (1, 0): (1, 1), (1, 1): (0, -1), (1, 2): (3, 1), (1, 3): (2, -1),
+             (2, 0): (2, 1), (2, 1): (3, -1), (2, 2): (0, -1), (2, 3): (1, 1),
+             (3, 0): (3, 1), (3, 1): (2, 1), (3, 2): (1, -1), (3, 3): (0, -1)}
+    for (j, k), (i, sign) in table.items():
+        c[j, k, i] = sign
+    return c.reshape(16, 4)
+
+
+_CONSTANTS = {"hamilton": _hamilton_table(), "conj": np.array([1.0, -1.0, -1.0, -1.0])}
+_CACHE: dict = {}
+
+
+def _constant(name: str, like):
+    """The constant ``name`` in ``like``'s namespace, dtype and device (converted once, then cached)."""
     is_torch = isinstance(like, torch.Tensor)
-    key = (like.dtype, like.device) if is_torch else like.dtype
-    c = _HAMILTON.get(key)
+    key = (name, like.dtype, like.device) if is_torch else (name, like.dtype)
+    c = _CACHE.get(key)
     if c is None:
-        c = np.zeros((4, 4, 4))
-        # (j, k) → (i, sign): e.g. w·x → +x, x·y → +z, y·x → −z.
-        table = {(0, 0): (0, 1), (0, 1): (1, 1), (0, 2): (2, 1), (0, 3): (3, 1),
-                 (1, 0): (1, 1), (1, 1): (0, -1), (1, 2): (3, 1), (1, 3): (2, -1),
-                 (2, 0): (2, 1), (2, 1): (3, -1), (2, 2): (0, -1), (2, 3): (1, 1),
-                 (3, 0): (3, 1), (3, 1): (2, 1), (3, 2): (1, -1), (3, 3): (0, -1)}
-        for (j, k), (i, sign) in table.items():
-            c[j, k, i] = sign
-        c = c.reshape(16, 4)
-        c = _HAMILTON[key] = torch.as_tensor(c, dtype=like.dtype, device=like.device) if is_torch else c.astype(like.dtype)
+        c = _CONSTANTS[name]
+        c = _CACHE[key] = torch.as_tensor(c, dtype=like.dtype, device=like.device) if is_torch else c.astype(like.dtype)
     return c
-
-
-_HAMILTON: dict = {}
-_CONJ: dict = {}
 
 
 def quat_mul(a, b):
@@ -55,18 +59,12 @@ def quat_mul(a, b):
     One outer product and one small matmul instead of 28 scalar ops: this runs in every env step."""
     outer = a[..., :, None] * b[..., None, :]
     outer = outer.reshape(*outer.shape[:-2], 16)
-    return outer @ _hamilton(outer)
+    return outer @ _constant("hamilton", outer)
 
 
 def quat_conj(q):
     """Conjugate (the inverse of a unit quaternion)."""
-    key = (q.dtype, q.device) if isinstance(q, torch.Tensor) else q.dtype
-    sign = _CONJ.get(key)
-    if sign is None:
-        sign = np.array([1.0, -1.0, -1.0, -1.0])
-        sign = _CONJ[key] = torch.as_tensor(sign, dtype=q.dtype, device=q.device) if isinstance(q, torch.Tensor) \
-            else sign.astype(q.dtype)
-    return q * sign
+    return q * _constant("conj", q)
 
 
 def quat_canonical(q):

@@ -74,8 +74,8 @@ def _layout() -> dict[str, slice]:
 LAYOUT: dict[str, slice] = _layout()
 
 
-_TAILS = tuple(tuple(t) for t in ((NUM_JOINTS,), (len(TRACKED_SITES), 7), (7,), (LATENT_DIM,),
-                                       (len(REF_OFFSETS), NUM_JOINTS), (len(REF_OFFSETS), 7)))
+_TAILS = ((NUM_JOINTS,), (len(TRACKED_SITES), 7), (7,), (LATENT_DIM,), (len(REF_OFFSETS), NUM_JOINTS),
+          (len(REF_OFFSETS), 7))
 
 
 def flat_observation(joint_pos: torch.Tensor, link_pose: torch.Tensor, object_pose: torch.Tensor,

@@ -48,7 +48,6 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
     torch.set_num_threads(1)
 
-    import gymnasium
     from torchrl.envs import GymEnv
 
     import adadex.envs  # noqa: F401  (registers adadex/Tracking-v0)
@@ -71,7 +70,7 @@ def main(argv=None) -> dict:
 
         def run_env():
             env.sim.set_state(state0)
-            env._q_target = targets0.copy()
+            env._q_target[:] = targets0
             env._t[:] = 0
             td = start.clone()
             ctrls.clear()
@@ -88,13 +87,12 @@ def main(argv=None) -> dict:
                 sim.step(c)
 
         genv = GymEnv("adadex/Tracking-v0", dataset=str(dataset), split=None)
-        n_gym = N
         gym_start = genv.reset()
-        gym_actions = [act[:1] for act in actions[:n_gym]]
+        gym_actions = [act[:1] for act in actions]
 
         def run_gym():   # one world from a reset state, precomputed actions as above (resets untimed)
             it = iter(gym_actions)
-            genv.rollout(n_gym, policy=lambda td: td.set("action", next(it)), break_when_any_done=False,
+            genv.rollout(N, policy=lambda td: td.set("action", next(it)), break_when_any_done=False,
                          auto_reset=False, tensordict=gym_start.clone())
 
         def timed(fn) -> float:
@@ -108,14 +106,13 @@ def main(argv=None) -> dict:
         t = np.array([[timed(run_env), timed(run_sim), timed(run_gym)] for _ in range(a.repeats)])
         env.close()
         genv.close()
-        del gymnasium
 
-    fps = np.stack([B * N / t[:, 0], B * N / t[:, 1], n_gym / t[:, 2]], axis=1)
+    fps = np.stack([B * N / t[:, 0], B * N / t[:, 1], N / t[:, 2]], axis=1)
     over_sim, over_gym = fps[:, 0] / fps[:, 1], fps[:, 0] / fps[:, 2]
     ceiling = fps[:, 1] / fps[:, 2]   # what an env with no overhead at all would reach over the GymEnv path
     best = fps.max(axis=0)
     result = {
-        "worlds": B, "steps": N, "gym_steps": n_gym, "threads": a.threads, "repeats": a.repeats,
+        "worlds": B, "steps": N, "threads": a.threads, "repeats": a.repeats,
         "tracking_env_frames_per_s": float(best[0]), "batched_sim_frames_per_s": float(best[1]),
         "gym_env_frames_per_s": float(best[2]),
         "env_over_sim": float(np.median(over_sim)), "env_over_gym": float(np.median(over_gym)),

@@ -81,6 +81,7 @@ from urllib.parse import quote, unquote
 
 import numpy as np
 
+from adadex.errors import AdadexError
 from adadex.io import atomic_write, write_temp
 
 from adadex.sim.robot import HOME_QPOS, JOINT_NAMES, NUM_JOINTS, UnknownJointError, joint_index, joint_limits
@@ -95,7 +96,7 @@ OPTIONAL_KEYS = ("joint_vel", "sequence_labels", "initial_qpos", "meta")
 _CSV_PREFIXES = ("cmd", "pos", "vel")
 
 
-class RecordingError(ValueError):
+class RecordingError(AdadexError, ValueError):
     """Invalid recording data; the message says what is wrong and where."""
 
 

@@ -56,6 +56,7 @@ from pathlib import Path
 
 import numpy as np
 
+from adadex.errors import AdadexError
 from adadex.io import atomic_write_text
 from adadex.sim.objects import REGISTRY, UnknownObjectError
 from adadex.sim.robot import JOINT_NAMES, NUM_JOINTS, TRACKED_SITES, joint_limits
@@ -75,7 +76,7 @@ FORMAT_VERSION = 1
 _FRAME_FIELDS = ("hand_joint_pos", "hand_link_pose", "object_pose", "human_keypoints", "retarget_residual")
 
 
-class ReferenceError(ValueError):
+class ReferenceError(AdadexError, ValueError):
     """Invalid reference data; the message says what is wrong and where."""
 
 

@@ -38,6 +38,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Slerp
 
 from adadex.data.human_hand import ANGLE_LIMITS, NUM_ANGLES, TIP_INDEX, HumanHand
+from adadex.errors import check_numbers
 from adadex.geometry import Rotation, compose, inverse, quat, rotation, slerp_poses
 from adadex.sim.objects import get_object
 from adadex.sim.scene import CONTROL_HZ, OBJECT_HOME_XY
@@ -90,9 +91,7 @@ class NoiseConfig:
         return cls(**{k: 0.0 for k in asdict(cls())})
 
     def __post_init__(self):
-        for k, v in asdict(self).items():
-            if not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"NoiseConfig.{k} must be a finite number ≥ 0, got {v}")
+        check_numbers("NoiseConfig", self, asdict(self))
 
 
 @dataclass(frozen=True)

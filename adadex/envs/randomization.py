@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass, fields
 import mujoco
 import numpy as np
 
+from adadex.errors import check_number
 from adadex.sim.scene import OBJECT_BODY
 
 
@@ -52,8 +53,8 @@ class Randomization:
                     raise ValueError(f"Randomization.{f.name} must be a range 0 ≤ low ≤ high, got {v}")
                 if f.name == "object_restitution" and hi >= 1:
                     raise ValueError(f"Randomization.object_restitution must stay below 1, got {v}")
-            elif not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"Randomization.{f.name} must be a finite number ≥ 0, got {v}")
+            else:
+                check_number(f"Randomization.{f.name}", v)
         if self.object_scale_levels < 1:
             raise ValueError(f"object_scale_levels must be ≥ 1, got {self.object_scale_levels}")
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from adadex.arrays import namespace, to_float
+from adadex.errors import check_numbers
 from adadex.quat import quat_angle_between
 
 
@@ -45,9 +46,7 @@ class RewardConfig:
     tau_goal: float = 0.05
 
     def __post_init__(self):
-        for k, v in self.__dict__.items():
-            if not (isinstance(v, (int, float)) and v == v and abs(v) != float("inf") and v >= 0):
-                raise ValueError(f"RewardConfig.{k} must be a finite number ≥ 0, got {v!r}")
+        check_numbers("RewardConfig", self, self.__dict__)
 
 
 def tracking_reward(cfg: RewardConfig, *, joint_pos, link_pose, object_pose, ref_joint_pos, ref_link_pose,

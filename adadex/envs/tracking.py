@@ -55,6 +55,7 @@ from adadex.envs.latent import encoder_latent
 from adadex.envs.observation import LATENT_DIM, OBS_DIM, REF_OFFSETS, flat_observation
 from adadex.envs.randomization import ModelRandomizer, Randomization
 from adadex.envs.reward import RewardConfig, tracking_reward
+from adadex.errors import check_numbers
 from adadex.eval.metrics import ERROR_NAMES, frame_errors
 from adadex.geometry import Rotation, quat, rotation
 from adadex.sim.batched import BatchedSim
@@ -79,10 +80,8 @@ class TrackingConfig:
     def __post_init__(self):
         if self.window < max(REF_OFFSETS) + 2:
             raise ValueError(f"window must be at least {max(REF_OFFSETS) + 2} frames, got {self.window}")
-        for k in ("max_action", "terminate_object_error", "terminate_palm_error", "object_lift", "max_object_speed"):
-            v = getattr(self, k)
-            if not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"TrackingConfig.{k} must be a finite number ≥ 0, got {v}")
+        check_numbers("TrackingConfig", self,
+                      ("max_action", "terminate_object_error", "terminate_palm_error", "object_lift", "max_object_speed"))
 
 
 _PATCHES: dict[str, ModelPatch] = {}

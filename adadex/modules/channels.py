@@ -32,6 +32,7 @@ import math
 from dataclasses import dataclass
 
 from adadex.envs.observation import LATENT_DIM, REF_OFFSETS
+from adadex.errors import check_numbers
 from adadex.sim.robot import NUM_JOINTS
 
 CHANNELS = ("R", "O", "T")
@@ -137,7 +138,5 @@ class ModulationConfig:
     action_bound: float = 0.05
 
     def __post_init__(self):
-        for k in ("lambda_hand", "lambda_object_pos", "lambda_object_rot", "lambda_latent", "action_bound"):
-            v = getattr(self, k)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"ModulationConfig.{k} must be a finite number ≥ 0, got {v!r}")
+        check_numbers("ModulationConfig", self,
+                      ("lambda_hand", "lambda_object_pos", "lambda_object_rot", "lambda_latent", "action_bound"))

@@ -54,6 +54,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from adadex.envs.observation import LATENT_DIM, OBJECT_LATENT
+from adadex.errors import AdadexError
 from adadex.io import atomic_write, atomic_write_bytes, atomic_write_text
 from adadex.sim.objects import OBJECT_NAMES, get_object, held_out_objects
 
@@ -393,7 +394,7 @@ def train_encoder(objects: Sequence[str] | None = None, *, steps: int = TrainSet
 # Checkpoints
 
 
-class EncoderCheckpointError(ValueError):
+class EncoderCheckpointError(AdadexError, ValueError):
     """A file that is not a readable encoder checkpoint (the message names the file)."""
 
 

@@ -37,6 +37,7 @@ from typing import ClassVar
 import mujoco
 import numpy as np
 
+from adadex.errors import AdadexError
 from adadex.sim.robot import effort_limits, joint_group, joint_index
 
 GROUPS = ("arm_shoulder", "arm_wrist", "finger", "thumb")
@@ -66,7 +67,7 @@ def _same(v: float) -> dict[str, float]:
     return _per_group(v, v, v)
 
 
-class EffectError(ValueError):
+class EffectError(AdadexError, ValueError):
     """A bad effect name, joint list or parameter value."""
 
 

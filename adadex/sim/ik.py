@@ -20,10 +20,11 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from adadex.errors import AdadexError
 from adadex.sim.robot import HOME_QPOS, NUM_JOINTS
 
 
-class IKError(RuntimeError):
+class IKError(AdadexError, RuntimeError):
     """The arm could not reach the requested pose within tolerance."""
 
 

@@ -46,6 +46,8 @@ import mujoco
 import numpy as np
 import trimesh
 
+from adadex.errors import AdadexError
+
 _SECTIONS = 32
 _TUBE_SECTIONS = 16
 _OVERLAP = 5e-5
@@ -454,7 +456,7 @@ _CATEGORY_RGBA: dict[str, tuple[float, float, float, float]] = {
 }
 
 
-class UnknownObjectError(KeyError):
+class UnknownObjectError(AdadexError, KeyError):
     """Raised for a name that is not in :data:`REGISTRY`; the message suggests close names."""
 
     def __str__(self) -> str:

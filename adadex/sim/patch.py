@@ -28,6 +28,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from adadex.errors import AdadexError
 from adadex.io import atomic_write_text
 from adadex.sim.effects import EffectError, ModelBase, get_effect
 from adadex.sim.robot import joint_index
@@ -35,7 +36,7 @@ from adadex.sim.robot import joint_index
 PATCH_VERSION = 1
 
 
-class PatchError(ValueError):
+class PatchError(AdadexError, ValueError):
     """A malformed model patch; the message names the file and the entry."""
 
 

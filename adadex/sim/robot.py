@@ -36,6 +36,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from adadex.errors import AdadexError
+
 ARM_JOINTS: tuple[str, ...] = tuple(f"arm_j{i}" for i in range(1, 7))
 HAND_JOINTS: tuple[str, ...] = (
     "if_mcp", "if_rot", "if_pip", "if_dip",
@@ -154,7 +156,7 @@ def joint_group(name: str) -> str:
     raise UnknownJointError(name)
 
 
-class UnknownJointError(KeyError):
+class UnknownJointError(AdadexError, KeyError):
     """A joint name that is not one of :data:`JOINT_NAMES`."""
 
     def __init__(self, name: str):

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from adadex.errors import AdadexError
 from adadex.sim.effects import EFFECT_NAMES, EffectError
 from adadex.sim.patch import ModelPatch, PatchError
 from adadex.sim.robot import UnknownJointError
@@ -25,7 +26,7 @@ from adadex.sim.robot import UnknownJointError
 DEMO_RECORDING = Path(__file__).resolve().parents[2] / "assets" / "recordings" / "demo.npz"
 
 
-class CliError(Exception):
+class CliError(AdadexError):
     """A user error: printed as one line, exit code 2."""
 
 

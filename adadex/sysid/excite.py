@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from adadex.errors import AdadexError
 from adadex.sim.patch import ModelPatch
 from adadex.sim.robot import HOME_QPOS, JOINT_NAMES, joint_index, joint_limits
 
@@ -40,7 +41,7 @@ KINDS = ("sine", "chirp", "multisine")
 RAMP_S = 0.25
 
 
-class ExcitationError(ValueError):
+class ExcitationError(AdadexError, ValueError):
     """Bad excitation parameters (unknown joint, kind or pose, non-positive rate or duration)."""
 
 

@@ -33,3 +33,13 @@ def tiny_build(tmp_path_factory):
 def tiny_dataset(tiny_build):
     """Folder of the session's ``tiny`` reference dataset."""
     return tiny_build[1]
+
+
+@pytest.fixture(autouse=True)
+def _doctest_names(request):
+    """Docstring examples see ``tiny_dataset`` (the built tiny dataset folder) as a global, so the
+    README-style snippets in central docstrings run for real; the dataset is built only when a
+    doctest names it."""
+    test = getattr(request.node, "dtest", None)          # set on doctest items only
+    if test is not None and "tiny_dataset" in (test.docstring or ""):
+        request.getfixturevalue("doctest_namespace")["tiny_dataset"] = str(request.getfixturevalue("tiny_dataset"))

@@ -1,0 +1,61 @@
+"""The one root of adadex's exceptions, and the one check of a config number.
+
+Every exception adadex raises on bad input derives from :class:`AdadexError`, so a caller (the CLI,
+a recipe, a user's script) can catch the library's input errors in one ``except`` and let bugs
+through. Classes that describe bad values also subclass ``ValueError`` (or ``KeyError`` for unknown
+names), so code written against the built-in types keeps working.
+
+>>> from adadex.errors import AdadexError, ConfigError, check_number
+>>> check_number("RewardConfig.w_alive", 0.5)
+0.5
+>>> try:
+...     check_number("RewardConfig.w_alive", float("nan"))
+... except ConfigError as e:
+...     print(e)
+RewardConfig.w_alive must be a finite number ≥ 0, got nan
+>>> issubclass(ConfigError, (AdadexError, ValueError))
+True
+"""
+
+from __future__ import annotations
+
+import math
+from numbers import Real
+
+
+class AdadexError(Exception):
+    """Root of every exception adadex raises for bad input or a failed operation it can explain."""
+
+
+class ConfigError(AdadexError, ValueError):
+    """A configuration value is out of range or of the wrong type."""
+
+
+def check_number(name: str, value, *, low: float = 0.0, high: float = math.inf, integer: bool = False,
+                 strict_low: bool = False):
+    """Return ``value`` if it is a finite real number in ``[low, high]`` (``(low, high]`` with
+    ``strict_low``), an integer when ``integer``; raise :class:`ConfigError` naming ``name`` otherwise.
+
+    Booleans are refused: ``True`` as a weight is a typo, not a number.
+    """
+    ok = isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and integer:
+        ok = float(value).is_integer()
+    if ok:
+        ok = (value > low if strict_low else value >= low) and value <= high
+    if not ok:
+        kind = "an integer" if integer else "a finite number"
+        if low == 0 and high == math.inf:
+            bound = "> 0" if strict_low else "≥ 0"
+        elif high == math.inf:
+            bound = f"> {low:g}" if strict_low else f"≥ {low:g}"
+        else:
+            bound = f"in {'(' if strict_low else '['}{low:g}, {high:g}]"
+        raise ConfigError(f"{name} must be {kind} {bound}, got {value!r}")
+    return value
+
+
+def check_numbers(owner: str, obj, names) -> None:
+    """:func:`check_number` on ``obj.<name>`` for each name, errors naming ``owner.<name>``."""
+    for k in names:
+        check_number(f"{owner}.{k}", getattr(obj, k))

@@ -31,12 +31,13 @@ from pathlib import Path
 import numpy as np
 
 from adadex.envs.observation import LATENT_DIM
+from adadex.resources import asset
 from adadex.sim.objects import get_object
 
 _BINS = 16
 
 #: The trained encoder shipped with adadex (see ``adadex encoder train``) and its latent table.
-SHIPPED_ENCODER = Path(__file__).resolve().parents[2] / "assets" / "encoder" / "encoder.pt"
+SHIPPED_ENCODER = asset("encoder", "encoder.pt")
 SHIPPED_LATENTS = SHIPPED_ENCODER.with_name("latents.npz")
 
 

@@ -30,13 +30,14 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
 from pathlib import Path
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 
 from adadex.errors import AdadexError
+from adadex.resources import asset
 
 ARM_JOINTS: tuple[str, ...] = tuple(f"arm_j{i}" for i in range(1, 7))
 HAND_JOINTS: tuple[str, ...] = (
@@ -341,7 +342,7 @@ HOME_QPOS = np.array(
     dtype=np.float64,
 )
 
-ROBOT_MJCF = Path(__file__).resolve().parents[2] / "assets" / "robot" / "robot.xml"
+ROBOT_MJCF = asset("robot", "robot.xml")
 
 
 def robot_mjcf_path() -> Path:

@@ -19,11 +19,12 @@ from pathlib import Path
 import numpy as np
 
 from adadex.errors import AdadexError
+from adadex.resources import asset
 from adadex.sim.effects import EFFECT_NAMES, EffectError
 from adadex.sim.patch import ModelPatch, PatchError
 from adadex.sim.robot import UnknownJointError
 
-DEMO_RECORDING = Path(__file__).resolve().parents[2] / "assets" / "recordings" / "demo.npz"
+DEMO_RECORDING = asset("recordings", "demo.npz")
 
 
 class CliError(AdadexError):

@@ -4,12 +4,11 @@ Only the tests read this: the demo and the workbench must find the effects on th
 Regenerate with ``python tests/sysid/demo_truth.py``.
 """
 
-from pathlib import Path
-
+from adadex.resources import asset
 from adadex.sim.patch import ModelPatch
 from adadex.sysid.excite import design_excitation, simulate_recording
 
-DEMO = Path(__file__).resolve().parents[2] / "assets" / "recordings" / "demo.npz"
+DEMO = asset("recordings", "demo.npz")
 JOINTS = ["arm_j2", "arm_j5", "if_mcp", "if_pip", "mf_pip", "th_mcp"]
 TRUTH = (ModelPatch()
          .with_effect("coulomb_friction", ["if_pip"], 0.06)

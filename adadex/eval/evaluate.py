@@ -31,13 +31,14 @@ from adadex.eval.metrics import ERROR_NAMES, Thresholds, from_rollout, summarize
 
 
 def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajectory", "test"), *,
-             max_worlds: int = 64, env_transform: Callable | None = None,
+             references=None, max_worlds: int = 64, env_transform: Callable | None = None,
              config: TrackingConfig = TrackingConfig(), thresholds: Thresholds = Thresholds(),
              progress: bool = True, keep_rollouts: bool = False, **env_kwargs) -> dict:
     """Metrics of ``policy`` over every reference of ``split`` (see the module docstring).
 
     Args:
         policy: a TensorDictModule writing ``"action"`` (tracker, replay policy, make_policy graph).
+        references: dataset indices to evaluate instead of ``split`` (each must have an episode window).
         env_transform: called once per chunk, returns a transform to append to the env (a primer …).
         env_kwargs: passed to :class:`TrackingEnv` (``randomize``, ``patch``, ``latent_fn``, ``seed`` …).
 
@@ -47,7 +48,16 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
     if max_worlds < 1:
         raise ValueError(f"max_worlds must be ≥ 1, got {max_worlds}")
     ds = dataset if isinstance(dataset, ReferenceDataset) else ReferenceDataset(dataset)
-    refs = episode_references(ds, split, config.window)
+    if references is not None:
+        refs = [int(i) for i in references]
+        usable = set(episode_references(ds, None, config.window))
+        bad = [i for i in refs if i not in usable]
+        if bad or not refs:
+            raise ValueError(f"{ds.path}: references must be a non-empty list of dataset indices with a "
+                             f"{config.window}-frame episode window; not usable: {bad[:10]}")
+        split = None
+    else:
+        refs = episode_references(ds, split, config.window)
     if not refs:
         raise ValueError(f"{ds.path}: no reference in split {split} has a {config.window}-frame episode window")
     steps = config.window - 1

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import torch
-from tensordict.nn import NormalParamExtractor, TensorDictModule
+from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
@@ -74,17 +74,27 @@ class GaussianHeads(nn.Module):
 
 
 def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, high: float, hidden: Sequence[int], *,
-               namespace: str, action_key="action", init_scale: float = 1.0) -> ProbabilisticActor:
+               namespace: str, action_key="action", init_scale: float = 1.0,
+               bounds: TensorDictModule | None = None) -> ProbabilisticActor:
     """A TanhNormal actor reading ``obs_key`` (flat), writing ``action_key`` and its log-prob, with
-    the distribution parameters under ``(namespace, "loc")`` / ``(namespace, "scale")``."""
+    the distribution parameters under ``(namespace, "loc")`` / ``(namespace, "scale")``.
+
+    ``bounds`` (optional) is a module writing per-sample ``(namespace, "low")`` / ``(namespace, "high")``:
+    the TanhNormal then spans those instead of the fixed ``[low, high]`` (a feed-forward plus a
+    bounded learned residual, with the log-probability of the residual, as PPO needs)."""
     net = GaussianHeads(obs_dim, head_sizes, hidden, init_scale=init_scale)
     loc, scale = (namespace, "loc"), (namespace, "scale")
     module = TensorDictModule(net, in_keys=[obs_key], out_keys=[loc, scale])
     dim = sum(head_sizes)
+    dist_keys, dist_kwargs = {"loc": loc, "scale": scale}, {"low": low, "high": high}
+    if bounds is not None:
+        module = TensorDictSequential(module, bounds)
+        dist_keys.update(low=(namespace, "low"), high=(namespace, "high"))
+        dist_kwargs = {}
     return ProbabilisticActor(
-        module, in_keys={"loc": loc, "scale": scale}, out_keys=[action_key],
+        module, in_keys=dist_keys, out_keys=[action_key],
         spec=Bounded(low=low, high=high, shape=(dim,)), distribution_class=TanhNormal,
-        distribution_kwargs={"low": low, "high": high}, return_log_prob=True)
+        distribution_kwargs=dist_kwargs, return_log_prob=True)
 
 
 def make_critic(obs_key, obs_dim: int, hidden: Sequence[int], *, value_key="state_value") -> ValueOperator:

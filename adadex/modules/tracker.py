@@ -12,6 +12,13 @@ are all this one class; they differ only in what they were trained on.
   ``max_action·tanh(loc)``.
 * ``tracker.critic`` — :class:`torchrl.modules.ValueOperator`; in: ``"observation"``; out: ``"state_value"``.
 
+**Residual tracking** (``residual > 0``, what the training recipes use): the action is the kinematic
+replay's, ``q̂_{t+1} − q_target`` (the next reference joints from the observation minus the current
+joint targets ``("proprio", "joint_target")``), plus a learned correction within ±``residual``. An
+untrained residual tracker *is* kinematic replay, so PPO explores around the replay floor instead of
+from scratch (as residual trackers do); the correction is a TanhNormal between the feed-forward ∓
+``residual``, so its log-probability is exact for PPO and behaviour cloning clones the whole action.
+
 The tracker never knows whether it is being modulated: the modulation transforms edit the
 structured entries and reassemble ``"observation"`` with the same function before it reads it.
 
@@ -29,9 +36,30 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from adadex.envs.observation import OBS_DIM, OBSERVATION
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from adadex.envs.observation import JOINT_TARGET, LAYOUT, OBS_DIM, OBSERVATION
+from adadex.errors import check_number
 from adadex.modules.nets import ActorCritic, make_actor, make_critic
 from adadex.sim.robot import NUM_JOINTS
+
+_NEXT_REF = slice(LAYOUT["ref_joint_future"].start, LAYOUT["ref_joint_future"].start + NUM_JOINTS)
+
+
+class ReplayBounds(nn.Module):
+    """(observation, joint target) → (feed-forward − r, feed-forward + r), the feed-forward being
+    kinematic replay's action: the reference joints at t+1 (read from the flat observation, so a
+    modulated reference moves it too) minus the current joint targets."""
+
+    def __init__(self, residual: float):
+        super().__init__()
+        self.residual = float(residual)
+
+    def forward(self, observation: torch.Tensor, joint_target: torch.Tensor):
+        ff = observation[..., _NEXT_REF] - joint_target
+        return ff - self.residual, ff + self.residual
 
 
 class Tracker(ActorCritic):
@@ -41,16 +69,25 @@ class Tracker(ActorCritic):
         hidden: widths of the actor's and critic's hidden layers.
         max_action: bound of the joint-target change, rad (``TrackingConfig.max_action``).
         init_scale: initial exploration scale (pre-tanh) of the Gaussian.
+        residual: 0 — the action is ``max_action·tanh(·)`` of the network; > 0 — kinematic replay's
+            action plus a learned correction within ±``residual`` rad (see the module docstring);
+            the actor then also reads ``("proprio", "joint_target")``.
     """
 
     kind = "tracker"
 
-    def __init__(self, hidden: Sequence[int] = (512, 256, 128), max_action: float = 0.1, init_scale: float = 1.0):
+    def __init__(self, hidden: Sequence[int] = (512, 256, 128), max_action: float = 0.1, init_scale: float = 1.0,
+                 residual: float = 0.0):
         super().__init__()
-        if not max_action > 0:
-            raise ValueError(f"max_action must be > 0, got {max_action}")
-        self.config = {"hidden": list(hidden), "max_action": float(max_action), "init_scale": float(init_scale)}
+        check_number("Tracker.max_action", max_action, strict_low=True)
+        check_number("Tracker.residual", residual)
+        self.config = {"hidden": list(hidden), "max_action": float(max_action), "init_scale": float(init_scale),
+                       "residual": float(residual)}
+        bounds = None
+        if residual > 0:
+            bounds = TensorDictModule(ReplayBounds(residual), in_keys=[OBSERVATION, JOINT_TARGET],
+                                      out_keys=[("tracker", "low"), ("tracker", "high")])
         self.actor = make_actor(OBSERVATION, OBS_DIM, [NUM_JOINTS], -max_action, max_action, hidden,
-                                namespace="tracker", init_scale=init_scale)
+                                namespace="tracker", init_scale=init_scale, bounds=bounds)
         self.critic = make_critic(OBSERVATION, OBS_DIM, hidden)
 

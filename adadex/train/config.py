@@ -1,0 +1,134 @@
+"""Training configuration: one dataclass tree that the Hydra recipes fill and the trainer reads.
+
+>>> cfg = TrainConfig(dataset="data/small", out="runs/a", ppo=PPOConfig(total_frames=20_000))
+>>> cfg.ppo.frames_per_batch, cfg.collector.backend
+(4096, 'local')
+>>> TrainConfig(dataset="d", out="o", collector=CollectorConfig(backend="slurm"))
+Traceback (most recent call last):
+...
+adadex.errors.ConfigError: CollectorConfig.backend must be 'local' or 'ray', got 'slurm'
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+from adadex.errors import ConfigError, check_number, check_numbers
+
+
+@dataclass
+class PPOConfig:
+    """PPO on TorchRL parts (GAE + ClipPPOLoss); frames count env steps of all worlds."""
+
+    total_frames: int = 1_000_000
+    frames_per_batch: int = 4096          # per iteration, all workers together
+    epochs: int = 4                       # passes over each batch
+    minibatch_size: int = 1024
+    lr: float = 3e-4
+    gamma: float = 0.99
+    lmbda: float = 0.95
+    clip_epsilon: float = 0.2
+    entropy_coef: float = 1e-3
+    critic_coef: float = 0.5
+    max_grad_norm: float = 1.0
+
+    def __post_init__(self):
+        for k in ("total_frames", "frames_per_batch", "epochs", "minibatch_size"):
+            check_number(f"PPOConfig.{k}", getattr(self, k), low=1, integer=True)
+        check_numbers("PPOConfig", self, ("lr", "clip_epsilon", "entropy_coef", "critic_coef", "max_grad_norm"))
+        for k in ("gamma", "lmbda"):
+            check_number(f"PPOConfig.{k}", getattr(self, k), high=1.0)
+
+
+@dataclass
+class CollectorConfig:
+    """Where the env steps run. ``local``: ``workers`` = 1 steps the envs in this process (TorchRL
+    ``Collector``), more starts that many processes (``MultiSyncCollector``); ``ray``: ``workers``
+    remote collectors on a Ray cluster (``RayCollector``; a local cluster unless ``ray_address``)."""
+
+    workers: int = 1
+    backend: str = "local"
+    worlds: int = 64                      # B, worlds per worker's env
+    env_threads: int = 2                  # MuJoCo rollout threads per env
+    ray_address: str | None = None
+
+    def __post_init__(self):
+        check_number("CollectorConfig.workers", self.workers, low=1, integer=True)
+        check_number("CollectorConfig.worlds", self.worlds, low=1, integer=True)
+        check_number("CollectorConfig.env_threads", self.env_threads, low=1, integer=True)
+        if self.backend not in ("local", "ray"):
+            raise ConfigError(f"CollectorConfig.backend must be 'local' or 'ray', got {self.backend!r}")
+
+
+@dataclass
+class PolicyConfig:
+    """The tracker trained (:class:`adadex.modules.tracker.Tracker` arguments)."""
+
+    hidden: tuple[int, ...] = (256, 256, 128)
+    residual: float = 0.05                # > 0: kinematic replay + learned correction (see Tracker)
+    init_scale: float = 0.3
+
+    def __post_init__(self):
+        self.hidden = tuple(int(h) for h in self.hidden)
+        check_numbers("PolicyConfig", self, ("residual", "init_scale"))
+
+
+@dataclass
+class TrainConfig:
+    """A PPO tracker run: which references, which env, which learner, where results go.
+
+    The references trained on: ``references`` (dataset indices) if given; else the references of
+    ``split`` (``[name, part]``; the vanilla-PPO baseline: all training references), narrowed to the
+    semantic group ``group`` (a group id: a specialist, paper A.3.1) when one is given.
+    """
+
+    dataset: str
+    out: str
+    seed: int = 0
+    resume: bool = False
+    split: tuple[str, str] | None = ("unseen_trajectory", "train")
+    group: int | None = None
+    references: tuple[int, ...] | None = None
+    randomize: bool = True                # Table 3 domain randomization
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+    collector: CollectorConfig = field(default_factory=CollectorConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    checkpoint_every: int = 5             # iterations
+    eval_every: int = 0                   # iterations (0: only at the end)
+    eval_split: tuple[str, str] | None = None   # default: the training references themselves
+    eval_max_references: int = 64
+    wandb: bool = True                    # offline unless WANDB_MODE says otherwise
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.split is not None:
+            self.split = tuple(self.split)
+            if len(self.split) != 2 or not all(isinstance(s, str) for s in self.split):
+                raise ConfigError(f"TrainConfig.split must be [name, part], e.g. [unseen_trajectory, train], "
+                                  f"got {self.split!r}")
+        if self.eval_split is not None:
+            self.eval_split = tuple(self.eval_split)
+        if self.references is not None:
+            self.references = tuple(int(i) for i in self.references)
+        check_number("TrainConfig.seed", self.seed, integer=True)
+        if self.group is not None:
+            check_number("TrainConfig.group", self.group, integer=True)
+        check_number("TrainConfig.checkpoint_every", self.checkpoint_every, low=1, integer=True)
+        check_number("TrainConfig.eval_every", self.eval_every, integer=True)
+        check_number("TrainConfig.eval_max_references", self.eval_max_references, low=1, integer=True)
+        for name, sub in (("ppo", PPOConfig), ("collector", CollectorConfig), ("policy", PolicyConfig)):
+            v = getattr(self, name)
+            if isinstance(v, dict):
+                setattr(self, name, sub(**v))
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainConfig:
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ConfigError(f"TrainConfig: unknown keys {unknown}")
+        return cls(**d)

@@ -1,0 +1,44 @@
+"""Env factories for collectors: picklable, one seed per worker, cheap to start in a new process.
+
+A TorchRL collector calls ``create_env_fn()`` in each worker (a spawned process, or a Ray actor);
+:class:`TrackingEnvFactory` carries everything the env needs — the dataset folder, the references,
+the configs and the worker's own seed — so workers draw different references and randomizations.
+
+>>> f = TrackingEnvFactory("data/small", references=(0, 1, 2), num_worlds=8, seed=3)
+>>> [w.seed for w in f.for_workers(2)]
+[1003, 2003]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+from torchrl.envs import RewardSum, TransformedEnv
+
+from adadex.envs.randomization import Randomization
+from adadex.envs.tracking import TrackingConfig, TrackingEnv
+
+
+@dataclass(frozen=True)
+class TrackingEnvFactory:
+    """Builds ``TrackingEnv(dataset, references=…, num_worlds=…, seed=…)``; see the module docstring."""
+
+    dataset: str
+    references: tuple[int, ...]
+    num_worlds: int = 64
+    seed: int = 0
+    randomize: Randomization | None = None
+    config: TrackingConfig = field(default_factory=TrackingConfig)
+    nthread: int = 2
+    patch: object = None
+
+    def __call__(self) -> TransformedEnv:
+        """The env, with each episode's return summed into ``("next", "episode_reward")`` for the logs."""
+        env = TrackingEnv(self.dataset, num_worlds=self.num_worlds, split=None, references=list(self.references),
+                          config=self.config, randomize=self.randomize, patch=self.patch, nthread=self.nthread,
+                          seed=self.seed)
+        return TransformedEnv(env, RewardSum())
+
+    def for_workers(self, n: int) -> list[TrackingEnvFactory]:
+        """One factory per worker, worker ``i`` seeded ``1000·(i + 1) + seed`` (distinct draws)."""
+        return [replace(self, seed=1000 * (i + 1) + self.seed) for i in range(n)]

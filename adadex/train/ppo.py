@@ -1,0 +1,235 @@
+"""PPO for trackers, built from TorchRL parts: a collector (``Collector``, ``MultiSyncCollector`` or
+``RayCollector``), ``GAE``, ``ClipPPOLoss`` and a ``TensorDictReplayBuffer`` sampled without
+replacement. No PPO maths is written here; this module wires the parts, logs, checkpoints and
+evaluates.
+
+One iteration: collect ``frames_per_batch`` frames with the current policy (exploring), compute
+advantages with GAE, run ``epochs`` passes of minibatch updates, push the new weights to the
+collector's workers, log, and every ``checkpoint_every`` iterations write a checkpoint
+(:mod:`adadex.train.checkpoint`). The observation normalizers are fitted once, on the first batch
+(before any update), and then travel inside the modules' state.
+
+Example (a few iterations on a tiny dataset)::
+
+    from adadex.train.config import TrainConfig, PPOConfig, CollectorConfig
+    from adadex.train.ppo import train
+    result = train(TrainConfig(dataset="data/tiny", out="runs/t", ppo=PPOConfig(total_frames=2048,
+                   frames_per_batch=512, minibatch_size=256), collector=CollectorConfig(worlds=8)))
+    result["tracker"]            # runs/t/tracker.pt, loads with Tracker.load
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
+from torchrl.envs.utils import ExplorationType
+from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives.value import GAE
+from tqdm.auto import tqdm
+
+from adadex.data.reference import ReferenceDataset
+from adadex.envs.randomization import Randomization
+from adadex.envs.tracking import TrackingConfig, episode_references
+from adadex.errors import ConfigError
+from adadex.eval.evaluate import evaluate
+from adadex.eval.metrics import ERROR_NAMES, frame_success
+from adadex.modules.nets import fit_normalizers
+from adadex.modules.tracker import Tracker
+from adadex.train.checkpoint import load_checkpoint, save_checkpoint, set_rng_state
+from adadex.train.collectors import make_collector
+from adadex.train.config import TrainConfig
+from adadex.train.envs import TrackingEnvFactory
+from adadex.train.logs import RunLog
+
+TRACKER = "tracker.pt"
+ERRORS = ("next", "errors")
+
+
+def training_references(cfg: TrainConfig, dataset: ReferenceDataset, window: int) -> list[int]:
+    """The dataset indices a run trains on (see :class:`TrainConfig`)."""
+    if cfg.references is not None:
+        return list(cfg.references)
+    refs = episode_references(dataset, cfg.split, window)
+    if cfg.group is not None:
+        refs = [i for i in refs if dataset.entries[i]["group"] == cfg.group]
+        if not refs:
+            groups = sorted({dataset.entries[i]["group"] for i in episode_references(dataset, cfg.split, window)})
+            raise ConfigError(f"{dataset.path}: semantic group {cfg.group} has no reference in split "
+                              f"{cfg.split} with a {window}-frame window; groups there: {groups[:20]}")
+    if not refs:
+        raise ConfigError(f"{dataset.path}: no reference in split {cfg.split} has a {window}-frame window")
+    return refs
+
+
+class PPOTrainer:
+    """A PPO run for a :class:`Tracker` (see the module docstring); :meth:`train` runs it."""
+
+    def __init__(self, cfg: TrainConfig, *, env_config: TrackingConfig = TrackingConfig(), run_name: str = "ppo"):
+        self.cfg, self.env_config, self.run_name = cfg, env_config, run_name
+        self.out = Path(cfg.out)
+        self.dataset = ReferenceDataset(cfg.dataset)
+        self.references = training_references(cfg, self.dataset, env_config.window)
+        torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed)
+        p = cfg.policy
+        self.tracker = Tracker(hidden=p.hidden, max_action=env_config.max_action, init_scale=p.init_scale,
+                               residual=p.residual)
+        self.ppo = cfg.ppo
+        self.loss = ClipPPOLoss(self.tracker.actor, self.tracker.critic, clip_epsilon=self.ppo.clip_epsilon,
+                                entropy_coeff=self.ppo.entropy_coef, critic_coeff=self.ppo.critic_coef,
+                                normalize_advantage=True)
+        self.gae = GAE(gamma=self.ppo.gamma, lmbda=self.ppo.lmbda, value_network=self.tracker.critic,
+                       average_gae=False)
+        self.optim = torch.optim.Adam(self.loss.parameters(), lr=self.ppo.lr)
+        self.iteration, self.frames = 0, 0
+        self.fitted = False
+        self.buffer: TensorDictReplayBuffer | None = None
+
+    # -- pieces -----------------------------------------------------------------------------------
+    def env_factory(self, seed: int) -> TrackingEnvFactory:
+        c = self.cfg.collector
+        return TrackingEnvFactory(str(self.dataset.path), tuple(self.references), num_worlds=c.worlds, seed=seed,
+                                  randomize=Randomization() if self.cfg.randomize else None,
+                                  config=self.env_config, nthread=c.env_threads)
+
+    def _resume(self) -> bool:
+        blob = load_checkpoint(self.out) if self.cfg.resume else None
+        if blob is None:
+            return False
+        self.loss.load_state_dict(blob["module"])
+        self.optim.load_state_dict(blob["optimizer"])
+        self.iteration, self.frames = blob["iteration"], blob["frames"]
+        set_rng_state(blob["rng"])
+        self.fitted = True
+        return True
+
+    def _checkpoint(self) -> None:
+        save_checkpoint(self.out, module=self.loss, optimizer=self.optim, iteration=self.iteration,
+                        frames=self.frames, config=self.cfg.to_dict())
+        self.tracker.save(self.out / TRACKER)
+
+    def _update(self, data: TensorDictBase) -> dict:
+        """GAE, then ``epochs`` passes of minibatch PPO updates over ``data`` ([N, T])."""
+        with torch.no_grad():
+            self.gae(data)
+        flat = data.reshape(-1)
+        if self.buffer is None or len(self.buffer.storage) != 0 and self.buffer.storage.max_size != flat.numel():
+            self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(flat.numel()),
+                                                 sampler=SamplerWithoutReplacement(),
+                                                 batch_size=self.ppo.minibatch_size)
+        buffer = self.buffer
+        buffer.empty()
+        buffer.extend(flat)
+        stats: dict[str, list] = {}
+        steps = max(1, flat.numel() // self.ppo.minibatch_size)
+        for _ in range(self.ppo.epochs):
+            for _ in range(steps):
+                batch = buffer.sample()
+                out = self.loss(batch)
+                total = out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
+                self.optim.zero_grad()
+                total.backward()
+                grad = torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.ppo.max_grad_norm)
+                self.optim.step()
+                for k in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "kl_approx", "clip_fraction",
+                          "ESS"):
+                    if k in out.keys():
+                        stats.setdefault(k, []).append(float(out[k].detach().mean()))
+                stats.setdefault("grad_norm", []).append(float(grad))
+        return {k: float(np.mean(v)) for k, v in stats.items()}
+
+    @staticmethod
+    def batch_metrics(data: TensorDictBase) -> dict:
+        """Rollout statistics of one batch: reward, its terms, errors, frame success, episodes ended."""
+        nxt = data["next"]
+        out = {"reward": float(nxt["reward"].mean())}
+        errs = nxt.get(ERRORS[1])
+        for k in ERROR_NAMES:
+            out[k] = float(errs[k].mean())
+        out["frame_success_pct"] = 100.0 * float(frame_success({k: errs[k] for k in ERROR_NAMES}).float().mean())
+        done, term = nxt["done"], nxt["terminated"]
+        out["episodes_done"] = float(done.sum())
+        out["terminated_frac"] = float(term.sum()) / max(1.0, float(done.sum()))
+        if ("episode_reward",) in nxt.keys(True) or "episode_reward" in nxt.keys():
+            ep = nxt["episode_reward"][done]
+            if ep.numel():
+                out["episode_return"] = float(ep.mean())
+        terms = nxt.get("reward_terms", None)
+        if terms is not None:
+            for k in terms.keys():
+                out[f"reward_{k}"] = float(terms[k].mean())
+        return out
+
+    def evaluate(self, references=None) -> dict:
+        refs = references if references is not None else self.references
+        eval_refs = (episode_references(self.dataset, self.cfg.eval_split, self.env_config.window)
+                     if self.cfg.eval_split is not None else refs)[: self.cfg.eval_max_references]
+        res = evaluate(self.tracker.actor, self.dataset, split=None, references=eval_refs,
+                       max_worlds=self.cfg.collector.worlds, config=self.env_config, progress=False,
+                       randomize=Randomization() if self.cfg.randomize else None, seed=self.cfg.seed + 17,
+                       nthread=self.cfg.collector.env_threads)
+        s = res["summary"]
+        return {f"eval_{k}": v for k, v in s.items() if isinstance(v, (int, float))}
+
+    # -- the run ----------------------------------------------------------------------------------
+    def train(self) -> dict:
+        self.out.mkdir(parents=True, exist_ok=True)
+        resumed = self._resume()
+        if self.frames >= self.ppo.total_frames:
+            return self._result(resumed)
+        log = RunLog(self.out, name=self.run_name, config=self.cfg.to_dict(), wandb=self.cfg.wandb,
+                     keep_until=self.iteration if resumed else -1)
+        remaining = self.ppo.total_frames - self.frames
+        # a resumed run draws new references and randomizations: seeds move on with the iteration
+        factory = self.env_factory(self.cfg.seed + 7919 * self.iteration)
+        collector = make_collector(factory, self.tracker.actor, self.cfg.collector,
+                                   frames_per_batch=self.ppo.frames_per_batch, total_frames=remaining)
+        bar = tqdm(total=self.ppo.total_frames, initial=self.frames, unit="frame", desc=self.run_name,
+                   disable=not self.cfg.progress)
+        try:
+            t_iter = time.perf_counter()
+            for data in collector:
+                t_collected = time.perf_counter()
+                data = data.reshape(-1, data.shape[-1])          # [worlds (of all workers), T]
+                if not self.fitted:
+                    fit_normalizers(self.tracker, data["observation"])
+                    self.fitted = True
+                stats = self.batch_metrics(data)
+                stats.update(self._update(data))
+                collector.update_policy_weights_()
+                n = data.numel()
+                self.frames += n
+                self.iteration += 1
+                now = time.perf_counter()
+                stats.update(frames=self.frames, fps=n / (now - t_iter), collect_fps=n / (t_collected - t_iter))
+                if self.cfg.eval_every and self.iteration % self.cfg.eval_every == 0:
+                    stats.update(self.evaluate())
+                if self.iteration % self.cfg.checkpoint_every == 0:
+                    self._checkpoint()
+                log.log(self.iteration, stats)
+                bar.update(n)
+                bar.set_postfix(ret=f"{stats['reward']:.3f}", succ=f"{stats['frame_success_pct']:.0f}%")
+                t_iter = time.perf_counter()
+        finally:
+            bar.close()
+            collector.shutdown()
+        self._checkpoint()
+        final = self.evaluate()
+        log.log(self.iteration, {**final, "frames": self.frames})
+        log.close()
+        return self._result(resumed, final)
+
+    def _result(self, resumed: bool, final: dict | None = None) -> dict:
+        return {"tracker": self.out / TRACKER, "frames": self.frames, "iterations": self.iteration,
+                "resumed": resumed, "eval": final or {}}
+
+
+def train(cfg: TrainConfig, **kwargs) -> dict:
+    """Run :class:`PPOTrainer` on ``cfg``; returns the tracker path, counters and final evaluation."""
+    return PPOTrainer(cfg, **kwargs).train()

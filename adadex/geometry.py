@@ -1,8 +1,11 @@
 """Poses as numpy arrays: position (3) + unit quaternion (4, **w-first**, as MuJoCo stores it).
 
-scipy's :class:`~scipy.spatial.transform.Rotation` does the rotation algebra; it uses x-y-z-w
-(scalar-last) quaternions, so every conversion goes through :func:`rotation` and :func:`quat`.
-Quaternions leaving this module are canonical (w ≥ 0), since q and −q are the same rotation.
+The quaternion algebra is :mod:`adadex.quat`'s (one definition for numpy and torch); this module
+adds what poses need on top of it — composing, inverting, interpolating — and the bridge to scipy's
+:class:`~scipy.spatial.transform.Rotation` for what scipy does best (Slerp, Euler angles, random
+rotations, rotation matrices). scipy uses x-y-z-w (scalar-last) quaternions, so every conversion goes
+through :func:`rotation` and :func:`quat`. Quaternions leaving this module are canonical (w ≥ 0), since
+q and −q are the same rotation; input quaternions are normalized, as scipy does.
 
 Example
 -------
@@ -10,6 +13,11 @@ Example
 >>> q = quat(rotation(np.array([1.0, 0, 0, 0])) * Rotation.from_euler("z", 90, degrees=True))
 >>> np.round(q, 4).tolist()
 [0.7071, 0.0, 0.0, 0.7071]
+>>> pose = np.concatenate([[1.0, 0.0, 0.0], q])          # 1 m along x, turned 90° about z
+>>> np.round(compose(pose, [1.0, 0, 0, 1, 0, 0, 0]), 4).tolist()   # a point 1 m ahead of it
+[1.0, 1.0, 0.0, 0.7071, 0.0, 0.0, 0.7071]
+>>> np.round(compose(inverse(pose), pose), 12).tolist()
+[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
 """
 
 from __future__ import annotations
@@ -17,7 +25,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-__all__ = ["Rotation", "rotation", "quat", "canonical", "compose", "inverse", "slerp_poses"]
+from adadex.quat import quat_canonical, quat_conj, quat_mul, quat_normalize, quat_rotate
+
+__all__ = ["Rotation", "rotation", "quat", "compose", "inverse", "slerp_poses"]
 
 
 def rotation(q_wxyz: np.ndarray) -> Rotation:
@@ -26,32 +36,25 @@ def rotation(q_wxyz: np.ndarray) -> Rotation:
     return Rotation.from_quat(np.concatenate([q[..., 1:], q[..., :1]], axis=-1))
 
 
-def canonical(q_wxyz: np.ndarray) -> np.ndarray:
-    """The same rotations with w ≥ 0."""
-    q = np.asarray(q_wxyz, dtype=np.float64)
-    return np.where(q[..., :1] < 0, -q, q)
-
-
 def quat(r: Rotation) -> np.ndarray:
     """(…, 4) canonical w-first quaternions of a scipy Rotation."""
     xyzw = r.as_quat()
-    return canonical(np.concatenate([xyzw[..., 3:], xyzw[..., :3]], axis=-1))
+    return quat_canonical(np.concatenate([xyzw[..., 3:], xyzw[..., :3]], axis=-1))
 
 
 def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Pose product a ∘ b of (…, 7) poses (broadcast): b expressed in a's frame, returned in a's parent frame."""
     a, b = (np.array(x, dtype=np.float64) for x in np.broadcast_arrays(a, b))
-    ra = rotation(a[..., 3:])
-    pos = a[..., :3] + ra.apply(b[..., :3].reshape(-1, 3)).reshape(b[..., :3].shape)
-    return np.concatenate([pos, quat(ra * rotation(b[..., 3:]))], axis=-1)
+    qa, qb = quat_normalize(a[..., 3:]), quat_normalize(b[..., 3:])
+    pos = a[..., :3] + quat_rotate(qa, b[..., :3])
+    return np.concatenate([pos, quat_canonical(quat_mul(qa, qb))], axis=-1)
 
 
 def inverse(a: np.ndarray) -> np.ndarray:
     """Inverse of (…, 7) poses."""
     a = np.array(a, dtype=np.float64)
-    r = rotation(a[..., 3:]).inv()
-    pos = -r.apply(a[..., :3].reshape(-1, 3)).reshape(a[..., :3].shape)
-    return np.concatenate([pos, quat(r)], axis=-1)
+    q = quat_conj(quat_normalize(a[..., 3:]))
+    return np.concatenate([-quat_rotate(q, a[..., :3]), quat_canonical(q)], axis=-1)
 
 
 def slerp_poses(p0: np.ndarray, p1: np.ndarray, s: np.ndarray) -> np.ndarray:

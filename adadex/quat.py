@@ -1,7 +1,9 @@
 """Quaternion algebra, w-first (as MuJoCo stores them), batched over leading dims.
 
-The product, difference and angles run on torch tensors and numpy arrays alike
-(:mod:`adadex.arrays`); the rotation-vector maps are torch only.
+This is the one definition of each quaternion operation in adadex — product, conjugate,
+normalization, difference, angle, rotating vectors, rotation-vector maps — and every one runs on
+torch tensors (with autograd) and numpy arrays alike (:mod:`adadex.arrays`). Pose helpers and the
+bridge to scipy (for Slerp, Euler angles, random rotations) are in :mod:`adadex.geometry`.
 
 The *difference* of two orientations is defined here once and used everywhere (observation,
 reward, metrics): ``quat_diff(a, b)`` is the rotation that takes ``b`` to ``a``, ``a ⊗ b⁻¹``, as a
@@ -15,6 +17,11 @@ Example
 >>> b = torch.tensor([1.0, 0.0, 0.0, 0.0])
 >>> round(float(quat_angle(quat_diff(a, b))), 6), round(float(quat_angle(quat_diff(-a, b))), 6)
 (0.5, 0.5)
+>>> import numpy as np
+>>> np.round(quat_rotate(a.numpy(), np.array([1.0, 0.0, 0.0])), 4).tolist()   # x turns toward y
+[0.8776, 0.4794, 0.0]
+>>> np.round(rotvec_from_quat(quat_from_rotvec(np.array([0.0, 0.0, 0.5]))), 6).tolist()
+[0.0, 0.0, 0.5]
 """
 
 from __future__ import annotations
@@ -91,19 +98,40 @@ def quat_angle_between(a, b):
     return 2.0 * xp.arctan2(xp.sqrt(xp.clip(1.0 - w * w, 0.0, None)), w)
 
 
-def quat_from_rotvec(v: torch.Tensor) -> torch.Tensor:
+def quat_normalize(q):
+    """(…, 4) quaternions scaled to unit norm (e.g. after float32 rounding)."""
+    return q / namespace(q).linalg.vector_norm(q, axis=-1, keepdims=True)
+
+
+def _cross(a, b):
+    """Cross product over the last axis, by indexing (numpy's and torch's ``cross`` differ in signature)."""
+    return a[..., [1, 2, 0]] * b[..., [2, 0, 1]] - a[..., [2, 0, 1]] * b[..., [1, 2, 0]]
+
+
+def quat_rotate(q, v):
+    """(…, 3) vectors ``v`` rotated by (…, 4) unit quaternions ``q`` (broadcast): q ⊗ (0, v) ⊗ q⁻¹.
+
+    Computed as v + w·t + u × t with t = 2 u × v (u the vector part of q), without the two products."""
+    u = q[..., 1:]
+    t = 2.0 * _cross(u, v)
+    return v + q[..., :1] * t + _cross(u, t)
+
+
+def quat_from_rotvec(v):
     """(…, 3) rotation vectors (axis · angle, rad) → (…, 4) unit quaternions; exact at 0."""
-    angle = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+    xp = namespace(v)
+    angle = xp.linalg.vector_norm(v, axis=-1, keepdims=True)
     half = 0.5 * angle
     # sin(θ/2)/θ → 1/2 as θ → 0; the Taylor form keeps the gradient finite there.
-    k = torch.where(angle > 1e-6, torch.sin(half) / angle.clamp(min=1e-6), 0.5 - angle * angle / 48.0)
-    return torch.cat([torch.cos(half), k * v], dim=-1)
+    k = xp.where(angle > 1e-6, xp.sin(half) / xp.clip(angle, 1e-6, None), 0.5 - angle * angle / 48.0)
+    return xp.concatenate([xp.cos(half), k * v], axis=-1)
 
 
-def rotvec_from_quat(q: torch.Tensor) -> torch.Tensor:
+def rotvec_from_quat(q):
     """(…, 4) unit quaternions → (…, 3) rotation vectors with angle in [0, π] (q and −q agree)."""
+    xp = namespace(q)
     q = quat_canonical(q)
-    s = torch.linalg.vector_norm(q[..., 1:], dim=-1, keepdim=True)
-    angle = 2.0 * torch.atan2(s, q[..., :1])
-    k = torch.where(s > 1e-6, angle / s.clamp(min=1e-6), 2.0 + s * s / 3.0)
+    s = xp.linalg.vector_norm(q[..., 1:], axis=-1, keepdims=True)
+    angle = 2.0 * xp.arctan2(s, q[..., :1])
+    k = xp.where(s > 1e-6, angle / xp.clip(s, 1e-6, None), 2.0 + s * s / 3.0)
     return k * q[..., 1:]

@@ -9,7 +9,18 @@ from adadex.arrays import namespace, to_float
 from adadex.envs.observation import flat_observation
 from adadex.envs.reward import RewardConfig, tracking_reward
 from adadex.eval.metrics import ERROR_NAMES, frame_errors
-from adadex.quat import quat_angle, quat_angle_between, quat_conj, quat_diff, quat_mul
+from adadex.geometry import compose, inverse, quat, rotation
+from adadex.quat import (
+    quat_angle,
+    quat_angle_between,
+    quat_conj,
+    quat_diff,
+    quat_from_rotvec,
+    quat_mul,
+    quat_normalize,
+    quat_rotate,
+    rotvec_from_quat,
+)
 
 
 def _quats(rng, *shape):
@@ -59,6 +70,38 @@ def test_quaternion_functions_agree():
     np.testing.assert_allclose(quat_angle_between(a, b), quat_angle_between(ta, tb).numpy(), atol=1e-6)
     # broadcasting one quaternion against a batch
     np.testing.assert_allclose(quat_mul(a, b[0]), quat_mul(ta, tb[0]).numpy(), atol=1e-6)
+
+
+def test_rotations_and_rotation_vectors_agree_with_each_other_and_scipy():
+    rng = np.random.default_rng(3)
+    q = quat_normalize(_quats(rng, 8).astype(np.float64))   # unit in float64, as scipy makes them
+    v = rng.normal(size=(8, 3))
+    rv = rng.normal(size=(8, 3))
+    rv[0] = 0.0                                   # the rotvec maps are exact at 0
+    tq, tv, trv = (torch.from_numpy(x) for x in (q, v, rv))
+    np.testing.assert_allclose(quat_rotate(q, v), quat_rotate(tq, tv).numpy(), atol=1e-12)
+    np.testing.assert_allclose(quat_rotate(q, v), rotation(q).apply(v), atol=1e-12)
+    np.testing.assert_allclose(quat_from_rotvec(rv), quat_from_rotvec(trv).numpy(), atol=1e-12)
+    np.testing.assert_allclose(rotvec_from_quat(q), rotvec_from_quat(tq).numpy(), atol=1e-12)
+    np.testing.assert_allclose(rotvec_from_quat(q), rotation(q).as_rotvec(), atol=1e-12)
+    np.testing.assert_allclose(rotvec_from_quat(quat_from_rotvec(rv)), rv, atol=1e-12)
+    np.testing.assert_allclose(quat_normalize(3.0 * q), q, atol=1e-15)
+    np.testing.assert_allclose(quat_normalize(3.0 * tq).numpy(), q, atol=1e-15)
+    # rotating by q ⊗ p is rotating by p, then by q
+    p = quat_normalize(_quats(rng, 8).astype(np.float64))
+    np.testing.assert_allclose(quat_rotate(quat_mul(q, p), v), quat_rotate(q, quat_rotate(p, v)), atol=1e-12)
+
+
+def test_pose_helpers_agree_with_scipy():
+    rng = np.random.default_rng(4)
+    a = np.concatenate([rng.normal(size=(6, 3)), _quats(rng, 6)], -1)   # float32-rounded quaternions
+    b = np.concatenate([rng.normal(size=(6, 3)), _quats(rng, 6)], -1)
+    ab = compose(a, b)
+    ra, rb = rotation(a[:, 3:]), rotation(b[:, 3:])
+    np.testing.assert_allclose(ab[:, :3], a[:, :3] + ra.apply(b[:, :3]), atol=1e-12)
+    np.testing.assert_allclose(ab[:, 3:], quat(ra * rb), atol=1e-12)
+    assert (ab[:, 3] >= 0).all()
+    np.testing.assert_allclose(compose(inverse(a), a), np.tile([0, 0, 0, 1.0, 0, 0, 0], (6, 1)), atol=1e-12)
 
 
 def test_flat_observation_agrees():

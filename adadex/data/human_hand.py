@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from adadex.geometry import rotation
+from adadex.quat import quat_normalize, quat_rotate
 
 KEYPOINT_NAMES = (
     "wrist", "index1", "index2", "index3", "middle1", "middle2", "middle3", "little1", "little2", "little3",
@@ -130,6 +130,5 @@ class HumanHand:
             if bend is not None:
                 rot = rot @ _flex(bend)
         local *= self.scale
-        r = rotation(wrist_pose[:, 3:])
-        world = np.einsum("tij,tkj->tki", r.as_matrix().reshape(T, 3, 3), local)
+        world = quat_rotate(quat_normalize(wrist_pose[:, None, 3:]), local)
         return world + wrist_pose[:, None, :3]

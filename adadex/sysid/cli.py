@@ -204,7 +204,7 @@ def _cmd_report(a) -> int:
 def _cmd_demo(a) -> int:
     from adadex.sysid.demo import run_demo
 
-    run_demo(recording=a.recording, out=a.out, nthread=a.threads)
+    run_demo(recording=a.recording or DEMO_RECORDING, out=a.out, nthread=a.threads)
     return 0
 
 

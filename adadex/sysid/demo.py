@@ -21,12 +21,13 @@ from adadex.sysid.replay import Replayer
 from adadex.sysid.report import error_stages, write_report
 
 
-def run_demo(recording=None, out="adadex_demo", nthread: int = 2) -> dict:
-    from adadex.sysid.cli import DEMO_RECORDING
-
+def run_demo(recording, out="adadex_demo", nthread: int = 2) -> dict:
+    """Walk the loop on ``recording`` (a path; ``adadex sysid demo`` passes the shipped demo recording),
+    writing the diagnosis, the patch and the report under ``out``. The caller names the recording, so
+    this module needs nothing from the CLI (which imports it)."""
     t0 = time.perf_counter()
     out = Path(out)
-    rec = load_recording(recording or DEMO_RECORDING)
+    rec = load_recording(recording)
     print(f"adadex sysid demo: {rec.num_sequences} sequences × {rec.duration:.1f} s at {1 / rec.dt:.0f} Hz on "
           f"{len(rec.joint_names)} joints ({', '.join(rec.joint_names)})\n")
     rep = Replayer(rec, nthread=nthread)

@@ -68,7 +68,8 @@ class Diagnosis:
         """The selected effects as a model patch."""
         p = ModelPatch()
         for h in self.selected:
-            p = p.with_effect(h["effect"], h["joints"], np.array(h["params"][get_effect(h["effect"]).param_names[0]])[:, None])
+            values = np.array(h["params"][get_effect(h["effect"]).param_names[0]])[:, None]
+            p = p.with_effect(h["effect"], h["joints"], values)
         return p
 
     def to_dict(self) -> dict:
@@ -116,6 +117,28 @@ def _patch_of(selected_per_joint: dict, base: ModelPatch) -> ModelPatch:
     return p
 
 
+@dataclass(frozen=True)
+class _Setting:
+    """What every step of a diagnosis reads: the replayer, the starting patch, the noise floors and
+    which sequences train and which score each joint."""
+
+    replayer: Replayer
+    base_patch: ModelPatch
+    joint_names: list[str]
+    noise: np.ndarray
+    seq_meta: list[dict]
+    holdout: np.ndarray
+
+    def sequences(self, joint: str) -> tuple[np.ndarray, np.ndarray]:
+        """(training, held-out) indices of the sequences that excite ``joint`` (all, if unlabelled)."""
+        own = np.array([i for i, s in enumerate(self.seq_meta) if s.get("joint", joint) == joint])
+        return _split(own, self.holdout)
+
+    def noise2(self, joint: str) -> float:
+        """The squared noise floor of ``joint``, rad²."""
+        return float(self.noise[self.joint_names.index(joint)] ** 2)
+
+
 def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFECT_NAMES,
              joints=None, max_effects_per_joint: int = 2, min_gain: float = 0.1, tie: float = 0.03,
              explained_at: float = 0.8, refine_top: int = 4, refine_passes: int = 1, nthread: int = 2,
@@ -124,106 +147,169 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     t0 = time.perf_counter()
     base_patch = base_patch if base_patch is not None else ModelPatch()
     rep = Replayer(recording, nthread=nthread)
-    cmp = compare(recording, base_patch, replayer=rep)
-    loc = localize(cmp)
-    names = list(recording.joint_names)
     noise = noise_floor(recording.joint_pos)
-    baseline = {"overall_rms_rad": float(cmp.rms()),
-                "per_joint_rms_rad": dict(zip(names, map(float, cmp.rms_per_joint()))),
-                "noise_floor_rad": dict(zip(names, map(float, noise)))}
-    failing = list(joints) if joints is not None else loc.failing_joints
-    findings = list(loc.sentences)
+    baseline, failing, findings = _localize_failing_joints(recording, base_patch, rep, noise)
+    if joints is not None:
+        failing = list(joints)
     if not failing:
         return Diagnosis("nothing_missing", baseline, [], [], {}, findings, time.perf_counter() - t0)
 
     seq_meta = list(recording.meta.get("sequences") or [{} for _ in range(recording.num_sequences)])
-    holdout = heldout_mask(recording)
-    per_joint: dict[str, list[Candidate]] = {}
+    setting = _Setting(rep, base_patch, list(recording.joint_names), noise, seq_meta, heldout_mask(recording))
+    first_rounds: dict[str, list[Candidate]] = {}
     selected_per_joint: dict[str, list[Candidate]] = {}
     explained: dict[str, float] = {}
-    work = [(j, c) for j in failing for c in candidates]
-    bar = tqdm(total=len(work), desc="diagnosing", unit="fit", disable=not progress)
+    bar = tqdm(total=len(failing) * len(candidates), desc="diagnosing", unit="fit", disable=not progress)
     for joint in failing:
-        own = np.array([i for i, s in enumerate(seq_meta) if s.get("joint", joint) == joint])
-        train, held = _split(own, holdout)
-        n2 = float(noise[names.index(joint)] ** 2)
-        chosen: list[Candidate] = []
-        patch = base_patch
-        held_fitter = JointFitter(rep, joint, held, patch)
-        held_before = held_fitter.mse_per_sequence(patch)
-        first_round: list[Candidate] = []
-        for round_ in range(max_effects_per_joint):
-            fitter = JointFitter(rep, joint, train, patch)
-            held_fitter = JointFitter(rep, joint, held, patch)
-            cur_held = held_fitter.mse_per_sequence(patch)
-            cands = []
-            names_left = [n for n in candidates if not any(c.effect == n for c in chosen)]
-            train_before = fitter.mse(patch)
-            # Screen every candidate on a coarse grid; refine only the most promising ones.
-            grids = {n: fitter.grid(n) for n in names_left}
-            ranked = sorted(names_left, key=lambda n: grids[n][1].min())
-            for k, name in enumerate(ranked):
-                if k < refine_top:
-                    r = fitter.fit(name, grid=grids[name], mse_before=train_before)
-                    value, ci, after = r.value, r.ci95, r.mse_after
-                else:
-                    i = int(np.argmin(grids[name][1]))
-                    value, after = float(grids[name][0][i]), float(grids[name][1][i])
-                    eff = get_effect(name)
-                    ci = tuple(float(b[0, 0]) for b in eff.bounds([joint]))
-                held_after = held_fitter.mse_per_sequence(fitter.patch_with(name, value))
-                red_tr = _reduction(train_before, after, n2)
-                red_ho = _reduction(held_before, held_after, n2)
-                gain = red_ho - _reduction(held_before, cur_held, n2)
-                cands.append(Candidate(name, joint, value, ci, red_tr, red_ho,
-                                       gain - COMPLEXITY_PENALTY * len(get_effect(name).params)))
-                if round_ == 0:
-                    bar.update(1)
-            cands.sort(key=lambda c: -c.score)
-            if round_ == 0:
-                first_round = cands
-            if not cands or cands[0].score < (min_gain if chosen else 0.0):
-                break
-            best = cands[0]
-            best.alternatives = [c.effect for c in cands[1:] if best.heldout_error_reduction - c.heldout_error_reduction < tie
-                                 or c.effect in get_effect(best.effect).lookalikes and
-                                 best.heldout_error_reduction - c.heldout_error_reduction < 3 * tie]
-            chosen.append(best)
-            patch = patch.with_effect(best.effect, [joint], [[best.value]])
-            if best.heldout_error_reduction >= 0.98:
-                break
-        per_joint[joint] = first_round
+        first_rounds[joint], chosen = _forward_selection(
+            setting, joint, candidates, max_effects=max_effects_per_joint, min_gain=min_gain, tie=tie,
+            refine_top=refine_top, bar=bar)
         selected_per_joint[joint] = chosen
         explained[joint] = chosen[-1].heldout_error_reduction if chosen else 0.0
     bar.close()
 
-    # Effects on one joint change how the others move (a finger that no longer flops changes the
-    # load on a saturating arm joint), so refit every selected value with all the other selected
-    # effects in place — a coordinate-descent pass — and score the joints again.
     if sum(len(c) for c in selected_per_joint.values()) > 1:
-        for _ in range(refine_passes):
-            for joint, chosen in selected_per_joint.items():
-                for k, c in enumerate(chosen):
-                    others = ModelPatch(tuple(
-                        e for e in _patch_of(selected_per_joint, base_patch).effects
-                        if not (e.joints == (joint,) and e.effect == c.effect)))
-                    own = np.array([i for i, s in enumerate(seq_meta) if s.get("joint", joint) == joint])
-                    train, _ = _split(own, holdout)
-                    r = JointFitter(rep, joint, train, others).fit(c.effect)
-                    c.value, c.ci95 = r.value, r.ci95
-        full = _patch_of(selected_per_joint, base_patch)
-        for joint, chosen in selected_per_joint.items():
-            own = np.array([i for i, s in enumerate(seq_meta) if s.get("joint", joint) == joint])
-            _, held = _split(own, holdout)
-            hf = JointFitter(rep, joint, held, base_patch)
-            n2 = float(noise[names.index(joint)] ** 2)
-            red = _reduction(hf.mse_per_sequence(base_patch), hf.mse_per_sequence(full), n2)
-            if chosen:
-                chosen[-1].heldout_error_reduction = red
-            explained[joint] = red
+        _refit_jointly(setting, selected_per_joint, refine_passes)
+        explained.update(_score_jointly(setting, selected_per_joint))
 
+    hypotheses = _hypotheses(first_rounds, selected_per_joint)
+    selected = _merge_over_joints(selected_per_joint)
+    verdict, sentences = _verdict(explained, selected_per_joint, explained_at)
+    return Diagnosis(verdict, baseline, hypotheses, selected, explained, findings + sentences,
+                     time.perf_counter() - t0)
+
+
+def _localize_failing_joints(recording, base_patch: ModelPatch, rep: Replayer, noise: np.ndarray):
+    """Replay on ``base_patch``: the baseline errors, the failing joints and the localization's sentences."""
+    cmp = compare(recording, base_patch, replayer=rep)
+    loc = localize(cmp)
+    names = list(recording.joint_names)
+    baseline = {"overall_rms_rad": float(cmp.rms()),
+                "per_joint_rms_rad": dict(zip(names, map(float, cmp.rms_per_joint()))),
+                "noise_floor_rad": dict(zip(names, map(float, noise)))}
+    return baseline, loc.failing_joints, list(loc.sentences)
+
+
+def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects: int, min_gain: float,
+                       tie: float, refine_top: int, bar) -> tuple[list[Candidate], list[Candidate]]:
+    """Add effects on ``joint`` one at a time, each the best-scoring on held-out sequences, while each
+    adds ``min_gain`` (the first only needs a positive score). Returns the first round's candidates,
+    ranked, and the chosen effects in order."""
+    train, held = setting.sequences(joint)
+    n2 = setting.noise2(joint)
+    chosen: list[Candidate] = []
+    patch = setting.base_patch
+    held_before = JointFitter(setting.replayer, joint, held, patch).mse_per_sequence(patch)
+    first_round: list[Candidate] = []
+    for round_ in range(max_effects):
+        names_left = [n for n in candidates if not any(c.effect == n for c in chosen)]
+        cands = _fit_and_score_candidates(setting, joint, names_left, patch, train, held, held_before, n2,
+                                          refine_top=refine_top, bar=bar if round_ == 0 else None)
+        if round_ == 0:
+            first_round = cands
+        if not cands or cands[0].score < (min_gain if chosen else 0.0):
+            break
+        best = cands[0]
+        best.alternatives = _lookalikes(best, cands[1:], tie)
+        chosen.append(best)
+        patch = patch.with_effect(best.effect, [joint], [[best.value]])
+        if best.heldout_error_reduction >= 0.98:
+            break
+    return first_round, chosen
+
+
+def _fit_and_score_candidates(setting: _Setting, joint: str, names: list[str], patch: ModelPatch, train, held,
+                              held_before, n2: float, *, refine_top: int, bar) -> list[Candidate]:
+    """Fit each of ``names`` on top of ``patch`` on the training sequences and score it on the held-out
+    ones; ranked best first. ``bar`` (if given) advances once per candidate."""
+    fitter = JointFitter(setting.replayer, joint, train, patch)
+    held_fitter = JointFitter(setting.replayer, joint, held, patch)
+    cur_held = held_fitter.mse_per_sequence(patch)
+    train_before = fitter.mse(patch)
+    cands = []
+    grids, ranked = _screen_on_grid(fitter, names)
+    for k, name in enumerate(ranked):
+        if k < refine_top:
+            value, ci, after = _refine(fitter, name, grids[name], train_before)
+        else:
+            value, ci, after = _best_on_grid(name, grids[name], joint)
+        held_after = held_fitter.mse_per_sequence(fitter.patch_with(name, value))
+        red_tr = _reduction(train_before, after, n2)
+        red_ho = _reduction(held_before, held_after, n2)
+        gain = red_ho - _reduction(held_before, cur_held, n2)
+        cands.append(Candidate(name, joint, value, ci, red_tr, red_ho,
+                               gain - COMPLEXITY_PENALTY * len(get_effect(name).params)))
+        if bar is not None:
+            bar.update(1)
+    cands.sort(key=lambda c: -c.score)
+    return cands
+
+
+def _screen_on_grid(fitter: JointFitter, names: list[str]) -> tuple[dict, list[str]]:
+    """Every candidate's costs on a coarse grid, and the names ranked by their best grid cost: only the
+    most promising are then refined."""
+    grids = {n: fitter.grid(n) for n in names}
+    return grids, sorted(names, key=lambda n: grids[n][1].min())
+
+
+def _refine(fitter: JointFitter, name: str, grid, train_before: float) -> tuple[float, tuple, float]:
+    """(value, 95 % interval, training MSE) of a precise fit of ``name``, started from its grid."""
+    r = fitter.fit(name, grid=grid, mse_before=train_before)
+    return r.value, r.ci95, r.mse_after
+
+
+def _best_on_grid(name: str, grid, joint: str) -> tuple[float, tuple, float]:
+    """(value, the effect's bounds as the interval, training MSE) of the best grid point of ``name``."""
+    i = int(np.argmin(grid[1]))
+    ci = tuple(float(b[0, 0]) for b in get_effect(name).bounds([joint]))
+    return float(grid[0][i]), ci, float(grid[1][i])
+
+
+def _lookalikes(best: Candidate, others: list[Candidate], tie: float) -> list[str]:
+    """The effects that explain the held-out data about as well as ``best``: within ``tie``, or within
+    ``3 · tie`` for the effects ``best`` is known to look like."""
+    return [c.effect for c in others if best.heldout_error_reduction - c.heldout_error_reduction < tie
+            or c.effect in get_effect(best.effect).lookalikes and
+            best.heldout_error_reduction - c.heldout_error_reduction < 3 * tie]
+
+
+def _refit_jointly(setting: _Setting, selected_per_joint: dict, passes: int) -> None:
+    """Refit every selected value with all the other selected effects in place (coordinate descent).
+
+    Effects on one joint change how the others move (a finger that no longer flops changes the load on
+    a saturating arm joint), so values fitted joint by joint are refined together. Updates in place.
+    """
+    for _ in range(passes):
+        for joint, chosen in selected_per_joint.items():
+            for c in chosen:
+                others = ModelPatch(tuple(
+                    e for e in _patch_of(selected_per_joint, setting.base_patch).effects
+                    if not (e.joints == (joint,) and e.effect == c.effect)))
+                train, _ = setting.sequences(joint)
+                r = JointFitter(setting.replayer, joint, train, others).fit(c.effect)
+                c.value, c.ci95 = r.value, r.ci95
+
+
+def _score_jointly(setting: _Setting, selected_per_joint: dict) -> dict[str, float]:
+    """Each joint's held-out excess-error reduction with all selected effects in place; also stored on
+    the joint's last chosen candidate."""
+    full = _patch_of(selected_per_joint, setting.base_patch)
+    explained = {}
+    for joint, chosen in selected_per_joint.items():
+        _, held = setting.sequences(joint)
+        hf = JointFitter(setting.replayer, joint, held, setting.base_patch)
+        red = _reduction(hf.mse_per_sequence(setting.base_patch), hf.mse_per_sequence(full), setting.noise2(joint))
+        if chosen:
+            chosen[-1].heldout_error_reduction = red
+        explained[joint] = red
+    return explained
+
+
+def _hypotheses(first_rounds: dict, selected_per_joint: dict) -> list[dict]:
+    """Every first-round candidate of every joint as a hypothesis, best score first; each joint's best
+    carries its look-alike alternatives."""
     hypotheses = []
-    for joint, cands in per_joint.items():
+    for joint, cands in first_rounds.items():
         for c in cands:
             hypotheses.append({"effect": c.effect, "joints": [joint],
                                "params": {get_effect(c.effect).param_names[0]: [c.value]},
@@ -232,15 +318,17 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
                                "heldout_error_reduction": c.heldout_error_reduction,
                                "score": c.score, "alternatives": []})
     hypotheses.sort(key=lambda h: -h["score"])
-    # Best first-round hypothesis per joint carries the look-alike alternatives.
     for joint, chosen in selected_per_joint.items():
         if chosen:
             for h in hypotheses:
                 if h["joints"] == [joint] and h["effect"] == chosen[0].effect:
                     h["alternatives"] = chosen[0].alternatives
                     break
+    return hypotheses
 
-    # Selected effects, merged over joints.
+
+def _merge_over_joints(selected_per_joint: dict) -> list[dict]:
+    """The selected effects, one entry per effect over all the joints it was selected on."""
     merged: dict[str, dict] = {}
     for joint, chosen in selected_per_joint.items():
         for c in chosen:
@@ -253,14 +341,20 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
             h["ci95"][pname].append(list(c.ci95))
             h["heldout_error_reduction"].append(c.heldout_error_reduction)
             h["alternatives"] = sorted(set(h["alternatives"]) | set(c.alternatives))
-    selected = list(merged.values())
+    return list(merged.values())
+
+
+def _verdict(explained: dict, selected_per_joint: dict, explained_at: float) -> tuple[str, list[str]]:
+    """``explained`` or ``unexplained``, and one finding per joint (plus one naming the unexplained joints)."""
     verdict = "explained" if all(v >= explained_at for v in explained.values()) else "unexplained"
+    findings = []
     for joint, v in explained.items():
         chosen = selected_per_joint[joint]
-        what = " + ".join(f"{c.effect} ({get_effect(c.effect).param_names[0]} = {c.value:.4g})" for c in chosen) or "nothing"
+        what = " + ".join(f"{c.effect} ({get_effect(c.effect).param_names[0]} = {c.value:.4g})"
+                          for c in chosen) or "nothing"
         findings.append(f"{joint}: {what} explains {100 * v:.0f}% of the held-out error above the noise floor.")
     if verdict == "unexplained":
         weak = [j for j, v in explained.items() if v < explained_at]
         findings.append(f"Unexplained: on {', '.join(weak)} the best candidates explain less than "
                         f"{100 * explained_at:.0f}% of the excess error; an effect outside the library may be at work.")
-    return Diagnosis(verdict, baseline, hypotheses, selected, explained, findings, time.perf_counter() - t0)
+    return verdict, findings

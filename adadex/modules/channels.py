@@ -182,9 +182,6 @@ def bind_transform(channel: str, cls: type) -> Channel:
     return CHANNELS[channel]
 
 
-_SHAPES = {key: shape for c in CHANNELS.values() for key, shape in c.entries}
-
-
 def parse_channels(channels: str | tuple | list) -> tuple[str, ...]:
     """``"R+O+T"`` / ``"T+R"`` / ``"none"`` / ``""`` / ``("R", "T")`` → channels in canonical order (R, O, T)."""
     if isinstance(channels, str):
@@ -245,8 +242,12 @@ class ModulationLayout:
 
 
 def entry_shape(key) -> tuple[int, ...]:
-    """Shape (without batch dims) of a modulation entry."""
-    return _SHAPES[key]
+    """Shape (without batch dims) of a channel's action entry."""
+    for channel in CHANNELS.values():
+        for k, shape in channel.entries:
+            if k == key:
+                return shape
+    raise KeyError(f"no modulation channel has the entry {key!r}")
 
 
 def _config_class(channels: Mapping[str, Channel]) -> type:

@@ -43,7 +43,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from adadex.envs.observation import OBJECT_LATENT, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, REF_OFFSETS, \
     flat_from_tensordict
 from adadex.modules.channels import HAND_EDIT, MOD, OBJECT_EDIT, Channel, ModulationConfig, \
-    ModulationLayout, bind_transform, entry_shape
+    ModulationLayout, bind_transform
 from adadex.quat import quat_from_rotvec, quat_mul, rotvec_from_quat
 
 _FUTURE_ROWS = list(REF_OFFSETS[1:])      # rows of the 13-frame edit that the R action moves
@@ -94,8 +94,8 @@ class ChannelTransform(Transform):
         return {}
 
     def transform_action_spec(self, action_spec: Composite) -> Composite:
-        for key in self.entries:
-            action_spec[key] = _unit_box(action_spec.shape, entry_shape(key), action_spec.device)
+        for key, shape in self.channel.entries:
+            action_spec[key] = _unit_box(action_spec.shape, shape, action_spec.device)
         return action_spec
 
     def _inputs(self, td: TensorDictBase):

@@ -105,8 +105,8 @@ def build_parser() -> argparse.ArgumentParser:
     exp.set_defaults(func=_cmd_sim_export)
 
     from adadex.data import cli as data_cli
-    from adadex.modules import encoder as encoder_cli
     from adadex.sysid import cli as sysid_cli
+    from adadex.train import encoder_cli
 
     data_cli.add_parser(sub)
     sysid_cli.add_parser(sub)
@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
 
         return run(args)
     if args.command == "encoder":
-        from adadex.modules.encoder import run
+        from adadex.train.encoder_cli import run
 
         return run(args)
     return args.func(args)

@@ -37,14 +37,9 @@ def _best_ms(fn, repeats: int) -> float:
 
 def main(argv=None) -> dict:
     from adadex.envs.latent import SHIPPED_ENCODER
-    from adadex.modules.encoder import (
-        PointCloudAutoencoder,
-        evaluate_encoder,
-        load_encoder,
-        resampling_floor,
-        summarize_evaluation,
-    )
+    from adadex.modules.encoder import PointCloudAutoencoder, load_encoder
     from adadex.sim.objects import OBJECT_NAMES, get_object
+    from adadex.train.encoder import evaluate_encoder, resampling_floor, summarize_evaluation
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", type=Path, default=SHIPPED_ENCODER)

@@ -1,4 +1,4 @@
-"""Train the point-cloud encoder (object latent) with Hydra: a thin wrapper of ``adadex.modules.encoder``.
+"""Train the point-cloud encoder (object latent) with Hydra: a thin wrapper of ``adadex.train.encoder``.
 
     python recipes/train_encoder.py                       # the shipped checkpoint's settings
     python recipes/train_encoder.py steps=50 out=/tmp/enc # a quick run
@@ -13,7 +13,7 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
-from adadex.modules.encoder import save_training_run, train_encoder
+from adadex.train.encoder import save_training_run, train_encoder
 
 
 @hydra.main(config_path=".", config_name="encoder", version_base="1.3")

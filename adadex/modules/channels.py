@@ -1,4 +1,5 @@
-"""Modulation channels: which are on, how large each may act, and where each lives in the modulator's action.
+"""Modulation channels: ONE registry of what each channel is, which are on, how large each may act,
+and where each lives in the modulator's action.
 
 The modulator (:class:`adadex.modules.modulator.Modulator`) outputs one flat vector in [−1, 1]^D so
 that any TorchRL loss can train it; :class:`ModulationLayout` says which slice belongs to which
@@ -14,6 +15,24 @@ O      ``("modulation", "latent")``      (…, 64)       residual of the object 
 T      ``("modulation", "action")``      (…, 22)       residual added to the tracker's action
 =====  ==============================  ==============  =====================================================
 
+The registry
+------------
+:data:`CHANNELS` maps each channel's name to its :class:`Channel` record: its action entries (keys
+and shapes), the state it may carry between steps (keys and shapes), its config fields (λ's and
+bounds, with defaults and docs), what it edits (the tracker's observation, so it runs before the
+tracker on the inverse path, or the tracker's action, after it) and — bound by
+:mod:`adadex.transforms.modulation`, the layer above — its transform class. The records' order is
+the channels' order everywhere: in channel strings, in the flat action, in the modulator's heads and
+on the inverse path within each side of the tracker. :class:`ModulationLayout`, :func:`parse_channels`,
+:class:`ModulationConfig` (built from the records' fields), the modulator's heads,
+:func:`adadex.transforms.modulation.modulation` and :func:`adadex.transforms.policy.make_policy` all
+loop over it; none of them names a channel.
+
+**Adding a channel touches one place**: one more :class:`Channel` record in :data:`CHANNELS` below
+(its position is its place in the order). Its behaviour is then its transform class — a
+:class:`adadex.transforms.modulation.ChannelTransform` subclass declared with ``channel="X"``
+(beside R, O and T in :mod:`adadex.transforms.modulation`), which binds itself to the record.
+
 Channels are chosen by a string — ``"R+O+T"``, ``"R+T"``, ``"O"``, ``"none"`` … — so that an
 ablation is a config value, never an edit of code.
 
@@ -24,18 +43,22 @@ Example
 (134, ('R', 'T'))
 >>> [k for k, _, _ in layout.segments]
 [('modulation', 'ref_hand'), ('modulation', 'ref_object'), ('modulation', 'action')]
+>>> CHANNELS["O"].size, CHANNELS["O"].edits, [f.name for f in CHANNELS["O"].fields]
+(64, 'observation', ['lambda_latent'])
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 
 from adadex.envs.observation import LATENT_DIM, REF_OFFSETS
 from adadex.errors import check_numbers
 from adadex.sim.robot import NUM_JOINTS
 
-CHANNELS = ("R", "O", "T")
 FUTURE = len(REF_OFFSETS) - 1          # future offsets the R channel edits: t+1, t+2, t+4, t+12
 HORIZON = max(REF_OFFSETS) + 1         # frames t … t+12 covered by the persistent reference edit
 
@@ -48,11 +71,115 @@ ACTION_RESIDUAL = (MOD, "action")
 #: for frames t … t+12.
 HAND_EDIT = (MOD, "hand_edit")
 OBJECT_EDIT = (MOD, "object_edit")
-EDIT_SHAPES = {HAND_EDIT: (HORIZON, NUM_JOINTS), OBJECT_EDIT: (HORIZON, 6)}
 
-_SHAPES = {REF_HAND: (FUTURE, NUM_JOINTS), REF_OBJECT: (FUTURE, 6), LATENT: (LATENT_DIM,),
-           ACTION_RESIDUAL: (NUM_JOINTS,)}
-_KEYS = {"R": (REF_HAND, REF_OBJECT), "O": (LATENT,), "T": (ACTION_RESIDUAL,)}
+#: What a channel edits: the tracker's observation (before the tracker on the inverse path) or its action (after).
+EDITS = ("observation", "action")
+
+
+@dataclass(frozen=True)
+class Field:
+    """One config field of a channel (a field of :class:`ModulationConfig`): name, default, meaning.
+    Number fields are checked ≥ 0 and finite; boolean fields are switches."""
+
+    name: str
+    default: float | bool
+    doc: str
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One modulation channel's record in :data:`CHANNELS` (see the module docstring).
+
+    * ``name`` — its letter in channel strings (``"R"``);
+    * ``title`` — what it modulates, in words;
+    * ``entries`` — ``((key, shape), …)``: its part of the modulator's action, in flat order, each in [−1, 1];
+    * ``state`` — ``((key, shape), …)``: entries it may carry from step to step (zero at reset);
+    * ``fields`` — its :class:`Field` s of :class:`ModulationConfig`;
+    * ``edits`` — ``"observation"`` (what the tracker reads: runs before the tracker on the inverse
+      path) or ``"action"`` (the tracker's output: runs after it);
+    * :attr:`transform` — its transform class, bound by :mod:`adadex.transforms.modulation`.
+    """
+
+    name: str
+    title: str
+    entries: tuple[tuple[tuple[str, str], tuple[int, ...]], ...]
+    fields: tuple[Field, ...]
+    edits: str
+    state: tuple[tuple[tuple[str, str], tuple[int, ...]], ...] = ()
+
+    def __post_init__(self):
+        if self.edits not in EDITS:
+            raise ValueError(f"channel {self.name}: edits must be one of {EDITS}, got {self.edits!r}")
+
+    @property
+    def keys(self) -> tuple[tuple[str, str], ...]:
+        """Its action entries' keys, in flat order."""
+        return tuple(k for k, _ in self.entries)
+
+    @property
+    def size(self) -> int:
+        """Entries in the flat action (the size of its modulator head)."""
+        return sum(math.prod(shape) for _, shape in self.entries)
+
+    @property
+    def transform(self) -> type:
+        """Its transform class (``cls(config)`` builds it), once :mod:`adadex.transforms.modulation` is imported."""
+        cls = _TRANSFORMS.get(self.name)
+        if cls is None:
+            raise LookupError(f"modulation channel {self.name} has no transform bound; import "
+                              "adadex.transforms.modulation (or the module defining its ChannelTransform)")
+        return cls
+
+
+def _registry(*channels: Channel) -> Mapping[str, Channel]:
+    names = [c.name for c in channels]
+    keys = [k for c in channels for k, _ in (*c.entries, *c.state)]
+    fields = [f.name for c in channels for f in c.fields]
+    for what, items in (("name", names), ("tensordict key", keys), ("config field", fields)):
+        if len(set(items)) != len(items):
+            raise ValueError(f"modulation channels: a {what} is used twice in {items}")
+    return MappingProxyType({c.name: c for c in channels})
+
+
+#: THE registry of modulation channels, in their order (see the module docstring). A new channel is one more record.
+CHANNELS: Mapping[str, Channel] = _registry(
+    Channel("R", "future reference (hand joints, object pose)",
+            entries=((REF_HAND, (FUTURE, NUM_JOINTS)), (REF_OBJECT, (FUTURE, 6))),
+            state=((HAND_EDIT, (HORIZON, NUM_JOINTS)), (OBJECT_EDIT, (HORIZON, 6))),
+            fields=(Field("lambda_hand", 0.05, "λ_hand, joint reference residual per step (rad)"),
+                    Field("lambda_object_pos", 0.02, "λ_object, object reference position residual per step (m)"),
+                    Field("lambda_object_rot", 0.1, "λ_object, object reference rotation residual per step (rad)"),
+                    Field("persistent", True, "the R edits stay in the future reference as the episode moves on "
+                                              "(PAPER.md decision); ``False`` edits the reference for the current "
+                                              "step only")),
+            edits="observation"),
+    Channel("O", "object latent",
+            entries=((LATENT, (LATENT_DIM,)),),
+            fields=(Field("lambda_latent", 0.25, "λ_latent: f̃ = clip(f + λ·a, −1, 1) (the latent is tanh-bounded). "
+                                                 "The shipped encoder's latents differ between objects by about 0.2 "
+                                                 "per entry (RMS), so 0.25 lets the modulator move the latent about "
+                                                 "one object's width per step"),),
+            edits="observation"),
+    Channel("T", "tracker action",
+            entries=((ACTION_RESIDUAL, (NUM_JOINTS,)),),
+            fields=(Field("action_bound", 0.05, "the T residual added to the tracker's action is in "
+                                                "[−bound, bound] (rad)"),),
+            edits="action"),
+)
+
+_TRANSFORMS: dict[str, type] = {}      # channel name → transform class, filled by bind_transform
+
+
+def bind_transform(channel: str, cls: type) -> Channel:
+    """Bind ``cls`` as the transform of ``channel`` (called by ``ChannelTransform`` subclasses); returns the record."""
+    if channel not in CHANNELS:
+        raise ValueError(f"{cls.__name__}: no modulation channel {channel!r} in the registry "
+                         f"({'/'.join(CHANNELS)}); add its Channel record to adadex.modules.channels.CHANNELS")
+    bound = _TRANSFORMS.get(channel)
+    if bound is not None and (bound.__module__, bound.__qualname__) != (cls.__module__, cls.__qualname__):
+        raise ValueError(f"modulation channel {channel} already has the transform {bound.__qualname__}")
+    _TRANSFORMS[channel] = cls
+    return CHANNELS[channel]
 
 
 def parse_channels(channels: str | tuple | list) -> tuple[str, ...]:
@@ -78,18 +205,22 @@ class ModulationLayout:
         self.channels = parse_channels(channels)
         self.segments: list[tuple[tuple[str, str], slice, tuple[int, ...]]] = []
         start = 0
-        for c in self.channels:
-            for key in _KEYS[c]:
-                shape = _SHAPES[key]
+        for channel in self.records:
+            for key, shape in channel.entries:
                 size = math.prod(shape)
                 self.segments.append((key, slice(start, start + size), shape))
                 start += size
         self.dim = start
 
     @property
+    def records(self) -> tuple[Channel, ...]:
+        """The active channels' :class:`Channel` records, in order."""
+        return tuple(CHANNELS[c] for c in self.channels)
+
+    @property
     def channel_sizes(self) -> list[int]:
         """Entries per active channel, in order (the modulator's head sizes)."""
-        return [sum(math.prod(_SHAPES[k]) for k in _KEYS[c]) for c in self.channels]
+        return [c.size for c in self.records]
 
     @property
     def name(self) -> str:
@@ -111,32 +242,33 @@ class ModulationLayout:
 
 
 def entry_shape(key) -> tuple[int, ...]:
-    """Shape (without batch dims) of a modulation entry."""
-    return _SHAPES[key]
+    """Shape (without batch dims) of a channel's action entry."""
+    for channel in CHANNELS.values():
+        for k, shape in channel.entries:
+            if k == key:
+                return shape
+    raise KeyError(f"no modulation channel has the entry {key!r}")
 
 
-@dataclass(frozen=True)
-class ModulationConfig:
-    """How far each channel may move things (rad, m). The modulator's outputs are in [−1, 1] and
-    are clamped there before scaling, so these are hard bounds per step.
-
-    * ``lambda_hand`` — λ_hand, joint reference residual per step (rad);
-    * ``lambda_object_pos`` / ``lambda_object_rot`` — λ_object, object reference residual per step (m, rad);
-    * ``persistent`` — the R edits stay in the future reference as the episode moves on (PAPER.md
-      decision); ``False`` edits the reference for the current step only;
-    * ``lambda_latent`` — λ_latent: f̃ = clip(f + λ·a, −1, 1) (the latent is tanh-bounded). The
-      shipped encoder's latents differ between objects by about 0.2 per entry (RMS), so 0.25 lets
-      the modulator move the latent about one object's width per step;
-    * ``action_bound`` — the T residual added to the tracker's action is in [−bound, bound] (rad).
-    """
-
-    lambda_hand: float = 0.05
-    lambda_object_pos: float = 0.02
-    lambda_object_rot: float = 0.1
-    persistent: bool = True
-    lambda_latent: float = 0.25
-    action_bound: float = 0.05
+def _config_class(channels: Mapping[str, Channel]) -> type:
+    """The frozen dataclass of every channel's fields, in registry order; number fields validated."""
+    fields = [f for c in channels.values() for f in c.fields]
+    numbers = tuple(f.name for f in fields if not isinstance(f.default, bool))
 
     def __post_init__(self):
-        check_numbers("ModulationConfig", self,
-                      ("lambda_hand", "lambda_object_pos", "lambda_object_rot", "lambda_latent", "action_bound"))
+        check_numbers("ModulationConfig", self, numbers)
+
+    cls = dataclasses.make_dataclass(
+        "ModulationConfig", [(f.name, type(f.default), dataclasses.field(default=f.default)) for f in fields],
+        namespace={"__post_init__": __post_init__}, frozen=True)
+    cls.__module__ = __name__
+    cls.__doc__ = ("How far each channel may move things (rad, m): the fields of every channel in :data:`CHANNELS`.\n"
+                   "The modulator's outputs are in [−1, 1] and are clamped there before scaling, so these are hard\n"
+                   "bounds per step.\n\n"
+                   + "\n".join(f"* ``{f.name}`` ({c.name}, default ``{f.default}``) — {f.doc};"
+                               for c in channels.values() for f in c.fields))
+    return cls
+
+
+#: The channels' λ's, bounds and switches (one frozen dataclass; its fields come from the records in CHANNELS).
+ModulationConfig = _config_class(CHANNELS)

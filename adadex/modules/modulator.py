@@ -2,8 +2,9 @@
 
 One flat action in [−1, 1]^D (``"action"``), D set by the channels that are on
 (:class:`adadex.modules.channels.ModulationLayout`): a shared trunk and one head per active
-channel — R: reference residuals for the future offsets (hand joints 4×22; object pose 4×6,
-rotation as a small rotation vector), O: a latent residual (64), T: an action residual (22).
+channel, in the registry's order and sized by its record (:data:`adadex.modules.channels.CHANNELS`)
+— R: reference residuals for the future offsets (hand joints 4×22; object pose 4×6, rotation as a
+small rotation vector), O: a latent residual (64), T: an action residual (22).
 Heads start near zero, so an untrained modulator leaves the tracker almost untouched.
 
 * ``modulator.actor`` — in: ``"observation"``; out: ``"action"`` (D), ``"action_log_prob"``,
@@ -50,8 +51,8 @@ class Modulator(ActorCritic):
         if not self.layout.dim:
             raise ValueError("a Modulator needs at least one channel (R, O or T); for 'none' use the tracker alone")
         self.config = {"channels": self.layout.name, "hidden": list(hidden), "init_scale": float(init_scale)}
-        self.actor = make_actor(OBSERVATION, OBS_DIM, self.layout.channel_sizes, -1.0, 1.0, hidden, namespace="modulator",
-                                init_scale=init_scale)
+        self.actor = make_actor(OBSERVATION, OBS_DIM, self.layout.channel_sizes, -1.0, 1.0, hidden,
+                                namespace="modulator", init_scale=init_scale)
         self.critic = make_critic(OBSERVATION, OBS_DIM, hidden)
 
     @property

@@ -1,5 +1,5 @@
 """The training layer: PPO trackers on TorchRL collectors (specialists, the vanilla-PPO baseline),
-encoder training, and what they share (configs, env factories, checkpoints, logs).
+point-cloud encoder training, and what they share (configs, env factories, checkpoints, logs).
 
-The top of the library's stack: it may import every other layer; nothing imports it.
+The top of the library's stack: it may import every other layer; nothing below imports it.
 """

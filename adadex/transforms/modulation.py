@@ -1,8 +1,9 @@
 """The three modulation channels as TorchRL transforms, and the tracker in the loop.
 
-Each channel is its own :class:`~torchrl.envs.transforms.Transform`, adds its input to the env's
-action spec (an entry under ``"modulation"``, in [−1, 1], see :mod:`adadex.modules.channels`) and
-acts on the *inverse* path, i.e. on what goes into the environment:
+Each channel is its own :class:`~torchrl.envs.transforms.Transform` (a :class:`ChannelTransform`
+bound to its record in the channel registry, :data:`adadex.modules.channels.CHANNELS`), adds its
+input to the env's action spec (entries under ``"modulation"``, in [−1, 1]) and acts on the
+*inverse* path, i.e. on what goes into the environment:
 
 * :class:`ReferenceModulation` (R): ŝ_{t+k} ← ŝ_{t+k} + λ_x · a_ref for k ∈ {1, 2, 4, 12},
   x ∈ {hand joints, object pose}; the object rotation residual is a rotation vector, composed on
@@ -19,8 +20,10 @@ acts on the *inverse* path, i.e. on what goes into the environment:
 * :class:`FlatModulationAction`: the outer action becomes one flat vector in [−1, 1]^D, split into
   the channels' entries, so a modulator can be trained with any TorchRL loss.
 
-R and O edit the structured entries and reassemble ``"observation"`` with the env's one function
-(:func:`adadex.envs.observation.flat_from_tensordict`) so the tracker reads the modulated vector.
+R and O edit the tracker's observation, T its action (the records' ``edits``), which places them
+on either side of the tracker. R and O edit the structured entries and reassemble
+``"observation"`` with the env's one function (:func:`adadex.envs.observation.flat_from_tensordict`)
+so the tracker reads the modulated vector.
 The tracker's action is clipped by the env to ``max_action`` after T's residual is added.
 
 :func:`modulation` builds the whole chain for a set of channels::
@@ -39,8 +42,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adadex.envs.observation import OBJECT_LATENT, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, REF_OFFSETS, \
     flat_from_tensordict
-from adadex.modules.channels import ACTION_RESIDUAL, EDIT_SHAPES, HAND_EDIT, LATENT, MOD, OBJECT_EDIT, REF_HAND, REF_OBJECT, \
-    ModulationConfig, ModulationLayout, entry_shape
+from adadex.modules.channels import HAND_EDIT, MOD, OBJECT_EDIT, Channel, ModulationConfig, \
+    ModulationLayout, bind_transform
 from adadex.quat import quat_from_rotvec, quat_mul, rotvec_from_quat
 
 _FUTURE_ROWS = list(REF_OFFSETS[1:])      # rows of the 13-frame edit that the R action moves
@@ -51,17 +54,48 @@ def _unit_box(batch: torch.Size, shape, device) -> Bounded:
     return Bounded(low=-1.0, high=1.0, shape=(*batch, *shape), dtype=torch.float32, device=device)
 
 
-class _ActionEntry(Transform):
-    """A transform whose input is one or more ``"modulation"`` entries in [−1, 1] (added to the action spec)."""
+class ChannelTransform(Transform):
+    """Base of the channel transforms: one per record of :data:`adadex.modules.channels.CHANNELS`.
 
+    A subclass names its record, ``class XModulation(ChannelTransform, channel="X")``, which binds it
+    as that channel's transform; it is built as ``cls(config)``. Its inputs are the record's
+    ``"modulation"`` entries, each in [−1, 1], added to the action spec. Keys, the TorchRL way, on
+    the inverse path: ``out_keys_inv`` are the entries it reads from the policy's side (its action
+    entries), ``in_keys_inv`` the entries it edits for the env's side (``edited_keys``, given by the
+    subclass, and its carried state). ``_inv_call`` is the channel's own, so the two lists are
+    declarations (for readers and tools), not pairs that TorchRL's default inverse would map.
+
+    A channel that carries state from step to step (R's persistent reference edit) returns its
+    shapes in :meth:`state_shapes` and the next step's state in :meth:`next_state`; the policy
+    graph of :func:`adadex.transforms.policy.make_policy` carries it with a primer.
+    """
+
+    channel: Channel
     entries: tuple = ()
 
-    def __init__(self):
+    def __init_subclass__(cls, channel: str | None = None, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if channel is not None:
+            cls.channel = bind_transform(channel, cls)
+            cls.entries = cls.channel.keys
+
+    def __init__(self, config: ModulationConfig = ModulationConfig(), edited_keys=()):
         super().__init__(in_keys=[], out_keys=[])
+        self.config = config
+        self.out_keys_inv = list(self.entries)
+        self.in_keys_inv = [*edited_keys, *self.state_shapes()]
+
+    def state_shapes(self) -> dict:
+        """{key: shape} of the state this channel carries between steps (none by default)."""
+        return {}
+
+    def next_state(self, td: TensorDictBase) -> dict:
+        """{key: tensor}: the state for the next step, from this step's (after the inverse path)."""
+        return {}
 
     def transform_action_spec(self, action_spec: Composite) -> Composite:
-        for key in self.entries:
-            action_spec[key] = _unit_box(action_spec.shape, entry_shape(key), action_spec.device)
+        for key, shape in self.channel.entries:
+            action_spec[key] = _unit_box(action_spec.shape, shape, action_spec.device)
         return action_spec
 
     def _inputs(self, td: TensorDictBase):
@@ -90,26 +124,34 @@ def _edit_pose(pose: torch.Tensor, edit: torch.Tensor) -> torch.Tensor:
     return torch.cat([pose[..., :3] + edit[..., :3], q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)], dim=-1)
 
 
-class ReferenceModulation(_ActionEntry):
+class ReferenceModulation(ChannelTransform, channel="R"):
     """Channel R: residuals on the future reference (see the module docstring).
 
     Args:
         config: λ_hand, λ_object (position, rotation) and ``persistent``.
     """
 
-    entries = (REF_HAND, REF_OBJECT)
-
     def __init__(self, config: ModulationConfig = ModulationConfig()):
-        super().__init__()
-        self.config = config
+        super().__init__(config, (REF_JOINT_POS, REF_OBJECT_POSE, OBSERVATION))
 
     @property
     def persistent(self) -> bool:
         return self.config.persistent
 
+    def state_shapes(self) -> dict:
+        """The persistent edit, ``("modulation", "hand_edit"/"object_edit")``; none with ``persistent=False``."""
+        return dict(self.channel.state) if self.persistent else {}
+
+    def next_state(self, td: TensorDictBase) -> dict:
+        """The carried edit shifted by one frame (the new last frame unedited)."""
+        if not self.persistent:
+            return {}
+        hand, obj = self._state(td)
+        return {HAND_EDIT: shift_edit(hand), OBJECT_EDIT: shift_edit(obj)}
+
     # -- specs ------------------------------------------------------------------------------------
     def _state_specs(self, spec: Composite) -> Composite:
-        for key, shape in EDIT_SHAPES.items():
+        for key, shape in self.state_shapes().items():
             spec[key] = Unbounded(shape=(*spec.shape, *shape), dtype=torch.float32, device=spec.device)
         return spec
 
@@ -133,12 +175,13 @@ class ReferenceModulation(_ActionEntry):
     def _state(self, td: TensorDictBase):
         ref = td.get(REF_JOINT_POS)
         lead = ref.shape[:-2]
+        shapes = dict(self.channel.state)
         hand = td.get(HAND_EDIT, None)
         obj = td.get(OBJECT_EDIT, None)
         if hand is None:
-            hand = ref.new_zeros(*lead, *EDIT_SHAPES[HAND_EDIT])
+            hand = ref.new_zeros(*lead, *shapes[HAND_EDIT])
         if obj is None:
-            obj = ref.new_zeros(*lead, *EDIT_SHAPES[OBJECT_EDIT])
+            obj = ref.new_zeros(*lead, *shapes[OBJECT_EDIT])
         return hand, obj
 
     @staticmethod
@@ -176,9 +219,7 @@ class ReferenceModulation(_ActionEntry):
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         if not self.persistent:
             return next_tensordict
-        hand, obj = self._state(tensordict)
-        next_tensordict.set(HAND_EDIT, shift_edit(hand))
-        next_tensordict.set(OBJECT_EDIT, shift_edit(obj))
+        next_tensordict.update(self.next_state(tensordict))
         return self._call(next_tensordict)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
@@ -200,14 +241,11 @@ def shift_edit(edit: torch.Tensor) -> torch.Tensor:
     return torch.cat([edit[..., 1:, :], torch.zeros_like(edit[..., :1, :])], dim=-2)
 
 
-class LatentModulation(_ActionEntry):
+class LatentModulation(ChannelTransform, channel="O"):
     """Channel O: the object latent the tracker sees becomes f̃ = clip(f + λ_latent · a, −1, 1)."""
 
-    entries = (LATENT,)
-
     def __init__(self, config: ModulationConfig = ModulationConfig()):
-        super().__init__()
-        self.config = config
+        super().__init__(config, (OBJECT_LATENT, OBSERVATION))
 
     def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
         a = self._inputs(td)
@@ -219,14 +257,11 @@ class LatentModulation(_ActionEntry):
         return td
 
 
-class ActionModulation(_ActionEntry):
+class ActionModulation(ChannelTransform, channel="T"):
     """Channel T: a bounded residual on the action, action + bound · clip(Δa, −1, 1)."""
 
-    entries = (ACTION_RESIDUAL,)
-
     def __init__(self, config: ModulationConfig = ModulationConfig(), action_key="action"):
-        super().__init__()
-        self.config = config
+        super().__init__(config, (action_key,))
         self.action_key = action_key
 
     def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
@@ -254,6 +289,8 @@ class TrackerInTheLoop(Transform):
         actor.requires_grad_(False)
         self.tracker = actor.eval()
         self.action_key = action_key
+        self.out_keys_inv = list(actor.in_keys)       # read from the policy's side
+        self.in_keys_inv = [action_key]               # written for the env
 
     def transform_action_spec(self, action_spec: Composite) -> Composite:
         spec = action_spec.clone()
@@ -272,7 +309,8 @@ class FlatModulationAction(Transform):
     (:class:`adadex.modules.channels.ModulationLayout`). Outermost transform of :func:`modulation`."""
 
     def __init__(self, layout: ModulationLayout, action_key="action"):
-        super().__init__(in_keys=[], out_keys=[])
+        super().__init__(in_keys=[], out_keys=[], in_keys_inv=[key for key, _, _ in layout.segments],
+                         out_keys_inv=[action_key])
         self.layout = layout
         self.action_key = action_key
 
@@ -297,31 +335,42 @@ class FlatModulationAction(Transform):
         return td
 
 
-def channel_transforms(channels, config: ModulationConfig = ModulationConfig()) -> list[Transform]:
-    """The channel transforms for ``channels``, in inverse-path order (R, O then T)."""
-    layout = ModulationLayout(channels)
-    out: list[Transform] = []
-    if "R" in layout:
-        out.append(ReferenceModulation(config))
-    if "O" in layout:
-        out.append(LatentModulation(config))
-    if "T" in layout:
-        out.append(ActionModulation(config))
-    return out
+def channel_transforms(channels, config: ModulationConfig = ModulationConfig()) -> list[ChannelTransform]:
+    """The channel transforms for ``channels``, in inverse-path order: the channels that edit the
+    tracker's observation, then those that edit its action, each group in registry order (R, O then T)."""
+    records = ModulationLayout(channels).records
+    return [c.transform(config) for edits in ("observation", "action") for c in records if c.edits == edits]
 
 
 def modulation(channels="R+O+T", tracker=None, config: ModulationConfig = ModulationConfig()) -> Compose:
     """The modulator's env as one transform: ``TransformedEnv(TrackingEnv(…), modulation(channels, tracker))``.
 
-    Inverse path (what the modulator's action goes through): split the flat action → R → O →
-    frozen tracker → T → env. Every subset of channels works, ``"none"`` included (the outer action
-    is then empty and the env runs the tracker alone).
+    Inverse path (what the modulator's action goes through): split the flat action → the channels
+    that edit the tracker's observation (R → O) → frozen tracker → those that edit its action (T)
+    → env. Every subset of channels works, ``"none"`` included (the outer action is then empty and
+    the env runs the tracker alone).
+
+    Example: the README's policy graph in miniature (the tiny dataset, two worlds, untrained nets).
+
+    >>> from torchrl.envs import TransformedEnv
+    >>> from adadex.envs.tracking import TrackingEnv
+    >>> from adadex.modules.modulator import Modulator
+    >>> from adadex.modules.tracker import Tracker
+    >>> tracker = Tracker(hidden=(32, 32)).freeze()
+    >>> env = TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None), modulation("R+O+T", tracker))
+    >>> env.action_spec.shape            # the modulator's action: 4·22 + 4·6 (R), 64 (O), 22 (T)
+    torch.Size([2, 198])
+    >>> modulator = Modulator("R+O+T", hidden=(32, 32))
+    >>> td = env.rollout(3, modulator.actor)
+    >>> td["action"].shape, td["modulation", "hand_edit"].shape     # R's persistent edit rides along
+    (torch.Size([2, 3, 198]), torch.Size([2, 3, 13, 22]))
+    >>> env.close()
     """
     if tracker is None:
         raise ValueError("modulation() needs the frozen tracker (tracker=…)")
     layout = ModulationLayout(channels)
     chain = channel_transforms(layout.channels, config)
-    ref_latent = [t for t in chain if not isinstance(t, ActionModulation)]
-    action = [t for t in chain if isinstance(t, ActionModulation)]
+    before = [t for t in chain if t.channel.edits == "observation"]
+    after = [t for t in chain if t.channel.edits == "action"]
     # Compose runs inverses last-to-first and specs first-to-last.
-    return Compose(*action, TrackerInTheLoop(tracker), *reversed(ref_latent), FlatModulationAction(layout))
+    return Compose(*reversed(after), TrackerInTheLoop(tracker), *reversed(before), FlatModulationAction(layout))

@@ -12,9 +12,11 @@ The policy writes:
 * ``("modulation", "sample")`` — the modulator's flat action (its ``"action_log_prob"`` and
   ``("modulator", "loc"/"scale")`` stay as the modulator wrote them);
 * with the persistent R channel, ``("next", "modulation", "hand_edit"/"object_edit")`` — the
-  reference edit carried to the next step. Like TorchRL's recurrent modules, the env must carry
-  that state: ``env.append_transform(policy.primer())`` (a ``TensorDictPrimer`` that zeroes it at
-  reset); without it the policy raises instead of silently forgetting its edits.
+  reference edit carried to the next step (in general: the state of every channel that carries
+  one, see :meth:`adadex.transforms.modulation.ChannelTransform.state_shapes`). Like TorchRL's
+  recurrent modules, the env must carry that state: ``env.append_transform(policy.primer())`` (a
+  ``TensorDictPrimer`` that zeroes it at reset); without it the policy raises instead of silently
+  forgetting its edits.
 
 Before the modulator reads the observation, the policy shows it the carried edit (as the
 transformed env does), so ``"observation"`` and the reference entries in the tensordict are the
@@ -32,41 +34,48 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from torch import nn
 from torchrl.data import Composite, Unbounded
 from torchrl.envs import TensorDictPrimer
 
 from adadex.envs.observation import OBSERVATION
-from adadex.modules.channels import EDIT_SHAPES, HAND_EDIT, MOD, OBJECT_EDIT, ModulationConfig, ModulationLayout
-from adadex.transforms.modulation import ReferenceModulation, modulation, shift_edit
+from adadex.modules.channels import MOD, ModulationConfig, ModulationLayout
+from adadex.transforms.modulation import ChannelTransform, modulation
 
 SAMPLE = (MOD, "sample")
 
 
-class _ShowEdit(TensorDictModuleBase):
-    """Applies the carried reference edit to the env's raw observation (the R transform's forward path)."""
+class _ShowState(TensorDictModuleBase):
+    """Applies the carried channel state to the env's raw observation (the channels' forward path,
+    e.g. R's persistent reference edit), so the modulator reads what the transformed env shows."""
 
-    def __init__(self, reference: ReferenceModulation):
+    def __init__(self, channels: list[ChannelTransform]):
         super().__init__()
-        self.reference = reference
-        self.in_keys = [HAND_EDIT, OBJECT_EDIT, OBSERVATION]
+        self.channels = nn.ModuleList(channels)
+        self.state_keys = [key for t in channels for key in t.state_shapes()]
+        self.in_keys = [*self.state_keys, OBSERVATION]
         self.out_keys = [OBSERVATION]
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
-        if td.get(HAND_EDIT, None) is None:
-            raise KeyError("the persistent reference channel needs its edit state in the tensordict: "
-                           "add it to the env with env.append_transform(policy.primer())")
-        return self.reference._call(td)
+        for key in self.state_keys:
+            if td.get(key, None) is None:
+                raise KeyError(f"the modulation channels {'+'.join(t.channel.name for t in self.channels)} need "
+                               f"their state {key} in the tensordict: add it to the env with "
+                               "env.append_transform(policy.primer())")
+        for t in self.channels:
+            td = t._call(td)
+        return td
 
 
 class _TrackerStage(TensorDictModuleBase):
     """The modulator's action → channel inverses → frozen tracker → env action, on a shallow copy
-    so that nothing the modulator read is overwritten; writes back the action and the next edit."""
+    so that nothing the modulator read is overwritten; writes back the action and the next state."""
 
-    def __init__(self, chain, layout: ModulationLayout, persistent: bool):
+    def __init__(self, chain, layout: ModulationLayout, stateful: list[ChannelTransform]):
         super().__init__()
-        self.chain, self.layout, self.persistent = chain, layout, persistent
+        self.chain, self.layout, self.stateful = chain, layout, stateful
         self.in_keys = [OBSERVATION, "action"]
-        self.out_keys = ["action", SAMPLE] + ([("next", *HAND_EDIT), ("next", *OBJECT_EDIT)] if persistent else [])
+        self.out_keys = ["action", SAMPLE] + [("next", *key) for t in stateful for key in t.state_shapes()]
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         inner = td.clone(False)
@@ -76,28 +85,32 @@ class _TrackerStage(TensorDictModuleBase):
         if self.layout.dim:
             td.set(SAMPLE, td.get("action"))
         td.set("action", inner.get("action"))
-        if self.persistent:
-            td.set(("next", *HAND_EDIT), shift_edit(inner.get(HAND_EDIT)))
-            td.set(("next", *OBJECT_EDIT), shift_edit(inner.get(OBJECT_EDIT)))
+        for t in self.stateful:
+            for key, value in t.next_state(inner).items():
+                td.set(("next", *key), value)
         return td
 
 
 class ModulatedPolicy(TensorDictSequential):
     """The graph built by :func:`make_policy` (a ``TensorDictSequential``)."""
 
-    def __init__(self, *modules, layout: ModulationLayout, persistent: bool):
+    def __init__(self, *modules, layout: ModulationLayout, state_shapes: dict):
         super().__init__(*modules)
-        self.layout, self.persistent = layout, persistent
+        self.layout, self.state_shapes = layout, dict(state_shapes)
+
+    @property
+    def persistent(self) -> bool:
+        """Whether the policy carries channel state (R's persistent edit) from step to step."""
+        return bool(self.state_shapes)
 
     def primer(self) -> TensorDictPrimer:
         """The state the env must carry for this policy (zeros at reset); empty without persistent R."""
-        spec = {}
-        if self.persistent:
-            spec = {key: Unbounded(shape=shape) for key, shape in EDIT_SHAPES.items()}
+        spec = {key: Unbounded(shape=shape) for key, shape in self.state_shapes.items()}
         return TensorDictPrimer(Composite(spec), default_value=0.0, expand_specs=True)
 
 
-def make_policy(tracker, modulator=None, channels=None, config: ModulationConfig = ModulationConfig()) -> ModulatedPolicy:
+def make_policy(tracker, modulator=None, channels=None,
+                config: ModulationConfig = ModulationConfig()) -> ModulatedPolicy:
     """Modulator → R, O → frozen tracker → T as one policy for a plain TrackingEnv.
 
     Args:
@@ -106,6 +119,27 @@ def make_policy(tracker, modulator=None, channels=None, config: ModulationConfig
         modulator: an :class:`adadex.modules.modulator.Modulator`, or ``None`` for the tracker alone.
         channels: the channel set (default: the modulator's); must match the modulator's.
         config: λ's, bounds and persistence — the same values as the transformed env's.
+
+    Example: the README's policy graph in miniature — the same graph as a policy for a plain env
+    gives the same trajectory as the modulator on ``TransformedEnv(env, modulation(…))``.
+
+    >>> import torch
+    >>> from torchrl.envs import TransformedEnv
+    >>> from adadex.envs.tracking import TrackingEnv
+    >>> from adadex.modules.modulator import Modulator
+    >>> from adadex.modules.tracker import Tracker
+    >>> tracker = Tracker(hidden=(32, 32)).freeze()
+    >>> modulator = Modulator("R+O+T", hidden=(32, 32))
+    >>> policy = make_policy(tracker, modulator, channels="R+O+T")
+    >>> plain = TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None), policy.primer())
+    >>> a = plain.rollout(3, policy)
+    >>> a["action"].shape, a["modulation", "sample"].shape      # the env's action, the modulator's
+    (torch.Size([2, 3, 22]), torch.Size([2, 3, 198]))
+    >>> env = TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None), modulation("R+O+T", tracker))
+    >>> b = env.rollout(3, modulator.actor)
+    >>> torch.equal(a["next", "proprio", "joint_pos"], b["next", "proprio", "joint_pos"])
+    True
+    >>> plain.close(); env.close()
     """
     layout = ModulationLayout(channels if channels is not None else
                               (modulator.layout.channels if modulator is not None else "none"))
@@ -114,11 +148,13 @@ def make_policy(tracker, modulator=None, channels=None, config: ModulationConfig
     if modulator is not None and modulator.layout.channels != layout.channels:
         raise ValueError(f"the modulator was built for channels {modulator.layout.name}, not {layout.name}")
     chain = modulation(layout.channels, tracker, config)
-    persistent = "R" in layout and config.persistent
+    # Channel transforms carrying state, in the chain's (forward-path) order.
+    stateful = [t for t in chain if isinstance(t, ChannelTransform) and t.state_shapes()]
     modules = []
-    if persistent:
-        modules.append(_ShowEdit(next(t for t in chain if isinstance(t, ReferenceModulation))))
+    if stateful:
+        modules.append(_ShowState(stateful))
     if modulator is not None:
         modules.append(getattr(modulator, "actor", modulator))
-    modules.append(_TrackerStage(chain, layout, persistent))
-    return ModulatedPolicy(*modules, layout=layout, persistent=persistent)
+    modules.append(_TrackerStage(chain, layout, stateful))
+    return ModulatedPolicy(*modules, layout=layout,
+                           state_shapes={key: shape for t in stateful for key, shape in t.state_shapes().items()})

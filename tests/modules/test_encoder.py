@@ -16,16 +16,13 @@ from adadex.modules.encoder import (
     PointCloudAutoencoder,
     PointCloudEncoder,
     chamfer_distance,
-    evaluate_encoder,
     load_encoder,
     object_latents,
-    save_latents,
     save_encoder,
-    summarize_evaluation,
-    train_encoder,
-    training_objects,
+    save_latents,
 )
 from adadex.sim.objects import OBJECT_NAMES, get_object, held_out_objects
+from adadex.train.encoder import evaluate_encoder, summarize_evaluation, train_encoder, training_objects
 
 QUICK = dict(batch_size=8, points=128, lr=3e-3, progress=False)
 

@@ -17,7 +17,7 @@ Per step:
   encoder's latent, :func:`adadex.envs.latent.encoder_latent`);
 * reward: :func:`adadex.envs.reward.tracking_reward`;
 * ``"errors"``: the per-frame metric errors T_o, R_o, T_h, R_h, E_finger
-  (:func:`adadex.eval.metrics.frame_errors`), so evaluation never recomputes physics;
+  (:func:`adadex.envs.frame_errors.frame_errors`), so evaluation never recomputes physics;
 * ``terminated`` when the object or the palm drifts beyond the configured errors, or when the
   world's physics went unstable — NaN, a MuJoCo reset, or the object flung faster than
   ``max_object_speed`` (then ``"unstable"`` is set, the world is put back to its
@@ -56,7 +56,7 @@ from adadex.envs.observation import LATENT_DIM, OBS_DIM, REF_OFFSETS, flat_obser
 from adadex.envs.randomization import ModelRandomizer, Randomization
 from adadex.envs.reward import RewardConfig, tracking_reward
 from adadex.errors import check_numbers
-from adadex.eval.metrics import ERROR_NAMES, frame_errors
+from adadex.envs.frame_errors import ERROR_NAMES, frame_errors
 from adadex.geometry import Rotation, quat, rotation
 from adadex.sim.batched import BatchedSim
 from adadex.sim.objects import get_object

@@ -188,7 +188,9 @@ class Randomization:
 
     def scale_levels(self) -> np.ndarray:
         lo, hi = self.object_scale
-        return np.linspace(lo, hi, self.object_scale_levels) if self.object_scale_levels > 1 else np.array([0.5 * (lo + hi)])
+        if self.object_scale_levels == 1:
+            return np.array([0.5 * (lo + hi)])
+        return np.linspace(lo, hi, self.object_scale_levels)
 
     def effect_ranges(self) -> tuple[EffectRange, ...]:
         """The robot-physics ranges drawn per world: Table 3's, then ``effects`` (a later range

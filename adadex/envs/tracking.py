@@ -29,17 +29,24 @@ same observation, error and reward functions the torch modules use (:mod:`adadex
 TorchRL tensors that share the arrays' memory: at B = 64 the env runs at about 0.89 × the speed of
 its physics alone (``benchmarks/env_throughput.py``).
 
-Example::
+Physics randomization (:class:`~adadex.envs.randomization.Randomization`) draws an effect patch per
+world at each reset — Table 3's scales, or ranges around a fitted patch:
+``TrackingEnv(ds, randomize=Randomization.from_patch(ModelPatch.load("patch.json")))``.
 
-    from adadex.envs.tracking import TrackingEnv
-    env = TrackingEnv("data/small", num_worlds=8)
-    td = env.rollout(20)                      # random actions
-    td["next", "errors", "T_o"].shape         # (8, 20)
+Example
+-------
+``tiny_dataset`` is the folder of a built reference dataset (e.g. ``"data/small"``):
+
+>>> from adadex.envs.tracking import TrackingEnv
+>>> env = TrackingEnv(tiny_dataset, num_worlds=2, split=None)
+>>> td = env.rollout(3)                      # random actions
+>>> td["next", "errors", "T_o"].shape
+torch.Size([2, 3])
+>>> env.close()
 """
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Callable
 from dataclasses import dataclass, field
 

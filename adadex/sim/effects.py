@@ -150,14 +150,36 @@ def set_const(m: mujoco.MjModel) -> None:
     mujoco.mj_setConst(m, d)
 
 
-def link_bodies(m: mujoco.MjModel, jid: np.ndarray) -> list[np.ndarray]:
+_LINKS: OrderedDict[tuple, tuple[list[np.ndarray], np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
+
+
+def _links(m: mujoco.MjModel, jid):
+    """Per joint, the bodies it moves directly; then all those bodies, with the index (into ``jid``)
+    of the joint moving each, and the same for their geoms. Kept per model structure and joint list
+    (a reset asks once per world)."""
+    jid = np.asarray(jid, dtype=np.int64)
+    key = (m.signature, jid.tobytes())
+    if key not in _LINKS:
+        owner = np.arange(m.nbody)
+        for b in range(1, m.nbody):          # parents come before children in a compiled model
+            if m.body_jntnum[b] == 0:
+                owner[b] = owner[m.body_parentid[b]]
+        bodies = [np.flatnonzero(owner == m.jnt_bodyid[j]) for j in jid]
+        body_of = np.full(m.nbody, -1)
+        for k, b in enumerate(bodies):
+            body_of[b] = k
+        all_bodies = np.flatnonzero(body_of >= 0)
+        all_geoms = np.flatnonzero(body_of[m.geom_bodyid] >= 0)
+        _LINKS[key] = (bodies, all_bodies, body_of[all_bodies], all_geoms, body_of[m.geom_bodyid[all_geoms]])
+        while len(_LINKS) > 64:
+            _LINKS.popitem(last=False)
+    return _LINKS[key]
+
+
+def link_bodies(m: mujoco.MjModel, jid) -> list[np.ndarray]:
     """Per joint, the bodies it moves directly: its own body and the bodies welded below it (those
     whose nearest ancestor carrying a joint is the joint's body)."""
-    owner = np.arange(m.nbody)
-    for b in range(1, m.nbody):          # parents come before children in a compiled model
-        if m.body_jntnum[b] == 0:
-            owner[b] = owner[m.body_parentid[b]]
-    return [np.flatnonzero(owner == m.jnt_bodyid[j]) for j in jid]
+    return _links(m, jid)[0]
 
 
 class Effect:
@@ -180,9 +202,16 @@ class Effect:
         return np.array([[p.nominal[joint_group(j)] for p in self.params] for j in joints])
 
     def bounds(self, joints) -> tuple[np.ndarray, np.ndarray]:
-        lo = np.array([[p.bounds(j)[0] for p in self.params] for j in joints])
-        hi = np.array([[p.bounds(j)[1] for p in self.params] for j in joints])
-        return lo, hi
+        key = tuple(joints)
+        cache = self.__dict__.setdefault("_bounds", {})   # per joint list: a reset validates one per world
+        if key not in cache:
+            lo = np.array([[p.bounds(j)[0] for p in self.params] for j in key])
+            hi = np.array([[p.bounds(j)[1] for p in self.params] for j in key])
+            lo.flags.writeable = hi.flags.writeable = False
+            if len(cache) > 256:
+                cache.clear()
+            cache[key] = (lo, hi)
+        return cache[key]
 
     def is_absent(self, values: np.ndarray) -> bool:
         return bool(np.all(np.asarray(values) == self.absent_values()))
@@ -467,12 +496,12 @@ class MassScale(Effect):
     rescales = True
 
     def rescale(self, base, m, jid, values):
-        for bodies, s in zip(link_bodies(m, jid), values[:, 0]):
-            base.body_mass[bodies] *= s
-            base.body_inertia[bodies] *= s
+        _, bodies, joint_of, _, _ = _links(m, jid)
+        base.body_mass[bodies] *= values[joint_of, 0]
+        base.body_inertia[bodies] *= values[joint_of, 0][:, None]
 
     def apply_model(self, m, base, jid, values):
-        bodies = np.concatenate(link_bodies(m, jid))
+        bodies = _links(m, jid)[1]
         m.body_mass[bodies] = base.body_mass[bodies]
         m.body_inertia[bodies] = base.body_inertia[bodies]
         set_const(m)
@@ -489,16 +518,12 @@ class FrictionScale(Effect):
     params = (Param("scale", "×", 1.0, _same(0.8), _same(0.2), _same(3.0)),)
     rescales = True
 
-    @staticmethod
-    def _geoms(m, jid):
-        return [np.flatnonzero(np.isin(m.geom_bodyid, bodies)) for bodies in link_bodies(m, jid)]
-
     def rescale(self, base, m, jid, values):
-        for geoms, s in zip(self._geoms(m, jid), values[:, 0]):
-            base.geom_friction[geoms, 0] *= s
+        _, _, _, geoms, joint_of = _links(m, jid)
+        base.geom_friction[geoms, 0] *= values[joint_of, 0]
 
     def apply_model(self, m, base, jid, values):
-        geoms = np.concatenate(self._geoms(m, jid))
+        geoms = _links(m, jid)[3]
         m.geom_friction[geoms, 0] = base.geom_friction[geoms, 0]
 
 

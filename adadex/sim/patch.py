@@ -65,6 +65,7 @@ class EffectInstance:
         eff = get_effect(self.effect)
         object.__setattr__(self, "joints", tuple(self.joints))
         object.__setattr__(self, "values", eff.validate(self.joints, self.values))
+        object.__setattr__(self, "_jid", joint_index(self.joints))
         if self.ci95 is not None:
             ci = np.asarray(self.ci95, dtype=float)
             shape = (len(self.joints), len(eff.params), 2)
@@ -79,7 +80,7 @@ class EffectInstance:
 
     @property
     def jid(self) -> np.ndarray:
-        return joint_index(self.joints)
+        return self._jid
 
     def is_absent(self) -> bool:
         return self.spec.is_absent(self.values)

@@ -22,7 +22,7 @@ import torch
 
 from adadex.envs.observation import OBS_DIM
 from adadex.envs.tracking import TrackingConfig, TrackingEnv
-from adadex.eval.metrics import ERROR_NAMES
+from adadex.envs.frame_errors import ERROR_NAMES
 from adadex.sim.robot import NUM_JOINTS
 
 ENV_ID = "adadex/Tracking-v0"

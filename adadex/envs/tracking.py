@@ -17,7 +17,7 @@ Per step:
   encoder's latent, :func:`adadex.envs.latent.encoder_latent`);
 * reward: :func:`adadex.envs.reward.tracking_reward`;
 * ``"errors"``: the per-frame metric errors T_o, R_o, T_h, R_h, E_finger
-  (:func:`adadex.eval.metrics.frame_errors`), so evaluation never recomputes physics;
+  (:func:`adadex.envs.frame_errors.frame_errors`), so evaluation never recomputes physics;
 * ``terminated`` when the object or the palm drifts beyond the configured errors, or when the
   world's physics went unstable — NaN, a MuJoCo reset, or the object flung faster than
   ``max_object_speed`` (then ``"unstable"`` is set, the world is put back to its
@@ -29,21 +29,28 @@ same observation, error and reward functions the torch modules use (:mod:`adadex
 TorchRL tensors that share the arrays' memory: at B = 64 the env runs at about 0.89 × the speed of
 its physics alone (``benchmarks/env_throughput.py``).
 
-Example::
+Physics randomization (:class:`~adadex.envs.randomization.Randomization`) draws an effect patch per
+world at each reset — Table 3's scales, or ranges around a fitted patch:
+``TrackingEnv(ds, randomize=Randomization.from_patch(ModelPatch.load("patch.json")))``.
 
-    from adadex.envs.tracking import TrackingEnv
-    env = TrackingEnv("data/small", num_worlds=8)
-    td = env.rollout(20)                      # random actions
-    td["next", "errors", "T_o"].shape         # (8, 20)
+Example
+-------
+``tiny_dataset`` is the folder of a built reference dataset (e.g. ``"data/small"``):
+
+>>> from adadex.envs.tracking import TrackingEnv
+>>> env = TrackingEnv(tiny_dataset, num_worlds=2, split=None)
+>>> td = env.rollout(3)                      # random actions
+>>> td["next", "errors", "T_o"].shape
+torch.Size([2, 3])
+>>> env.close()
 """
 
 from __future__ import annotations
 
-import functools
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import mujoco
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -56,13 +63,14 @@ from adadex.envs.observation import LATENT_DIM, OBS_DIM, REF_OFFSETS, flat_obser
 from adadex.envs.randomization import ModelRandomizer, Randomization
 from adadex.envs.reward import RewardConfig, tracking_reward
 from adadex.errors import check_numbers
-from adadex.eval.metrics import ERROR_NAMES, frame_errors
+from adadex.envs.frame_errors import ERROR_NAMES, frame_errors
 from adadex.geometry import Rotation, quat, rotation
 from adadex.sim.batched import BatchedSim
 from adadex.sim.objects import get_object
-from adadex.sim.patch import EffectInstance, ModelPatch
+from adadex.sim.effects import ModelBase
+from adadex.sim.patch import EffectInstance, ModelPatch, patched_scene
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES, joint_limits
-from adadex.sim.scene import CONTROL_HZ, OBJECT_QPOS, build_scene_spec
+from adadex.sim.scene import CONTROL_HZ, OBJECT_QPOS
 
 
 @dataclass(frozen=True)
@@ -82,22 +90,6 @@ class TrackingConfig:
             raise ValueError(f"window must be at least {max(REF_OFFSETS) + 2} frames, got {self.window}")
         check_numbers("TrackingConfig", self,
                       ("max_action", "terminate_object_error", "terminate_palm_error", "object_lift", "max_object_speed"))
-
-
-_PATCHES: dict[str, ModelPatch] = {}
-
-
-@functools.lru_cache(maxsize=None)
-def _scene(object_name: str, scale: float = 1.0, patch_key: str = ""):
-    """Uniform-layout scene of one object at one size, with a model patch applied (compiled once)."""
-    spec = build_scene_spec(object_name, uniform_layout=True, object_scale=scale)
-    patch = _PATCHES.get(patch_key)
-    if patch is not None:
-        patch.edit_spec(spec)
-    model = spec.compile()
-    if patch is not None:
-        patch.apply_model(model)
-    return model
 
 
 def _as_patch(patch, effects) -> ModelPatch:
@@ -128,8 +120,10 @@ class TrackingEnv(EnvBase):
         references: dataset indices to draw from instead of a split (e.g. one evaluation chunk).
         config: episode, action, termination and reward settings.
         latent_fn: object name → (64,) latent.
-        randomize: per-world domain randomization (:class:`Randomization`), or ``None``.
-        patch: a model patch (file or :class:`ModelPatch`) applied to every world.
+        randomize: per-world domain randomization (:class:`Randomization`), or ``None``; e.g.
+            ``Randomization.from_patch(ModelPatch.load("patch.json"))`` around a fitted patch.
+        patch: a model patch (file or :class:`ModelPatch`) applied to every world (on top of
+            ``randomize.patch``; randomized effects draw their values per world).
         effects: effects applied to every world, as ``EffectInstance`` or ``(effect, joints, values)``.
         nthread: rollout threads.
         seed: seeds the reference draws.
@@ -156,9 +150,14 @@ class TrackingEnv(EnvBase):
         self._resets = np.zeros(num_worlds, dtype=np.int64)
         self.randomize = randomize
         self.patch = _as_patch(patch, effects)
-        self._patch_key = json.dumps(self.patch.to_dict(), sort_keys=True) if len(self.patch.active()) else ""
-        if self._patch_key:
-            _PATCHES[self._patch_key] = self.patch
+        if randomize is not None and randomize.patch is not None:
+            self.patch = randomize.patch.updated(self.patch)
+        self._has_sensor_effects = bool(len(self.patch.active().stage("sensor")))
+        self._ranges = randomize.effect_ranges() if randomize is not None else ()
+        #: The effect patch each world currently runs (the env's patch and its randomization draw).
+        self.world_patches: list[ModelPatch] = [self.patch] * num_worlds
+        self._scenes: dict[tuple[str, float], mujoco.MjModel] = {}
+        self._nominal: dict[tuple[str, float], tuple[mujoco.MjModel, ModelBase]] = {}
         self._scales = randomize.scale_levels() if randomize is not None else np.array([1.0])
         self._scale = np.ones(num_worlds)
         self._action_offset = np.zeros((num_worlds, NUM_JOINTS))
@@ -186,14 +185,36 @@ class TrackingEnv(EnvBase):
         first = self.dataset.entries[self.references[0]]["object"]
         objects = sorted({self.dataset.entries[i]["object"] for i in self.references})
         # Compile every scene once; the data shared by the worlds is sized for the largest.
-        scenes = [_scene(n, 1.0, self._patch_key) for n in objects]
+        scenes = [self._scene(n, 1.0) for n in objects]
         biggest = max(scenes, key=lambda m: (m.nC, m.nbvh, m.nbvhdynamic))
-        self.sim = BatchedSim([biggest] + [_scene(first, 1.0, self._patch_key)] * (B - 1), nthread=nthread)
-        self.sim.set_models([0], [_scene(first, 1.0, self._patch_key)])
+        self.sim = BatchedSim([biggest] + [self._scene(first, 1.0)] * (B - 1), nthread=nthread)
+        self.sim.set_models([0], [self._scene(first, 1.0)])
         self._randomizer = ModelRandomizer(biggest) if randomize is not None else None
         self._make_specs()
 
     # -- setup ------------------------------------------------------------------------------------
+    def _scene(self, object_name: str, scale: float) -> mujoco.MjModel:
+        """The uniform-layout scene of one object at one size with the env's patch (shared, read-only);
+        kept for the env's life, so a reset never compiles twice whatever the shared cache drops."""
+        key = (object_name, scale)
+        if key not in self._scenes:
+            self._scenes[key] = patched_scene(object_name, self.patch, uniform_layout=True, object_scale=scale)
+        return self._scenes[key]
+
+    def _randomized_scene(self, object_name: str, scale: float, rng: np.random.Generator
+                          ) -> tuple[mujoco.MjModel, ModelPatch]:
+        """A world's own model: the scene compiled with the patch's structure only (nominal parameters),
+        copied, its object randomized, then the env's patch with this world's draw applied by the effects."""
+        key = (object_name, scale)
+        if key not in self._nominal:
+            m = patched_scene(object_name, self.patch.stage("structure"), uniform_layout=True, object_scale=scale)
+            self._nominal[key] = (m, ModelBase.of(m))
+        nominal, base = self._nominal[key]
+        model = self._randomizer.apply(nominal, self.randomize, rng)
+        patch = self.patch.updated(self.randomize.sample_patch(rng, self._ranges))
+        patch.apply_model(model, base)
+        return model, patch
+
     def _usable(self, split, references=None) -> list[int]:
         if references is not None:
             bad = [i for i in references if not 0 <= int(i) < len(self.dataset)]
@@ -261,10 +282,11 @@ class TrackingEnv(EnvBase):
             self._base[w] = e["offset"] + e["window_start"]
             self._latent[w] = np.asarray(self.latent_fn(e["object"]), dtype=np.float32)
             self._scale[w] = self._rng.choice(self._scales)
-            model = _scene(e["object"], float(self._scale[w]), self._patch_key)
             if cfg is not None:
-                model = self._randomizer.apply(model, cfg, self._rng)
+                model, self.world_patches[w] = self._randomized_scene(e["object"], float(self._scale[w]), self._rng)
                 self._action_offset[w] = self._rng.normal(0, cfg.action_noise_correlated, NUM_JOINTS)
+            else:
+                model = self._scene(e["object"], float(self._scale[w]))
             models.append(model)
         self.sim.set_models(worlds, models)
         self._t[worlds] = 0
@@ -370,7 +392,7 @@ class TrackingEnv(EnvBase):
         ref_q, ref_link, ref_obj = self._ref_q[idx], self._ref_link[idx], self._ref_obj[idx]
         # What the policy sees: encoders (sensor-stage effects, noise) and noisy link positions.
         seen_q = joint_pos
-        if self._patch_key:
+        if self._has_sensor_effects:
             seen_q = self.patch.transform_measurement(seen_q.astype(np.float64)[:, None])[:, 0].astype(f32)
         seen_link = link_pose
         if self.randomize is not None and self.randomize.proprio_noise > 0:

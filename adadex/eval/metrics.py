@@ -1,8 +1,9 @@
 """The paper's tracking metrics (Sec. 4.1), per frame, per trajectory and over a set of trajectories.
 
-Per frame (:func:`frame_errors`): ``T_o`` object position error and ``T_h`` wrist (palm) position
-error in m, ``R_o`` and ``R_h`` their rotation errors in rad (angle of :func:`adadex.quat.quat_diff`,
-so q ≡ −q), ``E_finger`` the mean absolute error of the 16 hand joints in rad.
+Per frame (:func:`frame_errors`, defined at the env's level in :mod:`adadex.envs.frame_errors` and
+re-exported here): ``T_o`` object position error and ``T_h`` wrist (palm) position error in m,
+``R_o`` and ``R_h`` their rotation errors in rad (angle of :func:`adadex.quat.quat_diff`, so q ≡ −q),
+``E_finger`` the mean absolute error of the 16 hand joints in rad.
 
 Success, two ways (:class:`Thresholds`, the paper's values by default):
 
@@ -34,12 +35,10 @@ from dataclasses import dataclass
 
 import torch
 
-from adadex.arrays import namespace
-from adadex.quat import quat_angle_between
-from adadex.sim.robot import ARM_JOINTS, NUM_JOINTS
+from adadex.envs.frame_errors import ERROR_NAMES, frame_errors
 
-ERROR_NAMES = ("T_o", "R_o", "T_h", "R_h", "E_finger")
-_FINGERS = slice(len(ARM_JOINTS), NUM_JOINTS)
+__all__ = ["ERROR_NAMES", "Thresholds", "frame_errors", "frame_success", "from_rollout", "summarize",
+           "trajectory_metrics"]
 
 
 @dataclass(frozen=True)
@@ -55,21 +54,6 @@ class Thresholds:
             v = getattr(self, k)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"Thresholds.{k} must be a positive number, got {v}")
-
-
-def frame_errors(object_pose: torch.Tensor, ref_object_pose: torch.Tensor, palm_pose: torch.Tensor,
-                 ref_palm_pose: torch.Tensor, joint_pos: torch.Tensor, ref_joint_pos: torch.Tensor
-                 ) -> dict[str, torch.Tensor]:
-    """Per-frame errors from (…, 7) poses and (…, 22) joint positions (torch tensors or numpy
-    arrays); each output has shape (…)."""
-    norm = namespace(object_pose).linalg.vector_norm
-    return {
-        "T_o": norm(object_pose[..., :3] - ref_object_pose[..., :3], axis=-1),
-        "R_o": quat_angle_between(object_pose[..., 3:], ref_object_pose[..., 3:]),
-        "T_h": norm(palm_pose[..., :3] - ref_palm_pose[..., :3], axis=-1),
-        "R_h": quat_angle_between(palm_pose[..., 3:], ref_palm_pose[..., 3:]),
-        "E_finger": abs(joint_pos[..., _FINGERS] - ref_joint_pos[..., _FINGERS]).mean(axis=-1),
-    }
 
 
 def _meets(t_o, r_o, t_h, r_h, e_f, th: Thresholds) -> torch.Tensor:

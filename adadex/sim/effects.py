@@ -12,6 +12,10 @@ Where an effect acts:
   gains, force limits, spring stiffness, body mass). They are set as *absolute* values computed
   from a snapshot of the unmodified model (:class:`ModelBase`), never by incrementing the current
   value, so applying a patch twice, or re-applying with new values during a fit, is safe.
+  *Scale* effects (``mass_scale``, ``friction_scale``, ``damping_scale``) re-size the model's own
+  values — the nominal numbers were off — so a patch applies them to the snapshot first
+  (:meth:`Effect.rescale`) and every other effect acts on top: ``damping`` adds to the scaled
+  joint damping, ``payload_mass`` to the scaled link mass, whatever the order in the patch.
 * ``structure`` — needs a change to the model's structure before compiling (an actuator history
   buffer for a transport delay, an activation state for a first-order lag); made only when the
   value differs from absent, then the value itself is again a model parameter.
@@ -19,6 +23,13 @@ Where an effect acts:
 * ``sensor`` — transforms the measured joint positions (encoder offset).
 
 Per-joint values: ``values`` arrays are ``(len(joints), n_params)``.
+
+:data:`EFFECT_NAMES` are the effects the sysid workbench screens by default: those a joint
+trajectory can reveal. The scale effects (:data:`SCALE_EFFECT_NAMES`) are effects like the others
+(patches, ``effects=[...]``, fitting with ``adadex sysid fit --add``); they exist for domain
+randomization (paper Table 3 scales masses, friction, stiffness and damping) and are not screened:
+``friction_scale`` is invisible without contact, and ``mass_scale`` and ``damping_scale`` are
+look-alikes of screened effects (``payload_mass``, ``kd_scale``).
 
 Example
 -------
@@ -30,7 +41,9 @@ Example
 
 from __future__ import annotations
 
+import copy
 import difflib
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -86,6 +99,8 @@ class ModelBase:
     body_mass: np.ndarray
     actuator_delay: np.ndarray
     dynprm: np.ndarray
+    body_inertia: np.ndarray
+    geom_friction: np.ndarray
 
     def restore(self, m: mujoco.MjModel) -> None:
         """Put every field effects edit back to this snapshot (before applying a new patch)."""
@@ -97,19 +112,74 @@ class ModelBase:
         m.actuator_biasprm[:] = self.biasprm
         m.actuator_forcerange[:] = self.forcerange
         m.jnt_actfrcrange[:] = self.actfrcrange
-        mass_changed = not np.array_equal(m.body_mass, self.body_mass)
+        mass_changed = not (np.array_equal(m.body_mass, self.body_mass)
+                            and np.array_equal(m.body_inertia, self.body_inertia))
         m.body_mass[:] = self.body_mass
+        m.body_inertia[:] = self.body_inertia
         if mass_changed:
-            mujoco.mj_setConst(m, mujoco.MjData(m))
+            set_const(m)
         m.actuator_delay[:] = self.actuator_delay
         m.actuator_dynprm[:] = self.dynprm
+        m.geom_friction[:] = self.geom_friction
 
     @classmethod
     def of(cls, m: mujoco.MjModel) -> "ModelBase":
         return cls(m.dof_damping.copy(), m.dof_frictionloss.copy(), m.dof_armature.copy(),
                    m.jnt_stiffness.copy(), m.actuator_gainprm.copy(), m.actuator_biasprm.copy(),
                    m.actuator_forcerange.copy(), m.jnt_actfrcrange.copy(), m.body_mass.copy(),
-                   m.actuator_delay.copy(), m.actuator_dynprm.copy())
+                   m.actuator_delay.copy(), m.actuator_dynprm.copy(), m.body_inertia.copy(),
+                   m.geom_friction.copy())
+
+    def copy(self) -> "ModelBase":
+        return copy.deepcopy(self)
+
+
+_SCRATCH: OrderedDict[tuple, mujoco.MjData] = OrderedDict()
+
+
+def set_const(m: mujoco.MjModel) -> None:
+    """``mj_setConst`` after a mass change (derived constants: subtree masses, inverse weights),
+    with a scratch ``MjData`` kept per model structure (allocating one costs ~10× the call)."""
+    key = (m.signature, m.nC, m.nbvh, m.nbvhdynamic)
+    d = _SCRATCH.pop(key, None)
+    if d is None:
+        d = mujoco.MjData(m)
+    _SCRATCH[key] = d
+    while len(_SCRATCH) > 8:
+        _SCRATCH.popitem(last=False)
+    mujoco.mj_setConst(m, d)
+
+
+_LINKS: OrderedDict[tuple, tuple[list[np.ndarray], np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
+
+
+def _links(m: mujoco.MjModel, jid):
+    """Per joint, the bodies it moves directly; then all those bodies, with the index (into ``jid``)
+    of the joint moving each, and the same for their geoms. Kept per model structure and joint list
+    (a reset asks once per world)."""
+    jid = np.asarray(jid, dtype=np.int64)
+    key = (m.signature, jid.tobytes())
+    if key not in _LINKS:
+        owner = np.arange(m.nbody)
+        for b in range(1, m.nbody):          # parents come before children in a compiled model
+            if m.body_jntnum[b] == 0:
+                owner[b] = owner[m.body_parentid[b]]
+        bodies = [np.flatnonzero(owner == m.jnt_bodyid[j]) for j in jid]
+        body_of = np.full(m.nbody, -1)
+        for k, b in enumerate(bodies):
+            body_of[b] = k
+        all_bodies = np.flatnonzero(body_of >= 0)
+        all_geoms = np.flatnonzero(body_of[m.geom_bodyid] >= 0)
+        _LINKS[key] = (bodies, all_bodies, body_of[all_bodies], all_geoms, body_of[m.geom_bodyid[all_geoms]])
+        while len(_LINKS) > 64:
+            _LINKS.popitem(last=False)
+    return _LINKS[key]
+
+
+def link_bodies(m: mujoco.MjModel, jid) -> list[np.ndarray]:
+    """Per joint, the bodies it moves directly: its own body and the bodies welded below it (those
+    whose nearest ancestor carrying a joint is the joint's body)."""
+    return _links(m, jid)[0]
 
 
 class Effect:
@@ -132,9 +202,16 @@ class Effect:
         return np.array([[p.nominal[joint_group(j)] for p in self.params] for j in joints])
 
     def bounds(self, joints) -> tuple[np.ndarray, np.ndarray]:
-        lo = np.array([[p.bounds(j)[0] for p in self.params] for j in joints])
-        hi = np.array([[p.bounds(j)[1] for p in self.params] for j in joints])
-        return lo, hi
+        key = tuple(joints)
+        cache = self.__dict__.setdefault("_bounds", {})   # per joint list: a reset validates one per world
+        if key not in cache:
+            lo = np.array([[p.bounds(j)[0] for p in self.params] for j in key])
+            hi = np.array([[p.bounds(j)[1] for p in self.params] for j in key])
+            lo.flags.writeable = hi.flags.writeable = False
+            if len(cache) > 256:
+                cache.clear()
+            cache[key] = (lo, hi)
+        return cache[key]
 
     def is_absent(self, values: np.ndarray) -> bool:
         return bool(np.all(np.asarray(values) == self.absent_values()))
@@ -171,6 +248,12 @@ class Effect:
 
     def apply_model(self, m: mujoco.MjModel, base: ModelBase, jid: np.ndarray, values: np.ndarray) -> None:
         """Set absolute parameter values on a compiled model (``model`` and ``structure`` effects)."""
+
+    #: Scale effects re-size the snapshot's own values (:meth:`rescale`) before any effect applies.
+    rescales: ClassVar[bool] = False
+
+    def rescale(self, base: ModelBase, m: mujoco.MjModel, jid: np.ndarray, values: np.ndarray) -> None:
+        """Scale the nominal values in ``base`` (a copy) in place (scale effects only)."""
 
     def transform_command(self, command: np.ndarray, jid: np.ndarray, values: np.ndarray, dt: float) -> np.ndarray:
         """(S, T, 22) commanded targets → what the servos receive (``command`` effects)."""
@@ -344,7 +427,7 @@ class PayloadMass(Effect):
     def apply_model(self, m, base, jid, values):
         body = m.jnt_bodyid[jid]
         m.body_mass[body] = base.body_mass[body] + values[:, 0]
-        mujoco.mj_setConst(m, mujoco.MjData(m))
+        set_const(m)
 
 
 class JointSpring(Effect):
@@ -399,11 +482,82 @@ class Backlash(Effect):
         return out
 
 
+class MassScale(Effect):
+    """Masses and inertias of the links the joint moves (its body and the bodies welded to it)
+    scaled by s (absent = 1); a payload (``payload_mass``) adds to the scaled mass.
+
+    Residual signature: like a payload spread over the link — error growing with acceleration on
+    that joint and its parents, a static sag under gravity on the joints that carry it.
+    """
+
+    name, stage = "mass_scale", "model"
+    params = (Param("scale", "×", 1.0, _same(1.2), _same(0.3), _same(3.0)),)
+    lookalikes = ("payload_mass", "armature")
+    rescales = True
+
+    def rescale(self, base, m, jid, values):
+        _, bodies, joint_of, _, _ = _links(m, jid)
+        base.body_mass[bodies] *= values[joint_of, 0]
+        base.body_inertia[bodies] *= values[joint_of, 0][:, None]
+
+    def apply_model(self, m, base, jid, values):
+        bodies = _links(m, jid)[1]
+        m.body_mass[bodies] = base.body_mass[bodies]
+        m.body_inertia[bodies] = base.body_inertia[bodies]
+        set_const(m)
+
+
+class FrictionScale(Effect):
+    """Sliding friction coefficient of the geoms of the links the joint moves scaled by s (absent = 1).
+
+    Residual signature: none in free motion — only contacts feel it (a grasp slips or holds
+    differently); joint trajectories without contact cannot reveal it.
+    """
+
+    name, stage = "friction_scale", "model"
+    params = (Param("scale", "×", 1.0, _same(0.8), _same(0.2), _same(3.0)),)
+    rescales = True
+
+    def rescale(self, base, m, jid, values):
+        _, _, _, geoms, joint_of = _links(m, jid)
+        base.geom_friction[geoms, 0] *= values[joint_of, 0]
+
+    def apply_model(self, m, base, jid, values):
+        geoms = _links(m, jid)[3]
+        m.geom_friction[geoms, 0] = base.geom_friction[geoms, 0]
+
+
+class DampingScale(Effect):
+    """All viscous damping at the joint — its passive damping and its servo's derivative gain —
+    scaled by s (absent = 1); ``damping`` and ``kd_scale`` act on top of the scaled values.
+
+    Residual signature: like extra (s > 1) or missing (s < 1) viscous damping: velocity-proportional
+    lag and attenuation, no dead zone.
+    """
+
+    name, stage = "damping_scale", "model"
+    params = (Param("scale", "×", 1.0, _same(1.5), _same(0.2), _same(8.0)),)
+    lookalikes = ("damping", "kd_scale")
+    rescales = True
+
+    def rescale(self, base, m, jid, values):
+        base.dof_damping[jid] *= values[:, 0]
+        base.biasprm[jid, 2] *= values[:, 0]
+
+    def apply_model(self, m, base, jid, values):
+        m.dof_damping[jid] = base.dof_damping[jid]
+        m.actuator_biasprm[jid, 2] = base.biasprm[jid, 2]
+
+
 EFFECTS: dict[str, Effect] = {e.name: e for e in (
     Damping(), CoulombFriction(), Armature(), ActuatorDelay(), ActuatorLag(), TorqueLimit(),
     KpScale(), KdScale(), PayloadMass(), JointSpring(), EncoderOffset(), Backlash(),
+    MassScale(), FrictionScale(), DampingScale(),
 )}
-EFFECT_NAMES: tuple[str, ...] = tuple(EFFECTS)
+#: Scale effects: for domain randomization and patches, not screened by the workbench by default.
+SCALE_EFFECT_NAMES: tuple[str, ...] = ("mass_scale", "friction_scale", "damping_scale")
+#: The effects the sysid workbench screens by default (see the module docstring).
+EFFECT_NAMES: tuple[str, ...] = tuple(n for n in EFFECTS if n not in SCALE_EFFECT_NAMES)
 
 
 def get_effect(name: str) -> Effect:
@@ -411,7 +565,7 @@ def get_effect(name: str) -> Effect:
     try:
         return EFFECTS[name]
     except KeyError:
-        close = difflib.get_close_matches(str(name), EFFECT_NAMES, n=3)
+        close = difflib.get_close_matches(str(name), tuple(EFFECTS), n=3)
         hint = f"; did you mean {', '.join(close)}?" if close else ""
-        raise EffectError(f"unknown effect {name!r}: known effects are {', '.join(EFFECT_NAMES)}{hint}") from None
+        raise EffectError(f"unknown effect {name!r}: known effects are {', '.join(EFFECTS)}{hint}") from None
 

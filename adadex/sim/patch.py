@@ -6,7 +6,15 @@ simulator. File format (``version`` 1)::
 
     {"version": 1,
      "effects": [{"effect": "coulomb_friction", "joints": ["if_pip", "if_dip"],
-                  "params": {"friction": [0.05, 0.04]}}]}
+                  "params": {"friction": [0.05, 0.04]},
+                  "ci95": {"friction": [[0.046, 0.054], [0.037, 0.043]]}}]}
+
+``ci95`` is optional: a fit's 95 % confidence interval per parameter and joint, in the layout the
+workbench's diagnosis uses; :meth:`adadex.envs.randomization.Randomization.from_patch` builds
+domain-randomization ranges from it.
+
+:func:`patched_scene` is the one place a scene is compiled with a patch (structural edits before
+compiling, parameters after); it caches the compiled models on the patch's content.
 
 Example
 -------
@@ -20,9 +28,11 @@ Example
 
 from __future__ import annotations
 
+import copy
+import functools
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import mujoco
@@ -32,6 +42,7 @@ from adadex.errors import AdadexError
 from adadex.io import atomic_write_text
 from adadex.sim.effects import EffectError, ModelBase, get_effect
 from adadex.sim.robot import joint_index
+from adadex.sim.scene import PhysicsOptions, build_scene_spec
 
 PATCH_VERSION = 1
 
@@ -42,16 +53,26 @@ class PatchError(AdadexError, ValueError):
 
 @dataclass(frozen=True)
 class EffectInstance:
-    """One effect on some joints with values of shape (len(joints), n_params)."""
+    """One effect on some joints with values of shape (len(joints), n_params), and optionally a
+    fit's 95 % intervals ``ci95`` of shape (len(joints), n_params, 2) (``None``: not known)."""
 
     effect: str
     joints: tuple[str, ...]
     values: np.ndarray
+    ci95: np.ndarray | None = field(default=None, compare=False)
 
     def __post_init__(self):
         eff = get_effect(self.effect)
         object.__setattr__(self, "joints", tuple(self.joints))
         object.__setattr__(self, "values", eff.validate(self.joints, self.values))
+        object.__setattr__(self, "_jid", joint_index(self.joints))
+        if self.ci95 is not None:
+            ci = np.asarray(self.ci95, dtype=float)
+            shape = (len(self.joints), len(eff.params), 2)
+            if ci.shape != shape or not np.isfinite(ci).all() or (ci[..., 0] > ci[..., 1]).any():
+                raise PatchError(f"{eff.name}: ci95 must be finite [low, high] pairs of shape {shape}, "
+                                 f"got {ci.tolist()}")
+            object.__setattr__(self, "ci95", ci)
 
     @property
     def spec(self):
@@ -59,14 +80,26 @@ class EffectInstance:
 
     @property
     def jid(self) -> np.ndarray:
-        return joint_index(self.joints)
+        return self._jid
 
     def is_absent(self) -> bool:
         return self.spec.is_absent(self.values)
 
     def to_dict(self) -> dict:
-        return {"effect": self.effect, "joints": list(self.joints),
-                "params": {p: [float(v) for v in self.values[:, i]] for i, p in enumerate(self.spec.param_names)}}
+        d = {"effect": self.effect, "joints": list(self.joints),
+             "params": {p: [float(v) for v in self.values[:, i]] for i, p in enumerate(self.spec.param_names)}}
+        if self.ci95 is not None:
+            d["ci95"] = {p: [[float(a), float(b)] for a, b in self.ci95[:, i]]
+                         for i, p in enumerate(self.spec.param_names)}
+        return d
+
+    def without(self, joints) -> "EffectInstance | None":
+        """This effect on its other joints (``None`` when none is left)."""
+        keep = [i for i, j in enumerate(self.joints) if j not in set(joints)]
+        if not keep:
+            return None
+        return EffectInstance(self.effect, tuple(self.joints[i] for i in keep), self.values[keep],
+                              None if self.ci95 is None else self.ci95[keep])
 
     @classmethod
     def from_dict(cls, d: dict) -> "EffectInstance":
@@ -86,7 +119,16 @@ class EffectInstance:
             values = np.stack(cols, axis=1)
         except ValueError as e:
             raise PatchError(f"{eff.name}: one value per joint expected for {joints}: {e}") from None
-        return cls(eff.name, tuple(joints), values)
+        ci = d.get("ci95")
+        if ci is not None:
+            if not isinstance(ci, dict) or set(ci) != set(eff.param_names):
+                raise PatchError(f"{eff.name}: ci95 must give intervals for {list(eff.param_names)}, got {ci!r}")
+            try:
+                ci = np.stack([np.asarray(ci[p], dtype=float).reshape(len(joints), 2) for p in eff.param_names],
+                              axis=1)
+            except ValueError as e:
+                raise PatchError(f"{eff.name}: ci95 needs one [low, high] per joint for {joints}: {e}") from None
+        return cls(eff.name, tuple(joints), values, ci)
 
 
 @dataclass(frozen=True)
@@ -111,6 +153,30 @@ class ModelPatch:
     def __add__(self, other: "ModelPatch") -> "ModelPatch":
         return ModelPatch(self.effects + other.effects)
 
+    def updated(self, other: "ModelPatch") -> "ModelPatch":
+        """This patch with ``other``'s (effect, joint) entries replacing its own, ``other``'s effects last."""
+        taken: dict[str, set[str]] = {}
+        for e in other.effects:
+            taken.setdefault(e.effect, set()).update(e.joints)
+        kept = []
+        for e in self.effects:
+            rest = e.without(taken[e.effect]) if e.effect in taken else e
+            if rest is not None:
+                kept.append(rest)
+        return ModelPatch(tuple(kept) + other.effects)
+
+    def stage(self, *stages: str) -> "ModelPatch":
+        """The effects acting at ``stages`` (``"model"``, ``"structure"``, ``"command"``, ``"sensor"``)."""
+        return ModelPatch(tuple(e for e in self.effects if e.spec.stage in stages))
+
+    def content_key(self) -> str:
+        """Canonical JSON of what this patch does to a compiled model (its active model- and
+        structure-stage effects, in order; intervals left out): equal keys, equal models."""
+        effects = [e.to_dict() for e in self.active().effects if e.spec.stage in ("model", "structure")]
+        for d in effects:
+            d.pop("ci95", None)
+        return json.dumps(effects, sort_keys=True)
+
     def active(self) -> "ModelPatch":
         """The patch without effects at their absent values."""
         return ModelPatch(tuple(e for e in self.effects if not e.is_absent()))
@@ -126,9 +192,16 @@ class ModelPatch:
             e.spec.edit_spec(spec, list(e.joints), e.values, spec.option.timestep)
 
     def apply_model(self, model: mujoco.MjModel, base: ModelBase | None = None) -> None:
-        """Set every effect's parameters on ``model`` as absolute values from ``base``."""
+        """Set every effect's parameters on ``model`` as absolute values from ``base``: scale
+        effects first re-size a copy of ``base`` (and write it), the others act on top of it."""
         base = base if base is not None else ModelBase.of(model)
-        for e in self.active().effects:
+        active = self.active().effects
+        scales = [e for e in active if e.spec.rescales]
+        if scales:
+            base = base.copy()
+            for e in scales:
+                e.spec.rescale(base, model, e.jid, e.values)
+        for e in scales + [e for e in active if not e.spec.rescales]:
             e.spec.apply_model(model, base, e.jid, e.values)
 
     def transform_command(self, command: np.ndarray, dt: float) -> np.ndarray:
@@ -142,15 +215,10 @@ class ModelPatch:
         return qpos
 
     def build_model(self, object_name: str | None = None, *, timestep: float | None = None) -> mujoco.MjModel:
-        """The scene (robot + table + optional object) with this patch applied."""
-        from adadex.sim.scene import PhysicsOptions, build_scene_spec
-
+        """The scene (robot + table + optional object) with this patch applied: a copy of
+        :func:`patched_scene`'s model, the caller's to edit."""
         opts = PhysicsOptions() if timestep is None else PhysicsOptions(timestep=timestep)
-        spec = build_scene_spec(object_name, options=opts)
-        self.edit_spec(spec)
-        model = spec.compile()
-        self.apply_model(model)
-        return model
+        return copy.copy(patched_scene(object_name, self, options=opts))
 
     # ------------------------------------------------------------ files
 
@@ -198,3 +266,33 @@ class ModelPatch:
             vals = ", ".join(f"{j}: " + "/".join(f"{v:.4g}" for v in row) for j, row in zip(e.joints, e.values))
             parts.append(f"{e.effect}({'/'.join(e.spec.param_names)}) {vals}")
         return "; ".join(parts)
+
+
+#: Compiled scenes :func:`patched_scene` keeps (least recently used dropped first).
+SCENE_CACHE_SIZE = 128
+
+
+def patched_scene(object_name: str | None = None, patch: ModelPatch | None = None, *,
+                  uniform_layout: bool = False, object_scale: float = 1.0,
+                  options: PhysicsOptions = PhysicsOptions()) -> mujoco.MjModel:
+    """The scene of :func:`~adadex.sim.scene.build_scene_spec` with ``patch`` applied: structural
+    edits before compiling, parameters after (absolute values from the compiled model).
+
+    Compiled once per (scene arguments, :meth:`ModelPatch.content_key`) and kept in a bounded
+    cache (:data:`SCENE_CACHE_SIZE`): two patches with the same effects and values share a model,
+    whatever file they came from. The returned model is shared — treat it as read-only and
+    ``copy.copy`` it before editing parameters (per-world randomization, fitting do).
+    """
+    key = (patch or ModelPatch()).content_key()
+    return _compiled_scene(object_name, key, bool(uniform_layout), float(object_scale), options)
+
+
+@functools.lru_cache(maxsize=SCENE_CACHE_SIZE)
+def _compiled_scene(object_name, key: str, uniform_layout: bool, object_scale: float,
+                    options: PhysicsOptions) -> mujoco.MjModel:
+    patch = ModelPatch.from_dict({"effects": json.loads(key)})
+    spec = build_scene_spec(object_name, uniform_layout=uniform_layout, object_scale=object_scale, options=options)
+    patch.edit_spec(spec)
+    model = spec.compile()
+    patch.apply_model(model)
+    return model

@@ -19,6 +19,7 @@ Example::
 
 from __future__ import annotations
 
+import copy
 import math
 
 import mujoco
@@ -26,9 +27,9 @@ import numpy as np
 
 from adadex.sim.batched import RolloutPool
 from adadex.sim.effects import ModelBase
-from adadex.sim.patch import ModelPatch
+from adadex.sim.patch import ModelPatch, patched_scene
 from adadex.sim.robot import NUM_JOINTS
-from adadex.sim.scene import PHYSICS_TIMESTEP, PhysicsOptions, build_scene_spec
+from adadex.sim.scene import PHYSICS_TIMESTEP, PhysicsOptions
 
 FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
 #: Before t = 0 the robot holds the first command for this long, as a real robot does before a
@@ -75,9 +76,11 @@ class Replayer(RolloutPool):
         """The compiled model with ``patch``'s structure, its parameters set to ``patch``."""
         key = self._structure_key(patch)
         if key not in self._models:
-            spec = build_scene_spec(None, options=PhysicsOptions(timestep=self.timestep))
-            patch.edit_spec(spec)
-            model = spec.compile()
+            # Compiled with the structural effects only, so the snapshot holds the nominal parameters
+            # (the structural effects' own parameters are set absolutely, whatever the snapshot says);
+            # a copy, as this model's parameters are rewritten for every patch evaluated.
+            model = copy.copy(patched_scene(None, patch.stage("structure"),
+                                            options=PhysicsOptions(timestep=self.timestep)))
             self._models[key] = (model, ModelBase.of(model), [mujoco.MjData(model) for _ in range(max(1, self.nthread))])
         model, base, datas = self._models[key]
         base.restore(model)

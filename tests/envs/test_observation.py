@@ -95,7 +95,7 @@ def test_extra_batch_dims_and_bad_shapes():
 
 def test_reward_with_and_without_precomputed_errors():
     from adadex.envs.reward import RewardConfig, tracking_reward
-    from adadex.eval.metrics import frame_errors
+    from adadex.envs.frame_errors import frame_errors
 
     td = structured(B=4, seed=3)
     q, link, obj = td[JOINT_POS], td[LINK_POSE], td[OBJECT_POSE]

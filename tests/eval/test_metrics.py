@@ -175,3 +175,11 @@ def test_angle_between_equals_angle_of_the_difference(v):
         return
     a, b = a / a.norm(), b / b.norm()
     assert quat_angle_between(a, b).item() == pytest.approx(quat_angle(quat_diff(a, b)).item(), abs=1e-6)
+
+
+def test_frame_errors_are_the_envs_own():
+    """The env defines the per-frame errors (no upward import); metrics re-exports the same objects."""
+    import adadex.envs.frame_errors as env_errors
+    import adadex.eval.metrics as metrics
+
+    assert metrics.frame_errors is env_errors.frame_errors and metrics.ERROR_NAMES is env_errors.ERROR_NAMES

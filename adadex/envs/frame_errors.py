@@ -1,0 +1,45 @@
+"""The per-frame tracking errors a :class:`~adadex.envs.tracking.TrackingEnv` writes into every step.
+
+They are the paper's metrics (Sec. 4.1) at one frame, defined here, at the env's level, so the env
+never imports evaluation code; :mod:`adadex.eval.metrics` builds trajectory means and success
+rates on them (and re-exports both names).
+
+``T_o`` object position error and ``T_h`` wrist (palm) position error in m, ``R_o`` and ``R_h``
+their rotation errors in rad (angle of :func:`adadex.quat.quat_diff`, so q ≡ −q), ``E_finger`` the
+mean absolute error of the 16 hand joints in rad.
+
+Example
+-------
+>>> import numpy as np
+>>> pose = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+>>> q = np.zeros(22)
+>>> err = frame_errors(pose + [0.03, 0, 0, 0, 0, 0, 0], pose, pose, pose, q + 0.1, q)
+>>> sorted(err) == sorted(ERROR_NAMES), round(float(err["T_o"]), 3), round(float(err["E_finger"]), 3)
+(True, 0.03, 0.1)
+"""
+
+from __future__ import annotations
+
+import torch
+
+from adadex.arrays import namespace
+from adadex.quat import quat_angle_between
+from adadex.sim.robot import ARM_JOINTS, NUM_JOINTS
+
+ERROR_NAMES = ("T_o", "R_o", "T_h", "R_h", "E_finger")
+_FINGERS = slice(len(ARM_JOINTS), NUM_JOINTS)
+
+
+def frame_errors(object_pose: torch.Tensor, ref_object_pose: torch.Tensor, palm_pose: torch.Tensor,
+                 ref_palm_pose: torch.Tensor, joint_pos: torch.Tensor, ref_joint_pos: torch.Tensor
+                 ) -> dict[str, torch.Tensor]:
+    """Per-frame errors from (…, 7) poses and (…, 22) joint positions (torch tensors or numpy
+    arrays); each output has shape (…)."""
+    norm = namespace(object_pose).linalg.vector_norm
+    return {
+        "T_o": norm(object_pose[..., :3] - ref_object_pose[..., :3], axis=-1),
+        "R_o": quat_angle_between(object_pose[..., 3:], ref_object_pose[..., 3:]),
+        "T_h": norm(palm_pose[..., :3] - ref_palm_pose[..., :3], axis=-1),
+        "R_h": quat_angle_between(palm_pose[..., 3:], ref_palm_pose[..., 3:]),
+        "E_finger": abs(joint_pos[..., _FINGERS] - ref_joint_pos[..., _FINGERS]).mean(axis=-1),
+    }

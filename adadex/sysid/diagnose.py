@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from adadex.io import atomic_write_text
 from adadex.sim.effects import EFFECT_NAMES, get_effect
-from adadex.sim.patch import ModelPatch
+from adadex.sim.patch import EffectInstance, ModelPatch
 from adadex.sysid.compare import compare, heldout_mask, localize, noise_floor
 from adadex.sysid.fit import JointFitter
 from adadex.sysid.replay import Replayer
@@ -68,8 +68,11 @@ class Diagnosis:
         """The selected effects as a model patch."""
         p = ModelPatch()
         for h in self.selected:
-            values = np.array(h["params"][get_effect(h["effect"]).param_names[0]])[:, None]
-            p = p.with_effect(h["effect"], h["joints"], values)
+            pname = get_effect(h["effect"]).param_names[0]
+            values = np.array(h["params"][pname])[:, None]
+            ci = h.get("ci95", {}).get(pname)
+            p = p + ModelPatch((EffectInstance(h["effect"], tuple(h["joints"]), values,
+                                               None if not ci else np.array(ci, dtype=float)[:, None]),))
         return p
 
     def to_dict(self) -> dict:

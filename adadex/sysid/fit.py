@@ -20,7 +20,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from adadex.sim.effects import get_effect
-from adadex.sim.patch import ModelPatch
+from adadex.sim.patch import EffectInstance, ModelPatch
 
 
 @dataclass
@@ -125,7 +125,8 @@ def fit_patch(recording, additions, *, base_patch: ModelPatch | None = None, nth
     """Fit ``additions`` — a list of ``(effect, joints)`` — in order, each on top of the previous ones.
 
     Every joint's value is fitted on the sequences that move it. Returns the fitted effects only
-    (not ``base_patch``).
+    (not ``base_patch``), each with its 95 % interval (``ci95``), so
+    :meth:`adadex.envs.randomization.Randomization.from_patch` can randomize around the fit.
     """
     from adadex.sim.effects import EffectError
     from adadex.sysid.replay import Replayer
@@ -139,11 +140,12 @@ def fit_patch(recording, additions, *, base_patch: ModelPatch | None = None, nth
         if missing or not joints:
             raise EffectError(f"{effect}: joints {missing or joints} are not in the recording "
                               f"(it has {', '.join(recording.joint_names)})")
-        values = []
+        values, intervals = [], []
         for j in joints:
             r = JointFitter(rep, j, sequences_moving(recording, j), base + added).fit(effect)
             values.append([r.value])
-        added = added.with_effect(effect, joints, np.array(values))
+            intervals.append([list(r.ci95)])
+        added = added + ModelPatch((EffectInstance(effect, tuple(joints), np.array(values), np.array(intervals)),))
     return added
 
 

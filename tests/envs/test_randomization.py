@@ -68,31 +68,29 @@ def test_from_patch_without_intervals_falls_back_to_a_fraction():
 
 @pytest.fixture(scope="module")
 def fitted_patch(tmp_path_factory):
-    """Extra damping on if_pip hidden in a short simulated recording, fitted by the workbench with its
-    95 % interval, saved as a patch file."""
+    """Extra damping on if_pip hidden in a short simulated recording, fitted by ``adadex sysid fit``
+    (the command a user runs), which writes the patch file with the fit's 95 % interval."""
+    from adadex.cli import main
     from adadex.sysid.excite import design_excitation, simulate_recording
-    from adadex.sysid.fit import JointFitter, sequences_moving
-    from adadex.sysid.replay import Replayer
 
+    d = tmp_path_factory.mktemp("fit")
     truth = ModelPatch().with_effect("damping", ["if_pip"], 0.08)
     plan = design_excitation(["if_pip"], freqs=(0.5, 2.0), amps=(0.3, 1.0), kinds=("sine",), duration=1.0)
-    rec = simulate_recording(plan, truth, noise=2e-4, seed=0)
-    rep = Replayer(rec)
-    fit = JointFitter(rep, "if_pip", sequences_moving(rec, "if_pip")).fit("damping")
-    rep.close()
-    assert fit.ci95[0] < fit.value < fit.ci95[1] and fit.value == pytest.approx(0.08, rel=0.2)
-    patch = ModelPatch((EffectInstance("damping", ("if_pip",), [[fit.value]], ci95=[[list(fit.ci95)]]),))
-    return patch.save(tmp_path_factory.mktemp("fit") / "patch.json"), fit
+    simulate_recording(plan, truth, noise=2e-4, seed=0).save(d / "rec.npz")
+    assert main(["sysid", "fit", str(d / "rec.npz"), "--add", "damping:if_pip", "--out", str(d / "patch.json")]) == 0
+    (fit,) = ModelPatch.load(d / "patch.json").effects
+    value, (lo, hi) = float(fit.values[0, 0]), fit.ci95[0, 0]
+    assert lo < value < hi and value == pytest.approx(0.08, rel=0.2)
+    return d / "patch.json", (float(lo), float(hi))
 
 
 def test_randomized_env_from_a_fitted_patch(tiny_dataset, fitted_patch):
-    path, fit = fitted_patch
-    lo, hi = fit.ci95
+    path, (lo, hi) = fitted_patch
     nominal = patched_scene(None).dof_damping[8]
     rnd = Randomization.from_patch(ModelPatch.load(path), base=Randomization.off())
     models, patches = _world_models(tiny_dataset, rnd, seed=1)
     extra = np.array([m.dof_damping[8] - nominal for m in models])
-    assert ((extra >= lo - 1e-12) & (extra <= hi + 1e-12)).all(), (extra, fit.ci95)
+    assert ((extra >= lo - 1e-12) & (extra <= hi + 1e-12)).all(), (extra, lo, hi)
     assert len(np.unique(extra)) == len(models)                        # worlds differ
     assert np.allclose(extra, [p.effects[0].values[0, 0] for p in patches])
     again, _ = _world_models(tiny_dataset, rnd, seed=1)

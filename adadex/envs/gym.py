@@ -43,9 +43,9 @@ class TrackingGymEnv(gymnasium.Env):
         self._td = None
 
     def _info(self, td) -> dict:
-        info = {k: float(td["errors", k][0]) for k in ERROR_NAMES}
+        info = {k: float(td["privileged", "errors", k][0]) for k in ERROR_NAMES}
         info["reference"] = self._env.current_references[0]
-        info["unstable"] = bool(td["unstable"][0, 0])
+        info["unstable"] = bool(td["privileged", "unstable"][0, 0])
         return info
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):

@@ -55,6 +55,13 @@ OBJECT_LATENT = ("object", "latent")
 REF_JOINT_POS = ("reference", "hand_joint_pos")
 REF_LINK_POSE = ("reference", "hand_link_pose")
 REF_OBJECT_POSE = ("reference", "object_pose")
+#: Ground truth the env reports for evaluation and logs, never for a policy: the metric errors
+#: (``(PRIVILEGED, "errors", name)``), the unstable-physics flag and the reward's terms. A policy
+#: reads only the keys above; TorchRL modules that take every observation key must leave this out.
+PRIVILEGED = "privileged"
+ERRORS = (PRIVILEGED, "errors")
+UNSTABLE = (PRIVILEGED, "unstable")
+REWARD_TERMS = (PRIVILEGED, "reward_terms")
 
 _SIZES = (("joint_pos", NUM_JOINTS), ("link_pose", 7 * len(TRACKED_SITES)), ("object_pose", 7), ("object_error", 7),
           ("ref_object_future", 7 * (len(REF_OFFSETS) - 1)), ("joint_error", NUM_JOINTS),

@@ -13,6 +13,17 @@ every weight a config value.
   pulling the hand to the object while the reference hand is far away would fight the tracking);
 * d_goal: object position error + ``goal_rot_weight`` · object rotation error;
 * bonus: 1[e_palm ≤ τ_palm, e_tip ≤ τ_tip, d_goal ≤ τ_goal] · 1 / (1 + 10·d_goal).
+
+Shaping for reinforcement learning (adadex's, not the paper's; set the weights to 0 for Eq. 1 alone):
+
+``    + w_alive + w_hand_exp·exp(−(e_palm + e_tip)/σ_hand) + w_object_exp·exp(−d_goal/σ_object)``
+``    + w_joint_exp·exp(−e_joint/σ_joint)``,  and ``− w_termination`` on the step an episode terminates.
+
+Eq. 1 alone is negative unless tracking is already good, so ending an episode early is its best
+policy (measured: PPO learned to push the palm away, episodes 27 → 6 steps). The alive term and the
+positive tracking kernels make every tracked step worth more than no step, and the termination
+penalty (charged by the env, which knows when an episode terminates) removes what is left of the
+incentive; the kernels also give a gradient where the negative terms are flat (fine tracking).
 """
 
 from __future__ import annotations
@@ -20,8 +31,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from adadex.arrays import namespace, to_float
-from adadex.errors import check_numbers
+from adadex.errors import check_number, check_numbers
 from adadex.quat import quat_angle_between
+
+
+#: The reward's terms as the env reports them (``("privileged", "reward_terms", name)``), unweighted
+#: except ``shaping`` (the weighted sum of the shaping terms) and ``termination`` (the penalty charged).
+TERM_NAMES = ("tracking", "proximity", "goal", "bonus", "shaping", "termination")
 
 
 @dataclass(frozen=True)
@@ -44,9 +60,20 @@ class RewardConfig:
     tau_palm: float = 0.05
     tau_tip: float = 0.05
     tau_goal: float = 0.05
+    # RL shaping (see the module docstring)
+    w_alive: float = 0.5             # per step while the episode runs
+    w_hand_exp: float = 0.5          # exp(−(palm + mean fingertip position error) / sigma_hand)
+    sigma_hand: float = 0.05
+    w_object_exp: float = 1.0        # exp(−d_goal / sigma_object)
+    sigma_object: float = 0.05
+    w_joint_exp: float = 0.25        # exp(−mean |joint error| / sigma_joint)
+    sigma_joint: float = 0.1
+    w_termination: float = 10.0      # charged once when an episode terminates (not at truncation)
 
     def __post_init__(self):
         check_numbers("RewardConfig", self, self.__dict__)
+        for k in ("sigma_hand", "sigma_object", "sigma_joint"):
+            check_number(f"RewardConfig.{k}", getattr(self, k), strict_low=True)
 
 
 def tracking_reward(cfg: RewardConfig, *, joint_pos, link_pose, object_pose, ref_joint_pos, ref_link_pose,
@@ -80,6 +107,9 @@ def tracking_reward(cfg: RewardConfig, *, joint_pos, link_pose, object_pose, ref
     d_goal = t_o + cfg.goal_rot_weight * r_o
     hit = (e_palm <= cfg.tau_palm) & (e_tip <= cfg.tau_tip) & (d_goal <= cfg.tau_goal)
     bonus = to_float(hit, d_goal) / (1.0 + 10.0 * d_goal)
-    reward = -cfg.w_track * tracking + cfg.w_prox * proximity - cfg.w_goal * d_goal + cfg.w_bonus * bonus
-    terms = {"tracking": tracking, "proximity": proximity, "goal": d_goal, "bonus": bonus}
+    shaping = (cfg.w_alive + cfg.w_hand_exp * xp.exp(-(e_palm + e_tip) / cfg.sigma_hand)
+               + cfg.w_object_exp * xp.exp(-d_goal / cfg.sigma_object)
+               + cfg.w_joint_exp * xp.exp(-e_joint / cfg.sigma_joint))
+    reward = -cfg.w_track * tracking + cfg.w_prox * proximity - cfg.w_goal * d_goal + cfg.w_bonus * bonus + shaping
+    terms = {"tracking": tracking, "proximity": proximity, "goal": d_goal, "bonus": bonus, "shaping": shaping}
     return reward, terms

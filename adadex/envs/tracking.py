@@ -16,11 +16,14 @@ Per step:
   (not part of the 273-D vector), the object latent from ``latent_fn`` (default: the shipped point-cloud
   encoder's latent, :func:`adadex.envs.latent.encoder_latent`);
 * reward: :func:`adadex.envs.reward.tracking_reward`;
-* ``"errors"``: the per-frame metric errors T_o, R_o, T_h, R_h, E_finger
-  (:func:`adadex.envs.frame_errors.frame_errors`), so evaluation never recomputes physics;
+* ``"privileged"`` — ground truth for evaluation and logs, which a policy never reads (see
+  :data:`adadex.envs.observation.PRIVILEGED`): ``("privileged", "errors")`` the per-frame metric
+  errors T_o, R_o, T_h, R_h, E_finger (:func:`adadex.envs.frame_errors.frame_errors`), so evaluation
+  never recomputes physics; ``("privileged", "reward_terms")`` the reward's terms;
+  ``("privileged", "unstable")`` (below);
 * ``terminated`` when the object or the palm drifts beyond the configured errors, or when the
   world's physics went unstable — NaN, a MuJoCo reset, or the object flung faster than
-  ``max_object_speed`` (then ``"unstable"`` is set, the world is put back to its
+  ``max_object_speed`` (then ``("privileged", "unstable")`` is set, the world is put back to its
   reference start at once so no NaN leaves the env, and :attr:`TrackingEnv.unstable_count` grows);
   ``truncated`` at the end of the episode window.
 
@@ -40,7 +43,7 @@ Example
 >>> from adadex.envs.tracking import TrackingEnv
 >>> env = TrackingEnv(tiny_dataset, num_worlds=2, split=None)
 >>> td = env.rollout(3)                      # random actions
->>> td["next", "errors", "T_o"].shape
+>>> td["next", "privileged", "errors", "T_o"].shape
 torch.Size([2, 3])
 >>> env.close()
 """
@@ -59,10 +62,10 @@ from torchrl.envs import EnvBase
 
 from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset
 from adadex.envs.latent import encoder_latent
-from adadex.envs.observation import LATENT_DIM, OBS_DIM, REF_OFFSETS, flat_observation
+from adadex.envs.observation import LATENT_DIM, OBS_DIM, PRIVILEGED, REF_OFFSETS, flat_observation
 from adadex.envs.randomization import ModelRandomizer, Randomization
-from adadex.envs.reward import RewardConfig, tracking_reward
-from adadex.errors import check_numbers
+from adadex.envs.reward import TERM_NAMES, RewardConfig, tracking_reward
+from adadex.errors import ConfigError, check_numbers
 from adadex.envs.frame_errors import ERROR_NAMES, frame_errors
 from adadex.geometry import Rotation, quat, rotation
 from adadex.sim.batched import BatchedSim
@@ -140,6 +143,10 @@ class TrackingEnv(EnvBase):
                  nthread: int = 2, seed: int = 0, draw: str = "random", references=None, device="cpu"):
         if num_worlds < 1:
             raise ValueError(f"num_worlds must be ≥ 1, got {num_worlds}")
+        if torch.device(device).type != "cpu":
+            raise ConfigError(f"TrackingEnv(device={device!r}): the env runs on the CPU (MuJoCo physics) and hands "
+                              f"out CPU tensors; keep it there and put the policy on another device through the "
+                              f"collector (Collector(..., policy_device={str(device)!r}))")
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
         self.dataset = dataset if isinstance(dataset, ReferenceDataset) else ReferenceDataset(dataset)
         self.config = config
@@ -245,8 +252,10 @@ class TrackingEnv(EnvBase):
             reference=Composite(hand_joint_pos=u(K, NUM_JOINTS), hand_link_pose=u(K, L, 7), object_pose=u(K, 7),
                                 shape=B),
             observation=u(OBS_DIM),
-            errors=Composite({k: u() for k in ERROR_NAMES}, shape=B),
-            unstable=Categorical(2, shape=(*B, 1), dtype=torch.bool, device=self.device),
+            privileged=Composite(
+                errors=Composite({k: u() for k in ERROR_NAMES}, shape=B),
+                unstable=Categorical(2, shape=(*B, 1), dtype=torch.bool, device=self.device),
+                reward_terms=Composite({k: u() for k in TERM_NAMES}, shape=B), shape=B),
             shape=B, device=self.device)
         m = self.config.max_action
         self.action_spec = Bounded(low=-m, high=m, shape=(*B, NUM_JOINTS), dtype=torch.float32, device=self.device)
@@ -321,7 +330,10 @@ class TrackingEnv(EnvBase):
         if len(worlds):
             self._start_worlds(worlds)
         out, _ = self._observe(self.sim.readout())
-        out["unstable"] = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
+        B = self.batch_size
+        out[PRIVILEGED].update({"unstable": torch.zeros(*B, 1, dtype=torch.bool),
+                                "reward_terms": self._td({k: torch.zeros(*B) for k in TERM_NAMES})})
+        out[PRIVILEGED] = self._td(out[PRIVILEGED])
         return self._td(out)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -344,16 +356,22 @@ class TrackingEnv(EnvBase):
             readout = self.sim.readout()
         out, frame = self._observe(readout)
         err = frame["errors"]
-        reward, _ = tracking_reward(cfg.reward, **frame)
+        reward, terms = tracking_reward(cfg.reward, **frame)
         terminated = unstable
         if cfg.terminate_object_error > 0:
             terminated = terminated | (err["T_o"] > cfg.terminate_object_error)
         if cfg.terminate_palm_error > 0:
             terminated = terminated | (err["T_h"] > cfg.terminate_palm_error)
         truncated = self._t >= cfg.window - 1
+        terms["termination"] = cfg.reward.w_termination * terminated.astype(np.float32)
+        reward = reward - terms["termination"]
         t = torch.from_numpy
         out.update(reward=t(reward[:, None]), terminated=t(terminated[:, None]), truncated=t(truncated[:, None]),
-                   done=t((terminated | truncated)[:, None]), unstable=t(unstable[:, None]))
+                   done=t((terminated | truncated)[:, None]))
+        out[PRIVILEGED].update({"unstable": t(unstable[:, None]),
+                                "reward_terms": self._td({k: t(np.asarray(v, dtype=np.float32))
+                                                          for k, v in terms.items()})})
+        out[PRIVILEGED] = self._td(out[PRIVILEGED])
         return self._td(out)
 
     def _step_proc_data(self, next_tensordict: TensorDictBase) -> TensorDictBase:
@@ -412,7 +430,7 @@ class TrackingEnv(EnvBase):
             "object": td({"pose": t(object_pose), "latent": t(latent)}),
             "reference": td({"hand_joint_pos": t(ref_q), "hand_link_pose": t(ref_link), "object_pose": t(ref_obj)}),
             "observation": t(flat),
-            "errors": td({k: t(v) for k, v in errors.items()}),
+            PRIVILEGED: {"errors": td({k: t(v) for k, v in errors.items()})},
         }
         return out, frame
 

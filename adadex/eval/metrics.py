@@ -14,7 +14,7 @@ Success, two ways (:class:`Thresholds`, the paper's values by default):
               never reached count as failures), averaged over trajectories.
 
 :func:`from_rollout` reads the per-frame errors a tracking environment writes into each step's
-output (``("next", "errors", name)``) from a TorchRL rollout of batch shape ``[B, T]``, so
+output (``("next", "privileged", "errors", name)``) from a TorchRL rollout of batch shape ``[B, T]``, so
 evaluation never recomputes physics. Each row is one trajectory, up to and including its first
 ``done``; a row without frames is reported as empty and left out.
 
@@ -125,15 +125,19 @@ def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
     return out
 
 
-def from_rollout(td, *, errors_key=("next", "errors"), lengths: torch.Tensor | None = None,
+def from_rollout(td, *, errors_key=("next", "privileged", "errors"), lengths: torch.Tensor | None = None,
                  thresholds: Thresholds = Thresholds()) -> dict[str, torch.Tensor]:
-    """:func:`trajectory_metrics` of a TorchRL rollout TensorDict of batch shape ``[B, T]``.
+    """:func:`trajectory_metrics` of a TorchRL rollout TensorDict of batch shape ``[..., T]`` (time
+    last): ``[B, T]`` from one env, ``[workers, B, T]`` from a multi-process collector, … — every
+    leading index is one trajectory, in row-major order.
 
     A trajectory's frames run up to and including its first ``("next", "done")``; frames after
     it (an auto-reset next episode) are not counted.
     """
-    if td.batch_dims != 2:
-        raise ValueError(f"expected a rollout of batch shape [B, T], got {list(td.batch_size)}")
+    if td.batch_dims < 2:
+        raise ValueError(f"expected a rollout of batch shape [..., T] with time last, got {list(td.batch_size)}")
+    if td.batch_dims > 2:
+        td = td.reshape(-1, td.batch_size[-1])
     errs = td.get(errors_key)
     errors = {k: errs.get(k).reshape(td.batch_size) for k in ERROR_NAMES}
     done = td.get(("next", "done")).reshape(td.batch_size).to(torch.bool)

@@ -34,6 +34,8 @@ from torchrl.objectives.value import GAE
 from tqdm.auto import tqdm
 
 from adadex.data.reference import ReferenceDataset
+from adadex.envs.observation import ERRORS as ERRORS_KEY
+from adadex.envs.observation import REWARD_TERMS
 from adadex.envs.randomization import Randomization
 from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import ConfigError
@@ -48,7 +50,7 @@ from adadex.train.envs import TrackingEnvFactory
 from adadex.train.logs import RunLog
 
 TRACKER = "tracker.pt"
-ERRORS = ("next", "errors")
+ERRORS = ("next", *ERRORS_KEY)
 
 
 def training_references(cfg: TrainConfig, dataset: ReferenceDataset, window: int) -> list[int]:
@@ -149,7 +151,7 @@ class PPOTrainer:
         """Rollout statistics of one batch: reward, its terms, errors, frame success, episodes ended."""
         nxt = data["next"]
         out = {"reward": float(nxt["reward"].mean())}
-        errs = nxt.get(ERRORS[1])
+        errs = data.get(ERRORS)
         for k in ERROR_NAMES:
             out[k] = float(errs[k].mean())
         out["frame_success_pct"] = 100.0 * float(frame_success({k: errs[k] for k in ERROR_NAMES}).float().mean())
@@ -160,7 +162,7 @@ class PPOTrainer:
             ep = nxt["episode_reward"][done]
             if ep.numel():
                 out["episode_return"] = float(ep.mean())
-        terms = nxt.get("reward_terms", None)
+        terms = nxt.get(REWARD_TERMS, None)
         if terms is not None:
             for k in terms.keys():
                 out[f"reward_{k}"] = float(terms[k].mean())

@@ -34,9 +34,9 @@ def test_check_env_specs(dataset, B):
 def test_reset_starts_on_the_reference(env):
     td = env.reset()
     assert td["observation"].shape == (4, 273)
-    assert (td["errors", "T_h"] < 1e-5).all() and (td["errors", "E_finger"] < 1e-6).all()
-    assert (td["errors", "T_o"] <= env.config.object_lift + 1e-5).all()
-    assert not td["unstable"].any()
+    assert (td["privileged", "errors", "T_h"] < 1e-5).all() and (td["privileged", "errors", "E_finger"] < 1e-6).all()
+    assert (td["privileged", "errors", "T_o"] <= env.config.object_lift + 1e-5).all()
+    assert not td["privileged", "unstable"].any()
 
 
 def test_worlds_may_hold_different_objects(dataset):
@@ -46,15 +46,15 @@ def test_worlds_may_hold_different_objects(dataset):
     assert len(objects) > 1
     td = env.rollout(6, replay_policy(), break_when_any_done=False)
     # The hand starts far away: every object stays where its reference puts it.
-    assert (td["next", "errors", "T_o"] < 0.01).all(), td["next", "errors", "T_o"]
+    assert (td["next", "privileged", "errors", "T_o"] < 0.01).all(), td["next", "privileged", "errors", "T_o"]
     env.close()
 
 
 def test_replay_tracks_the_hand_reference(env):
     td = env.rollout(40, replay_policy(), break_when_any_done=False)
-    th = td["next", "errors", "T_h"]
+    th = td["next", "privileged", "errors", "T_h"]
     assert th.shape == (4, 40) and th.max() < 0.05, th.max()
-    assert td["next", "errors", "E_finger"].mean() < 0.05
+    assert td["next", "privileged", "errors", "E_finger"].mean() < 0.05
     assert torch.isfinite(td["next", "reward"]).all()
 
 
@@ -88,7 +88,7 @@ def test_unstable_world_is_reset_alone_and_counted(env):
     env.sim.set_models([1], [bad])
     td = env.rand_step(td)
     nxt = td["next"]
-    assert nxt["unstable"][:, 0].tolist() == [False, True, False, False]
+    assert nxt["privileged", "unstable"][:, 0].tolist() == [False, True, False, False]
     assert nxt["terminated"][:, 0].tolist()[1] is True and not nxt["terminated"][[0, 2, 3]].any()
     assert torch.isfinite(nxt["observation"]).all()
     assert env.unstable_count == 1
@@ -230,6 +230,6 @@ def test_flung_object_counts_as_unstable(dataset):
     """Object speed above max_object_speed is a solver blow-up: flagged, put back, counted."""
     env = TrackingEnv(dataset, num_worlds=3, split=None, config=TrackingConfig(max_object_speed=1e-9))
     td = env.rand_step(env.reset())["next"]     # the objects settle the 2 mm they start above the table
-    assert td["unstable"].all() and td["terminated"].all() and env.unstable_count == 3
-    assert (td["errors", "T_o"] <= env.config.object_lift + 1e-5).all()   # back at the start pose
+    assert td["privileged", "unstable"].all() and td["terminated"].all() and env.unstable_count == 3
+    assert (td["privileged", "errors", "T_o"] <= env.config.object_lift + 1e-5).all()   # back at the start pose
     env.close()

@@ -135,8 +135,8 @@ def test_from_rollout_stops_at_first_done():
     errs["T_o"][1, 1] = 5.0
     done = torch.zeros(B, T, 1, dtype=torch.bool)
     done[0, 2] = True
-    td = TensorDict({"next": {"done": done, "errors": TensorDict(
-        {k: v[..., None] for k, v in errs.items()}, batch_size=[B, T])}}, batch_size=[B, T])
+    td = TensorDict({"next": {"done": done, "privileged": {"errors": TensorDict(
+        {k: v[..., None] for k, v in errs.items()}, batch_size=[B, T])}}}, batch_size=[B, T])
     m = from_rollout(td)
     assert m["frames"].tolist() == [3, 4]
     assert m["T_o"][0].item() == 0.0 and m["T_o"][1].item() == pytest.approx(1.25)
@@ -183,3 +183,18 @@ def test_frame_errors_are_the_envs_own():
     import adadex.eval.metrics as metrics
 
     assert metrics.frame_errors is env_errors.frame_errors and metrics.ERROR_NAMES is env_errors.ERROR_NAMES
+
+
+def test_from_rollout_takes_any_leading_dims():
+    """[workers, B, T] (a multi-process collector's stack) gives the same rows as [workers·B, T]."""
+    W, B, T = 2, 3, 4
+    errs = errors_from({}, W * B, T)
+    errs["T_o"][4, 1:] = 5.0
+    done = torch.zeros(W * B, T, 1, dtype=torch.bool)
+    flat = TensorDict({"next": {"done": done, "privileged": {"errors": TensorDict(
+        {k: v[..., None] for k, v in errs.items()}, batch_size=[W * B, T])}}}, batch_size=[W * B, T])
+    stacked = from_rollout(flat.reshape(W, B, T))
+    assert stacked["completion"].tolist() == from_rollout(flat)["completion"].tolist()
+    assert stacked["completion"][4].item() == pytest.approx(0.25)
+    with pytest.raises(ValueError, match="time last"):
+        from_rollout(flat[:, 0])

@@ -113,6 +113,29 @@ def episode_references(dataset: ReferenceDataset, split: tuple[str, str] | None,
             and dataset.entries[i]["window_start"] + window <= dataset.entries[i]["length"]]
 
 
+def scene_pack(dataset, references, *, randomize: Randomization | None = None, patch=None,
+               effects=None) -> dict:
+    """Every scene a :class:`TrackingEnv` over ``references`` may compile — each object at each
+    randomization size, with the env's patch (and its structure alone, when randomizing) — as the
+    ``scenes`` argument of the env. Compiled once here, pickled cheaply into workers (0.7 ms to load
+    a scene against ~50 ms to compile one), so a worker's env starts without compiling."""
+    ds = dataset if isinstance(dataset, ReferenceDataset) else ReferenceDataset(dataset)
+    full = _as_patch(patch, effects)
+    if randomize is not None and randomize.patch is not None:
+        full = randomize.patch.updated(full)
+    patches = [full] + ([full.stage("structure")] if randomize is not None else [])
+    scales = randomize.scale_levels() if randomize is not None else np.array([1.0])
+    objects = sorted({ds.entries[int(i)]["object"] for i in references})
+    pack = {}
+    for name in objects:
+        for scale in scales:
+            for p in patches:
+                key = (name, float(scale), p.content_key())
+                if key not in pack:
+                    pack[key] = patched_scene(name, p, uniform_layout=True, object_scale=float(scale))
+    return pack
+
+
 class TrackingEnv(EnvBase):
     """See the module docstring.
 
@@ -130,6 +153,8 @@ class TrackingEnv(EnvBase):
         effects: effects applied to every world, as ``EffectInstance`` or ``(effect, joints, values)``.
         nthread: rollout threads.
         seed: seeds the reference draws.
+        scenes: compiled scenes to use instead of compiling them (:func:`scene_pack`; a collector's
+            workers get them from the main process, so they start without compiling).
         draw: ``"random"`` (each reset draws a reference at random) or ``"cycle"`` (world ``w`` takes
             the split's references ``w, w + B, w + 2B, …`` in turn: every reference once, for evaluation).
     """
@@ -140,7 +165,8 @@ class TrackingEnv(EnvBase):
                  config: TrackingConfig = TrackingConfig(),
                  latent_fn: Callable[[str], np.ndarray] = encoder_latent,
                  randomize: Randomization | None = None, patch=None, effects=None,
-                 nthread: int = 2, seed: int = 0, draw: str = "random", references=None, device="cpu"):
+                 nthread: int = 2, seed: int = 0, draw: str = "random", references=None, device="cpu",
+                 scenes: dict | None = None):
         if num_worlds < 1:
             raise ValueError(f"num_worlds must be ≥ 1, got {num_worlds}")
         if torch.device(device).type != "cpu":
@@ -163,6 +189,7 @@ class TrackingEnv(EnvBase):
         self._ranges = randomize.effect_ranges() if randomize is not None else ()
         #: The effect patch each world currently runs (the env's patch and its randomization draw).
         self.world_patches: list[ModelPatch] = [self.patch] * num_worlds
+        self._shipped = dict(scenes or {})
         self._scenes: dict[tuple[str, float], mujoco.MjModel] = {}
         self._nominal: dict[tuple[str, float], tuple[mujoco.MjModel, ModelBase]] = {}
         self._scales = randomize.scale_levels() if randomize is not None else np.array([1.0])
@@ -205,8 +232,15 @@ class TrackingEnv(EnvBase):
         kept for the env's life, so a reset never compiles twice whatever the shared cache drops."""
         key = (object_name, scale)
         if key not in self._scenes:
-            self._scenes[key] = patched_scene(object_name, self.patch, uniform_layout=True, object_scale=scale)
+            self._scenes[key] = self._compiled(object_name, scale, self.patch)
         return self._scenes[key]
+
+    def _compiled(self, object_name: str, scale: float, patch: ModelPatch) -> mujoco.MjModel:
+        """A scene from the ``scenes`` shipped to this env (see :func:`scene_pack`), else compiled."""
+        shipped = self._shipped.get((object_name, float(scale), patch.content_key()))
+        if shipped is not None:
+            return shipped
+        return patched_scene(object_name, patch, uniform_layout=True, object_scale=scale)
 
     def _randomized_scene(self, object_name: str, scale: float, rng: np.random.Generator
                           ) -> tuple[mujoco.MjModel, ModelPatch]:
@@ -214,7 +248,7 @@ class TrackingEnv(EnvBase):
         copied, its object randomized, then the env's patch with this world's draw applied by the effects."""
         key = (object_name, scale)
         if key not in self._nominal:
-            m = patched_scene(object_name, self.patch.stage("structure"), uniform_layout=True, object_scale=scale)
+            m = self._compiled(object_name, scale, self.patch.stage("structure"))
             self._nominal[key] = (m, ModelBase.of(m))
         nominal, base = self._nominal[key]
         model = self._randomizer.apply(nominal, self.randomize, rng)

@@ -8,7 +8,8 @@
   a Ray cluster (started locally unless ``ray_address`` names one), one CPU each.
 
 Every worker gets its own env factory (:meth:`TrackingEnvFactory.for_workers`): distinct seeds,
-so distinct reference draws and randomizations. Weights go to the workers with the collector's
+so distinct reference draws and randomizations; the factories carry the scenes compiled once in
+this process (:meth:`TrackingEnvFactory.with_scenes`), so a worker's start-up is its imports. Weights go to the workers with the collector's
 ``update_policy_weights_()`` after each update.
 """
 
@@ -30,11 +31,13 @@ def make_collector(factory: TrackingEnvFactory, policy, cfg: CollectorConfig, *,
                           f"(one env step of every world)")
     total = -(-total_frames // frames_per_batch) * frames_per_batch    # whole batches
     if cfg.backend == "ray":
-        return _ray_collector(factory, policy, cfg, frames_per_batch, total)
+        return _ray_collector(factory.with_scenes(), policy, cfg, frames_per_batch, total)
     if cfg.workers == 1:
-        return Collector(factory, policy, frames_per_batch=frames_per_batch, total_frames=total)
-    return MultiSyncCollector(factory.for_workers(cfg.workers), policy, frames_per_batch=frames_per_batch,
-                              total_frames=total, cat_results="stack")
+        return Collector(factory, policy, frames_per_batch=frames_per_batch, total_frames=total,
+                         auto_register_policy_transforms=False)
+    return MultiSyncCollector(factory.with_scenes().for_workers(cfg.workers), policy,
+                              frames_per_batch=frames_per_batch, total_frames=total, cat_results="stack",
+                              auto_register_policy_transforms=False)
 
 
 def _ray_collector(factory, policy, cfg: CollectorConfig, frames_per_batch: int, total: int):
@@ -47,4 +50,5 @@ def _ray_collector(factory, policy, cfg: CollectorConfig, frames_per_batch: int,
                                                                    "include_dashboard": False}
     return RayCollector(factory.for_workers(cfg.workers), policy, frames_per_batch=frames_per_batch,
                         total_frames=total, collector_class=Collector, sync=True, ray_init_config=init,
+                        collector_kwargs={"auto_register_policy_transforms": False},
                         remote_configs={"num_cpus": 1, "num_gpus": 0, "memory": 2 * 1024 ** 3})

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 from torchrl.envs import RewardSum, TransformedEnv
 
 from adadex.envs.randomization import Randomization
-from adadex.envs.tracking import TrackingConfig, TrackingEnv
+from adadex.envs.tracking import TrackingConfig, TrackingEnv, scene_pack
 
 
 @dataclass(frozen=True)
@@ -31,13 +31,22 @@ class TrackingEnvFactory:
     config: TrackingConfig = field(default_factory=TrackingConfig)
     nthread: int = 2
     patch: object = None
+    scenes: dict | None = field(default=None, repr=False, compare=False)
 
     def __call__(self) -> TransformedEnv:
         """The env, with each episode's return summed into ``("next", "episode_reward")`` for the logs."""
         env = TrackingEnv(self.dataset, num_worlds=self.num_worlds, split=None, references=list(self.references),
                           config=self.config, randomize=self.randomize, patch=self.patch, nthread=self.nthread,
-                          seed=self.seed)
+                          seed=self.seed, scenes=self.scenes)
         return TransformedEnv(env, RewardSum())
+
+    def with_scenes(self) -> TrackingEnvFactory:
+        """This factory carrying its compiled scenes (:func:`~adadex.envs.tracking.scene_pack`): compiled
+        once here, they travel to each worker with the factory, so workers start without compiling."""
+        if self.scenes is not None:
+            return self
+        return replace(self, scenes=scene_pack(self.dataset, self.references, randomize=self.randomize,
+                                               patch=self.patch))
 
     def for_workers(self, n: int) -> list[TrackingEnvFactory]:
         """One factory per worker, worker ``i`` seeded ``1000·(i + 1) + seed`` (distinct draws)."""

@@ -1,0 +1,173 @@
+"""How fast does PPO train a tracker? Frames (world-steps) per second at B = 64 worlds per env.
+
+Measured in one run, on the same dataset and references:
+
+* ``physics``: ``BatchedSim`` alone (2 MuJoCo threads), the same worlds stepping servo targets;
+* ``collection``: TorchRL ``Collector`` on ``TrackingEnv`` with the residual ``Tracker`` sampling
+  actions (what PPO collects with);
+* ``ppo``: full PPO iterations (collect + GAE + 4 epochs of minibatch updates + weight sync), the
+  trainer of ``adadex.train.ppo``;
+* ``multisync_1`` / ``multisync_2``: ``MultiSyncCollector`` with 1 and 2 worker processes, one MuJoCo
+  and one torch thread each; ``ray_1`` / ``ray_2``: the same with TorchRL's ``RayCollector`` on a
+  local Ray cluster (skipped without the ``ray`` extra);
+* worker start-up: seconds from creating a multi-worker collector to its first batch, minus one
+  batch's collection time (imports + env construction in the workers; the compiled scenes are
+  shipped from the main process).
+
+Targets: collection ≥ 0.8 × physics; PPO overall ≥ 0.5 × physics; 2 workers ≥ 1.7 × 1 worker.
+Writes ``benchmarks/results/train_throughput.json`` with ``collection_over_physics``,
+``ppo_over_physics`` and ``two_workers_over_one`` (MultiSync; ``ray_two_workers_over_one`` beside it).
+
+    python benchmarks/train_throughput.py [--dataset DIR] [--worlds 64] [--frames 16384] [--out FILE]
+
+Without ``--dataset`` the ``tiny`` preset is built into a temporary folder first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from adadex.io import atomic_write_text
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def _physics_fps(factory, steps: int) -> float:
+    """BatchedSim alone: the env's own sim, stepped with its start targets (no env work)."""
+    env = factory().base_env
+    env.reset()
+    sim, targets = env.sim, env._q_target.copy()
+    sim.step(targets)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        sim.step(targets)
+    fps = steps * env.batch_size[0] / (time.perf_counter() - t0)
+    env.close()
+    return fps
+
+
+def _collector_fps(make, frames_per_batch: int, batches: int) -> tuple[float, float]:
+    """(frames/s over ``batches`` batches after the first, start-up s: first batch minus one batch)."""
+    t0 = time.perf_counter()
+    col = make()
+    it = iter(col)
+    next(it)
+    first = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    for _ in range(batches):
+        next(it)
+    per_batch = (time.perf_counter() - t1) / batches
+    col.shutdown()
+    return frames_per_batch / per_batch, max(0.0, first - per_batch)
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--dataset", type=Path, default=None)
+    p.add_argument("--worlds", type=int, default=64)
+    p.add_argument("--frames", type=int, default=16384, help="frames per measurement")
+    p.add_argument("--out", type=Path, default=RESULTS / "train_throughput.json")
+    p.add_argument("--no-ray", action="store_true")
+    a = p.parse_args(argv)
+    torch.set_num_threads(1)
+
+    from torchrl.collectors import Collector, MultiSyncCollector
+
+    from adadex.data.build import build_dataset
+    from adadex.data.reference import ReferenceDataset
+    from adadex.envs.tracking import episode_references
+    from adadex.modules.tracker import Tracker
+    from adadex.train.config import CollectorConfig, PolicyConfig, PPOConfig, TrainConfig
+    from adadex.train.envs import TrackingEnvFactory
+    from adadex.train.ppo import PPOTrainer
+
+    with tempfile.TemporaryDirectory() as tmp:
+        dataset = a.dataset
+        if dataset is None:
+            dataset = Path(tmp) / "tiny"
+            build_dataset("tiny", dataset, seed=4, progress=False)
+        ds = ReferenceDataset(dataset)
+        refs = tuple(episode_references(ds, ("unseen_trajectory", "train")))
+        B, fpb = a.worlds, a.worlds * 64
+        batches = max(1, a.frames // fpb)
+        factory = TrackingEnvFactory(str(dataset), refs, num_worlds=B, seed=0, nthread=2)
+        policy = Tracker(hidden=(256, 256, 128), residual=0.05).actor
+        res = {"worlds": B, "frames_per_batch": fpb, "batches": batches, "references": len(refs)}
+
+        res["physics_fps"] = _physics_fps(factory, batches * 64)
+        res["collection_fps"], _ = _collector_fps(
+            lambda: Collector(factory, policy, frames_per_batch=fpb, total_frames=-1,
+                              auto_register_policy_transforms=False), fpb, batches)
+
+        cfg = TrainConfig(dataset=str(dataset), out=str(Path(tmp) / "ppo"), randomize=False, wandb=False,
+                          progress=False, eval_max_references=1, checkpoint_every=10 ** 6,
+                          ppo=PPOConfig(total_frames=fpb * (batches + 1), frames_per_batch=fpb),
+                          collector=CollectorConfig(worlds=B), policy=PolicyConfig())
+        trainer = PPOTrainer(cfg)
+        trainer.evaluate = lambda *_, **__: {}                      # time the iterations only
+        trainer.train()
+        rows = trainer_rows(Path(cfg.out) / "metrics.csv")
+        res["ppo_fps"] = float(np.median([r["fps"] for r in rows[1:]]))      # the first fits normalizers
+
+        one = factory.with_scenes()
+        w1 = TrackingEnvFactory(**{**one.__dict__, "nthread": 1})
+        for n in (1, 2):
+            res[f"multisync_{n}_fps"], res[f"multisync_{n}_startup_s"] = _collector_fps(
+                lambda n=n: MultiSyncCollector(w1.for_workers(n), policy, frames_per_batch=fpb * n, total_frames=-1,
+                                               cat_results="stack", num_sub_threads=1,
+                                               auto_register_policy_transforms=False), fpb * n, batches)
+        if not a.no_ray:
+            try:
+                import ray
+                from torchrl.collectors.distributed import RayCollector
+            except ImportError:
+                ray = None
+            if ray is not None:
+                for n in (1, 2):
+                    res[f"ray_{n}_fps"], res[f"ray_{n}_startup_s"] = _collector_fps(
+                        lambda n=n: RayCollector(w1.for_workers(n), policy, frames_per_batch=fpb * n,
+                                                 total_frames=fpb * n * (batches + 2),
+                                                 collector_class=Collector, sync=True,
+                                                 collector_kwargs={"auto_register_policy_transforms": False},
+                                                 ray_init_config={"num_cpus": 2, "include_dashboard": False},
+                                                 remote_configs={"num_cpus": 1, "num_gpus": 0, "memory": 2 * 1024 ** 3}),
+                        fpb * n, batches)
+                ray.shutdown()
+
+    res["collection_over_physics"] = res["collection_fps"] / res["physics_fps"]
+    res["ppo_over_physics"] = res["ppo_fps"] / res["physics_fps"]
+    res["two_workers_over_one"] = res["multisync_2_fps"] / res["multisync_1_fps"]
+    if "ray_2_fps" in res:
+        res["ray_two_workers_over_one"] = res["ray_2_fps"] / res["ray_1_fps"]
+    atomic_write_text(a.out, json.dumps(res, indent=1))
+    print(f"physics {res['physics_fps']:.0f} frames/s | collection {res['collection_fps']:.0f} "
+          f"({res['collection_over_physics']:.2f} × physics, target ≥ 0.8) | PPO {res['ppo_fps']:.0f} "
+          f"({res['ppo_over_physics']:.2f} ×, target ≥ 0.5)")
+    print(f"MultiSync 1 worker {res['multisync_1_fps']:.0f}, 2 workers {res['multisync_2_fps']:.0f} frames/s: "
+          f"{res['two_workers_over_one']:.2f} × (target ≥ 1.7); start-up "
+          f"{res['multisync_1_startup_s']:.1f} / {res['multisync_2_startup_s']:.1f} s")
+    if "ray_2_fps" in res:
+        print(f"Ray 1 worker {res['ray_1_fps']:.0f}, 2 workers {res['ray_2_fps']:.0f} frames/s: "
+              f"{res['ray_two_workers_over_one']:.2f} ×; start-up {res['ray_1_startup_s']:.1f} / "
+              f"{res['ray_2_startup_s']:.1f} s")
+    print(f"wrote {a.out}")
+    return res
+
+
+def trainer_rows(path: Path) -> list[dict]:
+    import csv
+
+    with path.open(newline="") as f:
+        return [{k: float(v) for k, v in r.items() if v not in ("", None)} for r in csv.DictReader(f)
+                if r.get("fps")]
+
+
+if __name__ == "__main__":
+    main()

@@ -50,12 +50,12 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset
+from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset, check_frames, check_split
 from adadex.envs.latent import encoder_latent
 from adadex.envs.observation import LATENT_DIM, OBS_DIM, REF_OFFSETS, flat_observation
 from adadex.envs.randomization import ModelRandomizer, Randomization
 from adadex.envs.reward import RewardConfig, tracking_reward
-from adadex.errors import check_numbers
+from adadex.errors import check_array, check_number, check_numbers
 from adadex.eval.metrics import ERROR_NAMES, frame_errors
 from adadex.geometry import Rotation, quat, rotation
 from adadex.sim.batched import BatchedSim
@@ -144,8 +144,7 @@ class TrackingEnv(EnvBase):
                  latent_fn: Callable[[str], np.ndarray] = encoder_latent,
                  randomize: Randomization | None = None, patch=None, effects=None,
                  nthread: int = 2, seed: int = 0, draw: str = "random", references=None, device="cpu"):
-        if num_worlds < 1:
-            raise ValueError(f"num_worlds must be ≥ 1, got {num_worlds}")
+        num_worlds = int(check_number("TrackingEnv num_worlds", num_worlds, low=1, integer=True))
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
         self.dataset = dataset if isinstance(dataset, ReferenceDataset) else ReferenceDataset(dataset)
         self.config = config
@@ -164,7 +163,8 @@ class TrackingEnv(EnvBase):
         self._action_offset = np.zeros((num_worlds, NUM_JOINTS))
         self._has_command_effects = any(e.spec.stage == "command" for e in self.patch.active().effects)
         self._servo_cmd = np.zeros((num_worlds, NUM_JOINTS))   # what the servos last received
-        self.references = self._usable(split, references)
+        self.references = self._usable(check_split(split), references)
+        check_frames(self.dataset, self.references)      # a bad frame is refused here, not turned into NaN
         # The step runs on numpy arrays (the per-frame functions it calls take numpy or torch, see
         # adadex.arrays) and hands torch views of them to TorchRL. Observations, errors and rewards
         # are float32 end to end (no per-step casts); the joint targets and start states are float64.
@@ -304,7 +304,8 @@ class TrackingEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         cfg = self.config
-        action = np.clip(tensordict.get("action").detach().cpu().numpy(), -cfg.max_action, cfg.max_action)
+        action = check_array("action", tensordict.get("action").detach().cpu().numpy(), tuple(self.action_spec.shape))
+        action = np.clip(action, -cfg.max_action, cfg.max_action)
         if self.randomize is not None:
             action = action + self._action_offset + self._rng.normal(0, self.randomize.action_noise_uncorrelated,
                                                                      action.shape)

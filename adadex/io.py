@@ -27,6 +27,7 @@ import os
 import re
 import secrets
 import shutil
+import zipfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import BinaryIO
@@ -103,16 +104,21 @@ def output_kind(path, recognize: Callable[[Path], bool] | None = None, kind: str
         return found if isinstance(found, str) else None
     except (OSError, ValueError, AttributeError):
         pass
+    return kind if _recognized(recognize, path) else None
+
+
+def _recognized(recognize: Callable[[Path], bool] | None, path: Path) -> bool:
     try:
-        return kind if recognize is not None and recognize(path) else None
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return None
+        return recognize is not None and bool(recognize(path))
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, EOFError, zipfile.BadZipFile):
+        return False
 
 
 def check_output(path, kind: str, *, force: bool = False, recognize: Callable[[Path], bool] | None = None,
                  option: str = "--force") -> Path:
     """Refuse to replace ``path`` unless it is absent, an empty folder, or an adadex ``kind`` output.
 
+    A file at ``path`` is accepted when ``recognize(path)`` says it is one (single-file outputs).
     ``force=True`` replaces anything. Raises :class:`OutputExistsError` naming the path, what is
     there and ``option`` (how to force).
     """
@@ -124,6 +130,8 @@ def check_output(path, kind: str, *, force: bool = False, recognize: Callable[[P
         if found == kind or not any(path.iterdir()):
             return path
         what = f"an adadex {found} output" if found else "a folder that is not an adadex output"
+    elif path.is_file() and _recognized(recognize, path):
+        return path                        # a single-file output of this kind (a patch, a report …)
     else:
         what = "a file" if path.is_file() else "something that is not a folder"
     raise OutputExistsError(f"{path} exists and is {what}; refusing to replace it with a {kind} "

@@ -68,6 +68,7 @@ from __future__ import annotations
 import difflib
 import json
 import unicodedata
+import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -528,7 +529,7 @@ class Recording:
             archive = np.load(path, allow_pickle=False)
         except (FileNotFoundError, IsADirectoryError, PermissionError):
             raise
-        except (OSError, ValueError, EOFError) as e:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
             raise RecordingFileError(f"{path}: not a readable .npz recording ({e})") from None
         if not isinstance(archive, np.lib.npyio.NpzFile):
             raise RecordingFileError(f"{path}: not a .npz archive (a single .npy array?); a recording is an .npz")
@@ -547,7 +548,7 @@ class Recording:
             for k in sorted(keys):
                 try:
                     fields[k] = archive[k]
-                except (ValueError, OSError, EOFError) as e:
+                except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:   # truncated archives fail here
                     raise RecordingFileError(f"{path}: key {k!r} cannot be read ({e})") from None
         for k in ("joint_names", "sequence_labels"):
             if k in fields:

@@ -6,6 +6,10 @@
 ``adadex sysid …``             model vs measurement: excite, simulate, compare, diagnose, fit, report, demo
 ``adadex encoder …``           point-cloud encoder (object latent): train, eval
 ``adadex demo``                a short simulation demo (settle objects, grasp and lift a cube)
+
+Errors in what you give (a missing or bad file, a bad value, an --out that holds something else)
+are one line on stderr and exit code 2; anything else is a bug in adadex: one line and exit code 1.
+``adadex --debug …`` shows the full traceback instead.
 """
 
 from __future__ import annotations
@@ -93,6 +97,7 @@ def _cmd_demo(args) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="adadex", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--debug", action="store_true", help="show the full traceback of any error")
     sub = p.add_subparsers(dest="command", required=True)
 
     sim = sub.add_parser("sim", help="robot, scene and simulator")
@@ -120,8 +125,28 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Errors in the user's input: one line, exit code 2 (FileNotFoundError & co. are missing or unusable paths).
+INPUT_ERRORS = (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, FileExistsError)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    try:
+        return _dispatch(args)
+    except Exception as e:
+        from adadex.errors import AdadexError
+
+        if args.debug:
+            raise
+        if isinstance(e, (AdadexError, *INPUT_ERRORS)):
+            print(f"adadex {args.command}: error: {e}", file=sys.stderr)
+            return 2
+        print(f"adadex {args.command}: internal error (a bug in adadex, please report it): "
+              f"{type(e).__name__}: {e}; run `adadex --debug …` for the traceback", file=sys.stderr)
+        return 1
+
+
+def _dispatch(args) -> int:
     if args.command == "sysid":
         from adadex.sysid.cli import run
 

@@ -31,6 +31,10 @@ class ConfigError(AdadexError, ValueError):
     """A configuration value is out of range or of the wrong type."""
 
 
+class ArrayError(AdadexError, ValueError):
+    """An input array (an action, say) has the wrong shape or non-finite values."""
+
+
 def check_number(name: str, value, *, low: float = 0.0, high: float = math.inf, integer: bool = False,
                  strict_low: bool = False):
     """Return ``value`` if it is a finite real number in ``[low, high]`` (``(low, high]`` with
@@ -59,3 +63,27 @@ def check_numbers(owner: str, obj, names) -> None:
     """:func:`check_number` on ``obj.<name>`` for each name, errors naming ``owner.<name>``."""
     for k in names:
         check_number(f"{owner}.{k}", getattr(obj, k))
+
+
+def check_array(name: str, value, shape: tuple[int, ...]):
+    """Return ``value`` (a numpy array) if it has ``shape`` and only finite values; raise
+    :class:`ArrayError` naming ``name``, the expected and the actual shape, or the first bad index.
+
+    >>> import numpy as np
+    >>> check_array("action", np.zeros((2, 3)), (2, 3)).shape
+    (2, 3)
+    >>> check_array("action", np.zeros((2, 4)), (2, 3))
+    Traceback (most recent call last):
+    ...
+    adadex.errors.ArrayError: action: expected shape (2, 3), got (2, 4)
+    """
+    import numpy as np
+
+    got = tuple(getattr(value, "shape", ()))
+    if got != tuple(shape):
+        raise ArrayError(f"{name}: expected shape {tuple(shape)}, got {got}")
+    bad = ~np.isfinite(value)
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ArrayError(f"{name}: non-finite value {value[idx]} at index {idx}")
+    return value

@@ -4,18 +4,21 @@
     python recipes/evaluate.py tracker=t.pt modulator=m.pt channels=R+O+T
     python recipes/evaluate.py -m channels=none,R,R+T,R+O+T modulator=untrained   # an ablation
 
-Writes ``result.json`` (config, summary, per-reference results) to ``out``.
+Writes ``result.json`` (config, summary, per-reference results) to ``out``. A missing checkpoint or
+dataset, or a bad setting, is one line on stderr and exit code 2 (no traceback).
 """
 
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from adadex.errors import AdadexError, ConfigError
 from adadex.envs.replay import replay_policy
 from adadex.envs.randomization import Randomization
 from adadex.eval.evaluate import evaluate, format_summary
@@ -38,21 +41,36 @@ def _dataset(cfg) -> Path:
     return path
 
 
+def _checkpoint(path, key: str) -> str:
+    """``path`` if it is a file: a mistyped checkpoint is one clear line, not a traceback from torch.load."""
+    if not Path(str(path)).is_file():
+        raise FileNotFoundError(f"{key}={path}: no such checkpoint file")
+    return str(path)
+
+
 def _modules(cfg):
-    tracker = replay_policy() if cfg.tracker == "replay" else Tracker.load(cfg.tracker)
+    tracker = replay_policy() if cfg.tracker == "replay" else Tracker.load(_checkpoint(cfg.tracker, "tracker"))
     channels = parse_channels(cfg.channels)
     if not channels:
         return tracker, None
     if cfg.modulator is None:
-        raise ValueError(f"channels={cfg.channels} needs a modulator (a checkpoint, or 'untrained')")
+        raise ConfigError(f"channels={cfg.channels} needs a modulator (a checkpoint, or 'untrained')")
     if cfg.modulator == "untrained":
         torch.manual_seed(int(cfg.seed))
         return tracker, Modulator(channels)
-    return tracker, Modulator.load(cfg.modulator)
+    return tracker, Modulator.load(_checkpoint(cfg.modulator, "modulator"))
 
 
 @hydra.main(config_path=".", config_name="evaluate", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
+    try:
+        return _evaluate(cfg)
+    except (AdadexError, FileNotFoundError) as e:     # input errors; anything else keeps its traceback
+        print(f"recipes/evaluate.py: error: {e}", file=sys.stderr)
+        sys.exit(2)
+
+
+def _evaluate(cfg: DictConfig) -> dict:
     dataset = _dataset(cfg)
     tracker, modulator = _modules(cfg)
     policy = make_policy(tracker, modulator, channels=cfg.channels,

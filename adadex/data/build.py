@@ -34,9 +34,10 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from adadex.data import feasibility
-from adadex.data.reference import Reference, save_dataset
+from adadex.data.reference import Reference, is_dataset, save_dataset
 from adadex.data.retarget import Retargeter
 from adadex.data.synth import VERBS, HumanMotion, NoiseConfig, Synthesizer, make_instruction
+from adadex.io import check_output
 from adadex.sim.objects import OBJECT_NAMES, held_out_objects
 
 
@@ -164,8 +165,11 @@ def make_splits(refs: list[Reference], seed: int, test_fraction: float = 0.2) ->
 
 def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfig = NoiseConfig(),
                   config: feasibility.FeasibilityConfig = feasibility.FeasibilityConfig(),
-                  progress: bool = True, limit: int | None = None) -> BuildReport:
+                  progress: bool = True, limit: int | None = None, force: bool = False) -> BuildReport:
     """Build ``preset`` into the dataset folder ``out`` (written atomically); returns a :class:`BuildReport`.
+
+    An existing dataset at ``out`` is replaced; anything else there is refused unless ``force``
+    (see :func:`~adadex.data.reference.save_dataset`), checked before the build starts.
 
     ``limit`` caps the number of base instructions (for quick looks at a large preset).
     """
@@ -173,6 +177,7 @@ def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfi
         if preset not in PRESETS:
             raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
         preset = PRESETS[preset]
+    check_output(out, "dataset", force=force, recognize=is_dataset, option="force=True (--force on the command line)")
     report = BuildReport(preset.name, seed)
     t0 = time.perf_counter()
     synth = Synthesizer(noise)
@@ -200,6 +205,6 @@ def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfi
     splits = make_splits(refs, seed)
     info = {"preset": preset.name, "seed": seed, "noise": asdict(noise), "feasibility": asdict(config),
             "report": report.as_dict()}
-    report.path = str(save_dataset(refs, Path(out), splits=splits, info=info))
+    report.path = str(save_dataset(refs, Path(out), splits=splits, info=info, force=force))
     report.seconds["save"] = time.perf_counter() - t0
     return report

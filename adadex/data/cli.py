@@ -1,9 +1,12 @@
 """``adadex data …``: build, inspect and import reference datasets.
 
-    adadex data build  --preset tiny|small|paper --out DIR [--seed N] [--clean] [--limit N]
+    adadex data build  --preset tiny|small|paper --out DIR [--seed N] [--clean] [--limit N] [--force]
     adadex data info   DIR                      counts per verb, object, split; rejection reasons
     adadex data show   DIR --index I --out ref.png [--no-render]
-    adadex data import FILE.npz [FILE.npz …] --object NAME --out DIR
+    adadex data import FILE.npz [FILE.npz …] --object NAME --out DIR [--force]
+
+``--out DIR`` replaces an existing dataset there, as one unit once the new one is complete; a
+folder of other files or a file at DIR is refused unless ``--force``.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ def _cmd_build(a) -> int:
     print(f"building preset {p.name!r}: {n} base instructions × {p.paraphrases} paraphrases on "
           f"{len(p.objects)} objects (seed {a.seed}) → {a.out}")
     report = build_dataset(a.preset, a.out, seed=a.seed, noise=NoiseConfig.clean() if a.clean else NoiseConfig(),
-                           limit=a.limit, progress=not a.quiet)
+                           limit=a.limit, progress=not a.quiet, force=a.force)
     print(report.summary())
     print(f"wrote {report.path}; see `adadex data info {report.path}`")
     return 0
@@ -72,8 +75,11 @@ def _cmd_show(a) -> int:
 def _cmd_import(a) -> int:
     from adadex.data.hoi_import import ImportRejected, import_npz
     from adadex.data.reference import save_dataset
+    from adadex.data.reference import is_dataset
     from adadex.data.retarget import Retargeter
+    from adadex.io import check_output
 
+    check_output(a.out, "dataset", force=a.force, recognize=is_dataset)   # before the slow part
     rt = Retargeter()
     refs, rejected = [], []
     for i, f in enumerate(a.files):
@@ -85,7 +91,8 @@ def _cmd_import(a) -> int:
             print(f"rejected {f}: {e.rejection.reason}: {e.rejection.detail}")
     if not refs:
         raise ValueError("no file passed the feasibility filter; nothing written")
-    path = save_dataset(refs, a.out, info={"imported": [str(f) for f in a.files], "rejections": rejected})
+    path = save_dataset(refs, a.out, info={"imported": [str(f) for f in a.files], "rejections": rejected},
+                        force=a.force)
     print(f"wrote {path}: {len(refs)} references ({len(rejected)} rejected)")
     return 0
 
@@ -99,7 +106,8 @@ def add_parser(sub) -> None:
     b = dsub.add_parser("build", help="synthesize, retarget, filter and split a reference dataset")
     b.add_argument("--preset", choices=sorted(PRESETS), default="tiny",
                    help="; ".join(f"{k}: {v.description}" for k, v in PRESETS.items()))
-    b.add_argument("--out", required=True, help="dataset folder to write (replaced atomically)")
+    b.add_argument("--out", required=True, help="dataset folder to write (an existing dataset is replaced atomically)")
+    b.add_argument("--force", action="store_true", help="replace --out even if it is not a dataset")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--clean", action="store_true", help="no synthesis noise (for debugging)")
     b.add_argument("--limit", type=int, default=None, help="use only the first N base instructions")
@@ -120,17 +128,21 @@ def add_parser(sub) -> None:
     m.add_argument("files", nargs="+", type=Path)
     m.add_argument("--object", default=None, help="object name (if the files do not say)")
     m.add_argument("--instruction", default=None)
-    m.add_argument("--out", required=True)
+    m.add_argument("--out", required=True, help="dataset folder to write (an existing dataset is replaced atomically)")
+    m.add_argument("--force", action="store_true", help="replace --out even if it is not a dataset")
     m.set_defaults(func=_cmd_import)
 
 
 def run(args) -> int:
     """Run a data subcommand, turning user errors into one-line messages."""
+    from adadex.errors import AdadexError
     from adadex.sim.objects import UnknownObjectError
 
     try:
         return args.func(args)
-    except (ValueError, KeyError, IndexError, FileExistsError, UnknownObjectError) as e:
+    except (AdadexError, ValueError, KeyError, IndexError, FileExistsError, FileNotFoundError, UnknownObjectError) as e:
+        if getattr(args, "debug", False):
+            raise
         msg = e.args[0] if isinstance(e, KeyError) and e.args else e
         print(f"adadex data {args.data_command}: error: {msg}", file=sys.stderr)
         return 2

@@ -23,6 +23,7 @@ Example::
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -79,16 +80,25 @@ def import_npz(path, *, object_name: str | None = None, instruction: str | None 
     the motion is not feasible for the robot.
     """
     path = Path(path)
+    if path.is_dir():
+        raise ReferenceError(f"{path}: a folder, expected an .npz file")
     try:
         data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise ReferenceError(f"{path}: cannot read as .npz ({e})") from None
-    with data:
-        kp = np.asarray(_field(data, "keypoints", path), dtype=np.float64)
-        obj = np.asarray(_field(data, "object_pose", path), dtype=np.float64)
-        fps = float(_field(data, "fps", path, CONTROL_HZ))
-        object_name = object_name or str(_field(data, "object_name", path, ""))
-        instruction = instruction or str(_field(data, "instruction", path, path.stem))
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise ValueError("a single .npy array, not an .npz archive")
+        with data:
+            kp = np.asarray(_field(data, "keypoints", path), dtype=np.float64)
+            obj = np.asarray(_field(data, "object_pose", path), dtype=np.float64)
+            fps = float(_field(data, "fps", path, CONTROL_HZ))
+            object_name = object_name or str(_field(data, "object_name", path, ""))
+            instruction = instruction or str(_field(data, "instruction", path, path.stem))
+    except FileNotFoundError:
+        raise
+    except ReferenceError:
+        raise
+    except (OSError, ValueError, TypeError, EOFError, zipfile.BadZipFile) as e:
+        # a truncated or corrupt archive fails on opening or only when a key is read
+        raise ReferenceError(f"{path}: cannot read as .npz ({type(e).__name__}: {e})") from None
     if not object_name:
         raise ReferenceError(f"{path}: no object_name in the file; pass object_name=")
     if kp.ndim == 4:

@@ -68,6 +68,7 @@ from __future__ import annotations
 import difflib
 import json
 import unicodedata
+import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -92,7 +93,7 @@ from adadex.io import atomic_write
 from adadex.sim.robot import HOME_QPOS, JOINT_NAMES, NUM_JOINTS, joint_index, joint_limits
 
 __all__ = ["Recording", "load_recording", "from_csv", "to_csv", "csv_file_name", "LIMIT_TOLERANCE",
-           "TIME_RELATIVE_TOLERANCE", "REQUIRED_KEYS", "OPTIONAL_KEYS", "RecordingError", "RecordingShapeError",
+           "TIME_RELATIVE_TOLERANCE", "SAMPLE_PERIOD_RANGE", "INITIAL_QPOS_TOLERANCE", "REQUIRED_KEYS", "OPTIONAL_KEYS", "RecordingError", "RecordingShapeError",
            "NonFiniteValueError", "TimeAxisError", "JointNameError", "UnknownJointNameError", "CommandLimitError",
            "RecordingFileError"]
 
@@ -100,6 +101,11 @@ __all__ = ["Recording", "load_recording", "from_csv", "to_csv", "csv_file_name",
 LIMIT_TOLERANCE = 1e-6
 #: Samples may deviate from uniform spacing by this fraction of ``dt``.
 TIME_RELATIVE_TOLERANCE = 1e-6
+#: Plausible sample periods (s), inclusive; outside them ``time`` is almost surely not in seconds (a
+#: period of 16.7 is milliseconds). Assign another pair here to accept unusual data.
+SAMPLE_PERIOD_RANGE = (1e-4, 1.0)
+#: ``initial_qpos`` may exceed the joint limits by this much (rad): it is often a measured sample.
+INITIAL_QPOS_TOLERANCE = 0.02
 
 REQUIRED_KEYS = ("time", "joint_names", "command", "joint_pos")
 OPTIONAL_KEYS = ("joint_vel", "sequence_labels", "initial_qpos", "meta")
@@ -215,6 +221,7 @@ class Recording:
         self._check_limits()
         if self.initial_qpos is not None:
             self._check_finite_qpos()
+            self._check_qpos_limits()
 
     def _where(self, s: int) -> str:
         if self.sequence_labels:
@@ -293,6 +300,13 @@ class Recording:
                 f"time: non-uniform spacing at time index {k}: time[{k}] - time[{k - 1}] = {float(d[k - 1])!r} s, "
                 f"but the typical spacing is dt = {step!r} s (relative tolerance {TIME_RELATIVE_TOLERANCE:g}); "
                 f"{bad.size} intervals differ in total")
+        lo, hi = SAMPLE_PERIOD_RANGE
+        if not lo * (1 - 1e-9) <= step <= hi * (1 + 1e-9):
+            guess = "milliseconds" if 1e-3 * step <= hi and step > hi else "another unit"
+            raise TimeAxisError(
+                f"time: sample period dt = {step:g} s is outside the plausible range [{lo:g}, {hi:g}] s; "
+                f"time must be in seconds — is it in {guess}? (the range is "
+                f"adadex.data.recording.SAMPLE_PERIOD_RANGE)")
 
     def _check_finite(self, name: str, arr: np.ndarray) -> None:
         bad = ~np.isfinite(arr)
@@ -329,6 +343,20 @@ class Recording:
             raise NonFiniteValueError(
                 f"initial_qpos: non-finite value {self.initial_qpos[s, j]} in {self._where(s)} "
                 f"for joint {JOINT_NAMES[j]!r}")
+
+    def _check_qpos_limits(self) -> None:
+        """The simulator starts each sequence at ``initial_qpos``: outside the limits it is unstable."""
+        lim = joint_limits()
+        over = np.maximum(lim[:, 0] - self.initial_qpos, self.initial_qpos - lim[:, 1]) > INITIAL_QPOS_TOLERANCE
+        # A recorded joint may start where it was measured (measurements are not limit-checked).
+        idx = self.joint_indices
+        over[:, idx] &= self.initial_qpos[:, idx] != self.joint_pos[:, 0, :]
+        if over.any():
+            s, j = (int(i) for i in np.argwhere(over)[0])
+            raise CommandLimitError(
+                f"initial_qpos: {float(self.initial_qpos[s, j])!r} rad for joint {JOINT_NAMES[j]!r} in "
+                f"{self._where(s)} is outside the joint's limits [{lim[j, 0]:g}, {lim[j, 1]:g}] rad "
+                f"(tolerance {INITIAL_QPOS_TOLERANCE:g} rad); the simulator cannot start there")
 
     # ------------------------------------------------------------------ views
 
@@ -501,7 +529,7 @@ class Recording:
             archive = np.load(path, allow_pickle=False)
         except (FileNotFoundError, IsADirectoryError, PermissionError):
             raise
-        except (OSError, ValueError, EOFError) as e:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
             raise RecordingFileError(f"{path}: not a readable .npz recording ({e})") from None
         if not isinstance(archive, np.lib.npyio.NpzFile):
             raise RecordingFileError(f"{path}: not a .npz archive (a single .npy array?); a recording is an .npz")
@@ -520,7 +548,7 @@ class Recording:
             for k in sorted(keys):
                 try:
                     fields[k] = archive[k]
-                except (ValueError, OSError, EOFError) as e:
+                except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:   # truncated archives fail here
                     raise RecordingFileError(f"{path}: key {k!r} cannot be read ({e})") from None
         for k in ("joint_names", "sequence_labels"):
             if k in fields:

@@ -47,9 +47,6 @@ from __future__ import annotations
 import json
 import numbers
 import operator
-import os
-import secrets
-import shutil
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -57,7 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from adadex.errors import AdadexError
-from adadex.io import atomic_write_text
+from adadex.io import OutputExistsError, atomic_write_text, output_folder
 from adadex.sim.objects import REGISTRY, UnknownObjectError
 from adadex.sim.robot import JOINT_NAMES, NUM_JOINTS, TRACKED_SITES, joint_limits
 from adadex.sim.scene import CONTROL_HZ
@@ -331,19 +328,31 @@ def check_splits(splits: dict, n: int) -> dict:
     return out
 
 
+def is_dataset(path) -> bool:
+    """True if ``path`` is a folder holding an adadex reference dataset (its ``index.json``)."""
+    path = Path(path)
+    try:
+        index = json.loads((path / "index.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(index, dict) and "version" in index and "references" in index and (path / "frames").is_dir()
+
+
 def save_dataset(refs: Sequence[Reference], path, *, splits: dict | None = None,
-                 info: dict | None = None, overwrite: bool = True) -> Path:
+                 info: dict | None = None, overwrite: bool = True, force: bool = False) -> Path:
     """Write ``refs`` as a dataset folder at ``path``, atomically (see the module docstring).
 
-    The folder is built beside ``path`` and renamed into place; an existing dataset there is
-    replaced only after the new one is complete (``overwrite=False`` refuses instead). ``info`` is
-    stored in ``index.json`` (build parameters, rejection statistics …).
+    The folder is built beside ``path`` and renamed into place (:func:`adadex.io.output_folder`);
+    an existing dataset there is replaced only after the new one is complete (``overwrite=False``
+    refuses instead). Anything else at ``path`` — a folder of other files, a file — is refused
+    with :class:`~adadex.io.OutputExistsError` unless ``force=True``. ``info`` is stored in
+    ``index.json`` (build parameters, rejection statistics …).
     """
     path = Path(path)
     if not refs:
         raise DatasetError(f"{path}: refusing to write an empty dataset")
     if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists (pass overwrite=True to replace it)")
+        raise OutputExistsError(f"{path} exists (pass overwrite=True to replace it)")
     names = [r.name or f"ref{i:05d}" for i, r in enumerate(refs)]  # as _index_entry names them
     if len(set(names)) != len(names):
         dup = sorted({n for n in names if names.count(n) > 1})
@@ -356,27 +365,11 @@ def save_dataset(refs: Sequence[Reference], path, *, splits: dict | None = None,
     index = {"version": FORMAT_VERSION, "num_references": len(refs), "num_frames": offset,
              "window_frames": WINDOW_FRAMES, "info": info or {}, "references": entries}
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
-    try:
-        tmp.mkdir()
+    with output_folder(path, "dataset", force=force, recognize=is_dataset, marker=False,
+                       option="force=True (--force on the command line)") as tmp:
         _frames_tensordict(refs).memmap(str(tmp / "frames"))
         atomic_write_text(tmp / "splits.json", json.dumps(splits, indent=1))
         atomic_write_text(tmp / "index.json", json.dumps(index, indent=1, default=_json_default))
-        if path.exists():
-            old = path.parent / f".{path.name}.{secrets.token_hex(6)}.old"
-            os.replace(path, old)
-            try:
-                os.replace(tmp, path)
-            except BaseException:
-                os.replace(old, path)
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return path
 
 
@@ -428,15 +421,12 @@ class ReferenceDataset(Sequence):
 
     @property
     def frames(self):
-        if self._frames is None:
-            from tensordict import TensorDict
-
-            frames = TensorDict.load_memmap(str(self.path / "frames"))
-            if frames.batch_size[0] != self.num_frames:  # checked before caching, so every access fails
-                raise DatasetError(f"{self.path}: index.json counts {self.num_frames} frames, "
-                                   f"frames/ holds {frames.batch_size[0]}")
-            self._frames = frames
+        if self._frames is None:   # checked before caching, so every access fails
+            self._frames = _open_frames(self.path, self.num_frames)
         return self._frames
+
+    def __getstate__(self):        # the frames map the files again in another process
+        return {**self.__dict__, "_frames": None}
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -447,7 +437,9 @@ class ReferenceDataset(Sequence):
         n = len(self)
         if not -n <= i < n:
             raise IndexError(f"reference index {i} out of range for a dataset of {n}")
-        e = self.entries[i % n]
+        i = operator.index(i) % n
+        check_frames(self, [i])
+        e = self.entries[i]
         sl = self.frames[e["offset"]: e["offset"] + e["length"]]
         arr = {k: sl[k].numpy().astype(np.float64) for k in _FRAME_FIELDS}
         return Reference(
@@ -481,3 +473,118 @@ def _renormalized(pose: np.ndarray) -> np.ndarray:
     q = out[..., 3:]
     out[..., 3:] = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return out
+
+
+#: Trailing shape of each frame field, as stored (float32).
+_FRAME_TAILS = {"hand_joint_pos": (NUM_JOINTS,), "hand_link_pose": (len(TRACKED_SITES), 7), "object_pose": (7,),
+                "human_keypoints": (NUM_KEYPOINTS, 3), "retarget_residual": ()}
+
+
+def _open_frames(path: Path, num_frames: int):
+    """The frames of the dataset at ``path`` as a TensorDict of read-only (copy-on-write) memory maps.
+
+    Every file is checked against ``index.json``'s frame count before it is mapped, so a truncated or
+    missing file is an error naming it (a writable map would silently grow it back with zeros).
+    """
+    import torch
+    from tensordict import TensorDict
+
+    folder = path / "frames"
+    meta_file = folder / "meta.json"
+    try:
+        meta = json.loads(meta_file.read_text(encoding="utf-8"))
+        stored = int(meta["shape"][0])
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as e:
+        raise DatasetError(f"{meta_file}: missing or unreadable ({type(e).__name__}: {e}); "
+                           f"the dataset is incomplete, rebuild it") from None
+    if stored != num_frames:
+        raise DatasetError(f"{path}: index.json counts {num_frames} frames, frames/ holds {stored}")
+    arrays = {}
+    for key, tail in _FRAME_TAILS.items():
+        f = folder / f"{key}.memmap"
+        want = num_frames * int(np.prod(tail, dtype=np.int64)) * 4
+        try:
+            size = f.stat().st_size
+        except OSError:
+            raise DatasetError(f"{f}: missing; the dataset is incomplete, rebuild it") from None
+        if size != want:
+            raise DatasetError(f"{f}: {size} bytes, expected {want} ({num_frames} frames of {key} as float32); "
+                               f"the file is truncated or damaged, rebuild the dataset")
+        arr = np.memmap(f, dtype=np.float32, mode="c", shape=(num_frames, *tail)) if want else \
+            np.zeros((num_frames, *tail), np.float32)
+        arrays[key] = torch.from_numpy(arr)
+    return TensorDict(arrays, batch_size=[num_frames])
+
+
+def check_split(split) -> tuple[str, str] | None:
+    """``split`` as a ``(name, part)`` pair (or ``None``: all references); anything else is a
+    :class:`DatasetError` — a plain string such as ``"unseen_trajectory"`` would be unpacked letter
+    by letter otherwise.
+
+    >>> check_split(["unseen_object", "test"])
+    ('unseen_object', 'test')
+    """
+    if split is None:
+        return None
+    if not isinstance(split, (str, bytes)):
+        try:
+            pair = tuple(split)
+        except TypeError:
+            pair = ()
+        if len(pair) == 2 and all(isinstance(x, str) for x in pair):
+            return pair
+    raise DatasetError(f"split: expected (name, part) such as ('unseen_trajectory', 'train'), or None for all "
+                       f"references; got {split!r}")
+
+
+def check_frames(dataset: ReferenceDataset, indices) -> None:
+    """Check every stored frame of references ``indices`` of ``dataset`` at once: finite values, unit
+    quaternions (within :data:`QUAT_NORM_TOLERANCE`, plus float32 rounding) and joints within their limits
+    (plus :data:`JOINT_LIMIT_TOLERANCE`). The one check used by ``dataset[i]`` and by the tracking
+    environment; raises the :class:`ReferenceError` subclass of the first problem, naming the dataset,
+    the reference (index and name) and the frame within it.
+    """
+    entries = dataset.entries
+    idx = np.asarray(sorted({int(i) for i in indices}), dtype=np.int64)
+    if idx.size == 0:
+        return
+    starts = np.array([entries[i]["offset"] for i in idx], dtype=np.int64)
+    lengths = np.array([entries[i]["length"] for i in idx], dtype=np.int64)
+    owner = np.repeat(np.arange(idx.size), lengths)               # position in idx of each frame
+    rows = np.repeat(starts - np.cumsum(lengths) + lengths, lengths) + np.arange(int(lengths.sum()))
+    frames = dataset.frames
+    whole = rows.size == frames.batch_size[0] and np.array_equal(rows, np.arange(rows.size))
+
+    def get(key):
+        a = frames[key].numpy()
+        return a if whole else a[rows]
+
+    def where(k: int) -> str:
+        r = int(idx[owner[k]])
+        return f"{dataset.path}: reference {r} ({entries[r]['name']!r}), frame {int(rows[k] - starts[owner[k]])}"
+
+    q, link, obj = get("hand_joint_pos"), get("hand_link_pose"), get("object_pose")
+    for name, a in (("hand_joint_pos", q), ("hand_link_pose", link), ("object_pose", obj)):
+        bad = ~np.isfinite(a.reshape(len(a), -1)).all(axis=1)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise ReferenceValueError(f"{where(k)}: {name}: non-finite value "
+                                      f"{a[k].ravel()[~np.isfinite(a[k].ravel())][0]}")
+    tol = QUAT_NORM_TOLERANCE + 1e-5          # stored as float32
+    for name, quats in (("hand_link_pose", link[..., 3:]), ("object_pose", obj[:, 3:])):
+        err = np.abs(np.linalg.norm(quats.astype(np.float64), axis=-1) - 1.0).reshape(len(quats), -1).max(axis=1)
+        if (err > tol).any():
+            k = int(np.argmax(err > tol))
+            norm = np.linalg.norm(quats[k].astype(np.float64), axis=-1).ravel()
+            worst = norm[int(np.argmax(np.abs(norm - 1)))]
+            raise QuaternionNormError(f"{where(k)}: {name}: quaternion norm {worst:.6f}, "
+                                      f"expected 1 ± {QUAT_NORM_TOLERANCE}")
+    lim = joint_limits()
+    over = np.maximum(lim[:, 0] - q, q - lim[:, 1])
+    bad = (over > JOINT_LIMIT_TOLERANCE).any(axis=1)
+    if bad.any():
+        k = int(np.argmax(bad))
+        j = int(np.argmax(over[k]))
+        raise JointLimitError(f"{where(k)}: joint {JOINT_NAMES[j]} is {q[k, j]:+.4f} rad, outside "
+                              f"[{lim[j, 0]:+.4f}, {lim[j, 1]:+.4f}] by {over[k, j]:.4f} "
+                              f"(tolerance {JOINT_LIMIT_TOLERANCE})")

@@ -60,17 +60,17 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset
+from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset, check_frames, check_split
+from adadex.envs.frame_errors import ERROR_NAMES, frame_errors
 from adadex.envs.latent import encoder_latent
 from adadex.envs.observation import LATENT_DIM, OBS_DIM, PRIVILEGED, REF_OFFSETS, flat_observation
 from adadex.envs.randomization import ModelRandomizer, Randomization
 from adadex.envs.reward import TERM_NAMES, RewardConfig, tracking_reward
-from adadex.errors import ConfigError, check_numbers
-from adadex.envs.frame_errors import ERROR_NAMES, frame_errors
+from adadex.errors import ConfigError, check_array, check_number, check_numbers
 from adadex.geometry import Rotation, quat, rotation
 from adadex.sim.batched import BatchedSim
-from adadex.sim.objects import get_object
 from adadex.sim.effects import ModelBase
+from adadex.sim.objects import get_object
 from adadex.sim.patch import EffectInstance, ModelPatch, patched_scene
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES, joint_limits
 from adadex.sim.scene import CONTROL_HZ, OBJECT_QPOS
@@ -167,8 +167,7 @@ class TrackingEnv(EnvBase):
                  randomize: Randomization | None = None, patch=None, effects=None,
                  nthread: int = 2, seed: int = 0, draw: str = "random", references=None, device="cpu",
                  scenes: dict | None = None):
-        if num_worlds < 1:
-            raise ValueError(f"num_worlds must be ≥ 1, got {num_worlds}")
+        num_worlds = int(check_number("TrackingEnv num_worlds", num_worlds, low=1, integer=True))
         if torch.device(device).type != "cpu":
             raise ConfigError(f"TrackingEnv(device={device!r}): the env runs on the CPU (MuJoCo physics) and hands "
                               f"out CPU tensors; keep it there and put the policy on another device through the "
@@ -197,7 +196,8 @@ class TrackingEnv(EnvBase):
         self._action_offset = np.zeros((num_worlds, NUM_JOINTS))
         self._has_command_effects = any(e.spec.stage == "command" for e in self.patch.active().effects)
         self._servo_cmd = np.zeros((num_worlds, NUM_JOINTS))   # what the servos last received
-        self.references = self._usable(split, references)
+        self.references = self._usable(check_split(split), references)
+        check_frames(self.dataset, self.references)      # a bad frame is refused here, not turned into NaN
         # The step runs on numpy arrays (the per-frame functions it calls take numpy or torch, see
         # adadex.arrays) and hands torch views of them to TorchRL. Observations, errors and rewards
         # are float32 end to end (no per-step casts); the joint targets and start states are float64.
@@ -372,7 +372,8 @@ class TrackingEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         cfg = self.config
-        action = np.clip(tensordict.get("action").detach().cpu().numpy(), -cfg.max_action, cfg.max_action)
+        action = check_array("action", tensordict.get("action").detach().cpu().numpy(), tuple(self.action_spec.shape))
+        action = np.clip(action, -cfg.max_action, cfg.max_action)
         if self.randomize is not None:
             action = action + self._action_offset + self._rng.normal(0, self.randomize.action_noise_uncorrelated,
                                                                      action.shape)

@@ -7,6 +7,10 @@
     adadex sysid fit      rec.npz --add coulomb_friction:if_pip,if_dip --out patch.json   (or --accept D)
     adadex sysid report   rec.npz --patch patch.json [--diagnosis D] --out report.html
     adadex sysid demo     [--out DIR]    the whole loop on assets/recordings/demo.npz
+
+Output folders (compare, diagnose) are written as one unit and replace only an earlier output of the
+same command; an existing --out that is something else (your files, another kind of output) is
+refused unless --force, checked before any work starts.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from adadex.errors import AdadexError
+from adadex.io import check_output, output_folder
 from adadex.resources import asset
 from adadex.sim.effects import EFFECT_NAMES, EffectError
 from adadex.sim.patch import ModelPatch, PatchError
@@ -38,7 +43,43 @@ def _load_rec(path):
 
 
 def _load_patch(path) -> ModelPatch:
-    return ModelPatch.load(path) if path else ModelPatch()
+    if not path:
+        return ModelPatch()
+    try:
+        return ModelPatch.load(path)
+    except PatchError:
+        raise
+    except (OSError, ValueError, TypeError) as e:    # a folder, bad UTF-8, a value that is not a number
+        raise CliError(f"{path}: not a readable model patch ({type(e).__name__}: {e})") from None
+
+
+def _is_file_of(*keys: str):
+    """A recognizer of adadex outputs that are single files (.npz archives or JSON) holding ``keys``."""
+    def recognize(path: Path) -> bool:
+        if path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                return all(k in z.files for k in keys)
+        d = json.loads(path.read_text(encoding="utf-8"))
+        return isinstance(d, dict) and all(k in d for k in keys)
+    return recognize
+
+
+def _is_report(path: Path) -> bool:
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    return head.lower().startswith(b"<!doctype html>") and b"adadex" in head
+
+
+#: What an earlier output of each command looks like (outputs written before markers existed, single files).
+_RECOGNIZE = {"compare": lambda p: (p / "compare.json").is_file(), "diagnosis": lambda p: (p / "diagnosis.json").is_file(),
+              "patch": _is_file_of("effects"), "recording": _is_file_of("time", "command", "joint_pos"),
+              "report": _is_report}
+
+
+def _check_out(a, kind: str) -> None:
+    """Refuse ``a.out`` before any work if it is not an earlier output of this kind (``--force`` replaces it)."""
+    if a.out:
+        check_output(a.out, kind, force=a.force, recognize=_RECOGNIZE[kind])
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -68,6 +109,7 @@ def _cmd_simulate(a) -> int:
     from adadex.sysid.excite import ExcitationPlan, simulate_recording
 
     plan = ExcitationPlan.load(a.plan)
+    _check_out(a, "recording")
     rec = simulate_recording(plan, _load_patch(a.patch), noise=a.noise, seed=a.seed, nthread=a.threads)
     rec.save(a.out)
     print(f"wrote {a.out}: {rec.num_sequences} sequences simulated"
@@ -90,6 +132,7 @@ def _cmd_compare(a) -> int:
 
     rec = _load_rec(a.recording)
     patch = _load_patch(a.patch)
+    _check_out(a, "compare")
     cmp0 = compare(rec, nthread=a.threads)
     loc = localize(cmp0)
     print(loc.text)
@@ -101,18 +144,18 @@ def _cmd_compare(a) -> int:
         from adadex.sysid import plots
 
         out = Path(a.out)
-        out.mkdir(parents=True, exist_ok=True)
         summary = {"nominal": cmp0.summary(), "localization": loc.to_dict()}
         if st is not None:
             summary["stages"] = st.to_dict()
-        (out / "compare.json").write_text(json.dumps(summary, indent=2))
         err = cmp0.rms_per_sequence_joint()
-        (out / "heatmap.png").write_bytes(plots.fig_to_png(plots.heatmap(err, rec.joint_names, rec.sequence_labels, "nominal model")))
         s, j = np.unravel_index(np.argmax(err), err.shape)
         sims = {"model (nominal)": cmp0.simulated}
         if st is not None:
             sims["model + patch"] = st.comparisons[-1].simulated
-        (out / "overlay_worst.png").write_bytes(plots.fig_to_png(plots.overlay(rec, sims, int(s), rec.joint_names[j])))
+        with output_folder(out, "compare", force=a.force, recognize=_RECOGNIZE["compare"]) as tmp:
+            (tmp / "compare.json").write_text(json.dumps(summary, indent=2))
+            (tmp / "heatmap.png").write_bytes(plots.fig_to_png(plots.heatmap(err, rec.joint_names, rec.sequence_labels, "nominal model")))
+            (tmp / "overlay_worst.png").write_bytes(plots.fig_to_png(plots.overlay(rec, sims, int(s), rec.joint_names[j])))
         print(f"wrote {out}/compare.json, heatmap.png, overlay_worst.png")
     return 0
 
@@ -125,31 +168,36 @@ def _cmd_diagnose(a) -> int:
     for c in cands:
         if c not in EFFECT_NAMES:
             raise CliError(f"unknown candidate effect {c!r}; known: {', '.join(EFFECT_NAMES)}")
+    _check_out(a, "diagnosis")
     d = diagnose(rec, base_patch=_load_patch(a.patch), candidates=cands,
                  joints=a.joints.split(",") if a.joints else None, nthread=a.threads)
     print("\n".join(d.findings))
     print(f"verdict: {d.verdict}  ({d.wall_time_s:.0f} s)")
     if a.out:
-        path = d.save(a.out)
-        _diagnosis_plot(d, Path(a.out))
-        print(f"wrote {path} and {Path(a.out) / 'hypotheses.png'}")
+        with output_folder(a.out, "diagnosis", force=a.force, recognize=_RECOGNIZE["diagnosis"]) as tmp:
+            d.save(tmp)
+            plotted = _diagnosis_plot(d, tmp)
+        print(f"wrote {Path(a.out) / 'diagnosis.json'}" + (f" and {Path(a.out) / 'hypotheses.png'}" if plotted else ""))
     return 0
 
 
-def _diagnosis_plot(d, out: Path) -> None:
+def _diagnosis_plot(d, out: Path) -> bool:
     from adadex.sysid import plots
 
     hs = d.hypotheses[:12]
     if not hs:
-        return
+        return False
     fig, ax = plots.plt.subplots(figsize=(7, 0.3 * len(hs) + 1))
-    labels = [f"{h['effect']} @ {','.join(h['joints'])}" for h in hs]
-    ax.barh(range(len(hs)), [100 * h["heldout_error_reduction"] for h in hs], color="tab:blue")
+    labels = [f"{h['effect']} @ {','.join(h['joints'])}" + (" (train only)" if h.get("scored_on") == "train" else "")
+              for h in hs]
+    ax.barh(range(len(hs)), [100 * (h["heldout_error_reduction"] if h["heldout_error_reduction"] is not None
+                                    else h["train_error_reduction"]) for h in hs], color="tab:blue")
     ax.set_yticks(range(len(hs)), labels, fontsize=8)
     ax.invert_yaxis()
     ax.set_xlabel("held-out excess-error reduction (%)")
     ax.set_title(f"candidate effects (verdict: {d.verdict})", fontsize=9)
     (out / "hypotheses.png").write_bytes(plots.fig_to_png(fig))
+    return True
 
 
 def _parse_add(spec: str) -> tuple[str, list[str]]:
@@ -166,6 +214,7 @@ def _cmd_fit(a) -> int:
     rec = _load_rec(a.recording)
     if bool(a.add) == bool(a.accept):
         raise CliError("give either --add EFFECT:JOINTS (repeatable) or --accept DIAGNOSIS_DIR")
+    _check_out(a, "patch")
     if a.accept:
         patch = Diagnosis.load(a.accept).patch()
         if not len(patch):
@@ -186,6 +235,7 @@ def _cmd_report(a) -> int:
 
     rec = _load_rec(a.recording)
     d = Diagnosis.load(a.diagnosis) if a.diagnosis else None
+    _check_out(a, "report")
     pd = None
     if a.pd:
         from tqdm import tqdm
@@ -216,6 +266,8 @@ def add_parser(sub) -> None:
 
     def common(q):
         q.add_argument("--threads", type=int, default=2, help="rollout threads (default 2)")
+        q.add_argument("--force", action="store_true", help="replace --out even if it is not an earlier output "
+                       "of this command")
 
     q = s.add_parser("excite", help="design per-joint excitation (sine sweeps, chirp, multisine)")
     q.add_argument("--joints", required=True, help="comma-separated joint names")
@@ -289,6 +341,8 @@ def run(args) -> int:
 
     try:
         return args.func(args)
-    except (*USER_ERRORS, RecordingError, ExcitationError) as e:
+    except (*USER_ERRORS, AdadexError, RecordingError, ExcitationError) as e:
+        if getattr(args, "debug", False):
+            raise
         print(f"adadex sysid {args.sysid_command}: error: {e}", file=sys.stderr)
         return 2

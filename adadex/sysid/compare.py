@@ -121,7 +121,7 @@ def reversal_mask(command: np.ndarray, dt: float, window_s: float = REVERSAL_WIN
     moving = np.abs(v) > 1e-6
     flips = np.zeros_like(moving)
     flips[:, 1:] = (np.sign(v[:, 1:]) != np.sign(v[:, :-1])) & moving[:, 1:] & moving[:, :-1]
-    w = max(1, int(round(window_s / dt)))
+    w = min(max(1, int(round(window_s / dt))), (command.shape[1] - 1) // 2)   # a window fits a short recording
     kernel = np.ones(2 * w + 1)
     out = np.apply_along_axis(lambda x: np.convolve(x, kernel, mode="same") > 0, 1, flips.astype(float))
     return out
@@ -209,7 +209,7 @@ def localize(cmp: Comparison, *, window_s: float = 0.25, top_windows: int = 5) -
     else:
         sentences.insert(0, f"The model fails on {len(failing)} of {len(names)} joints: {', '.join(failing)}.")
     # Worst windows: sliding RMS over window_s on failing joints.
-    w = max(1, int(round(window_s / rec.dt)))
+    w = min(max(1, int(round(window_s / rec.dt))), rec.num_steps)
     windows = []
     for name in failing or []:
         j = names.index(name)

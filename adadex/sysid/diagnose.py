@@ -17,6 +17,11 @@ best are reported as alternatives of one hypothesis (on a position servo, viscou
 ``kd_scale`` are such a pair). The same effect selected on several joints becomes one hypothesis
 over those joints.
 
+A joint with too few sequences to hold any out (fewer than three of its own) is scored on its
+training sequences only: the diagnosis lists it in ``train_only_joints``, says so in its findings,
+marks its hypotheses ``"scored_on": "train"`` and gives them no held-out figure
+(``heldout_error_reduction`` is ``None``).
+
 Verdicts: ``nothing_missing`` (no joint's error is above its noise floor), ``explained`` (every
 failing joint's held-out excess error falls by at least ``explained_at``), ``unexplained`` (the
 best candidates explain too little; the report says how much).
@@ -32,6 +37,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from adadex.errors import AdadexError
 from adadex.io import atomic_write_text
 from adadex.sim.effects import EFFECT_NAMES, get_effect
 from adadex.sim.patch import EffectInstance, ModelPatch
@@ -40,6 +46,10 @@ from adadex.sysid.fit import JointFitter
 from adadex.sysid.replay import Replayer
 
 COMPLEXITY_PENALTY = 0.02
+
+
+class DiagnosisError(AdadexError, ValueError):
+    """A diagnosis file that cannot be read."""
 
 
 @dataclass
@@ -63,6 +73,7 @@ class Diagnosis:
     explained_fraction: dict
     findings: list[str]
     wall_time_s: float
+    train_only_joints: list[str] = field(default_factory=list)   # scored on training sequences only
 
     def patch(self) -> ModelPatch:
         """The selected effects as a model patch."""
@@ -78,7 +89,8 @@ class Diagnosis:
     def to_dict(self) -> dict:
         return {"verdict": self.verdict, "baseline_error": self.baseline_error, "hypotheses": self.hypotheses,
                 "selected": self.selected, "explained_fraction": self.explained_fraction,
-                "findings": self.findings, "wall_time_s": self.wall_time_s}
+                "findings": self.findings, "wall_time_s": self.wall_time_s,
+                "train_only_joints": self.train_only_joints}
 
     def save(self, directory) -> Path:
         return atomic_write_text(Path(directory) / "diagnosis.json", json.dumps(self.to_dict(), indent=2))
@@ -87,12 +99,20 @@ class Diagnosis:
     def load(cls, directory_or_file) -> "Diagnosis":
         p = Path(directory_or_file)
         p = p / "diagnosis.json" if p.is_dir() else p
-        return cls(**json.loads(p.read_text()))
+        try:
+            d = cls(**json.loads(p.read_text(encoding="utf-8")))
+        except FileNotFoundError:
+            raise DiagnosisError(f"{p}: no such diagnosis (write one with `adadex sysid diagnose … --out DIR`)") from None
+        except (OSError, ValueError, TypeError) as e:   # bad UTF-8 or JSON, missing or unknown fields
+            raise DiagnosisError(f"{p}: not a readable diagnosis ({type(e).__name__}: {e})") from None
+        if not (isinstance(d.verdict, str) and isinstance(d.selected, list) and isinstance(d.hypotheses, list)):
+            raise DiagnosisError(f"{p}: not a readable diagnosis (verdict, selected or hypotheses of the wrong type)")
+        return d
 
 
 def _split(seqs: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     held, train = seqs[mask[seqs]], seqs[~mask[seqs]]
-    if held.size == 0:  # too few sequences: score on the training set
+    if held.size == 0:  # too few sequences: score on the training set (marked as such, see the docstring)
         held = seqs
     return train, held
 
@@ -137,6 +157,11 @@ class _Setting:
         own = np.array([i for i, s in enumerate(self.seq_meta) if s.get("joint", joint) == joint])
         return _split(own, self.holdout)
 
+    def train_only(self, joint: str) -> bool:
+        """True if ``joint`` has too few sequences to hold any out (then it is scored on its training set)."""
+        train, held = self.sequences(joint)
+        return np.array_equal(train, held)
+
     def noise2(self, joint: str) -> float:
         """The squared noise floor of ``joint``, rad²."""
         return float(self.noise[self.joint_names.index(joint)] ** 2)
@@ -177,9 +202,26 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
 
     hypotheses = _hypotheses(first_rounds, selected_per_joint)
     selected = _merge_over_joints(selected_per_joint)
-    verdict, sentences = _verdict(explained, selected_per_joint, explained_at)
+    train_only = [j for j in failing if setting.train_only(j)]
+    _mark_train_only(hypotheses, selected, train_only)
+    verdict, sentences = _verdict(explained, selected_per_joint, explained_at, train_only)
+    if train_only:
+        sentences.insert(0, f"Too few sequences to hold any out on {', '.join(train_only)} (at least 3 of a "
+                            f"joint's own are needed): scored on the training sequences only, no held-out figure.")
     return Diagnosis(verdict, baseline, hypotheses, selected, explained, findings + sentences,
-                     time.perf_counter() - t0)
+                     time.perf_counter() - t0, train_only)
+
+
+def _mark_train_only(hypotheses: list[dict], selected: list[dict], train_only: list[str]) -> None:
+    """Mark what was scored on held-out or training sequences; train-only scores lose their held-out field."""
+    for h in hypotheses:
+        h["scored_on"] = "train" if h["joints"][0] in train_only else "heldout"
+        if h["scored_on"] == "train":
+            h["heldout_error_reduction"] = None
+    for h in selected:
+        h["scored_on"] = ["train" if j in train_only else "heldout" for j in h["joints"]]
+        h["heldout_error_reduction"] = [None if j in train_only else v
+                                        for j, v in zip(h["joints"], h["heldout_error_reduction"])]
 
 
 def _localize_failing_joints(recording, base_patch: ModelPatch, rep: Replayer, noise: np.ndarray):
@@ -347,7 +389,7 @@ def _merge_over_joints(selected_per_joint: dict) -> list[dict]:
     return list(merged.values())
 
 
-def _verdict(explained: dict, selected_per_joint: dict, explained_at: float) -> tuple[str, list[str]]:
+def _verdict(explained: dict, selected_per_joint: dict, explained_at: float, train_only=()) -> tuple[str, list[str]]:
     """``explained`` or ``unexplained``, and one finding per joint (plus one naming the unexplained joints)."""
     verdict = "explained" if all(v >= explained_at for v in explained.values()) else "unexplained"
     findings = []
@@ -355,7 +397,8 @@ def _verdict(explained: dict, selected_per_joint: dict, explained_at: float) -> 
         chosen = selected_per_joint[joint]
         what = " + ".join(f"{c.effect} ({get_effect(c.effect).param_names[0]} = {c.value:.4g})"
                           for c in chosen) or "nothing"
-        findings.append(f"{joint}: {what} explains {100 * v:.0f}% of the held-out error above the noise floor.")
+        on = "training (no sequence held out)" if joint in train_only else "held-out"
+        findings.append(f"{joint}: {what} explains {100 * v:.0f}% of the {on} error above the noise floor.")
     if verdict == "unexplained":
         weak = [j for j, v in explained.items() if v < explained_at]
         findings.append(f"Unexplained: on {', '.join(weak)} the best candidates explain less than "

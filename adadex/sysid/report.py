@@ -77,6 +77,11 @@ def error_stages(recording, patch: ModelPatch, *, replayer=None, nthread: int = 
     return Stages(names, patches, comps, heldout_mask(recording))
 
 
+def _percent(x) -> str:
+    """A reduction as a percentage; "—" (train only: no sequence held out) for ``None``."""
+    return "— (train only)" if x is None else f"{100 * x:.0f}%"
+
+
 def _img(png: bytes, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
 
@@ -121,7 +126,7 @@ def write_report(recording, patch: ModelPatch, out, *, diagnosis=None, title: st
         for h in diagnosis.hypotheses[:15]:
             parts.append(f"<tr><td class='l'>{h['effect']}</td><td class='l'>{','.join(h['joints'])}</td>"
                          f"<td class='l'>{html.escape(json.dumps(h['params']))}</td><td class='l'>{html.escape(json.dumps(h['ci95']))}</td>"
-                         f"<td>{100 * h['train_error_reduction']:.0f}%</td><td>{100 * h['heldout_error_reduction']:.0f}%</td>"
+                         f"<td>{100 * h['train_error_reduction']:.0f}%</td><td>{_percent(h['heldout_error_reduction'])}</td>"
                          f"<td class='l'>{', '.join(h['alternatives'])}</td></tr>")
         parts.append("</table><ul>" + "".join(f"<li>{html.escape(f)}</li>" for f in diagnosis.findings[-len(diagnosis.explained_fraction) - 1:]) + "</ul>")
     if pd_results:

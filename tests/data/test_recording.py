@@ -423,7 +423,8 @@ def test_csv_errors_name_file_and_column(tmp_path, header, rows, error, pattern)
 
 def test_csv_files_must_agree(tmp_path):
     good = _write(tmp_path / "a.csv", "time,cmd_if_pip,pos_if_pip", [(0, 0, 0), (1, 0, 0)])
-    other_time = _write(tmp_path / "b.csv", "time,cmd_if_pip,pos_if_pip", [(0, 0, 0), (2, 0, 0)])
+    # (b's dt is 0.5 s: a 2 s sample period is now refused on its own, see SAMPLE_PERIOD_RANGE)
+    other_time = _write(tmp_path / "b.csv", "time,cmd_if_pip,pos_if_pip", [(0, 0, 0), (0.5, 0, 0)])
     with pytest.raises(TimeAxisError, match=r"b\.csv: time differs from .*a\.csv at time index 1"):
         from_csv([good, other_time])
     other_joint = _write(tmp_path / "c.csv", "time,cmd_if_dip,pos_if_dip", [(0, 0, 0), (1, 0, 0)])

@@ -13,6 +13,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import adadex.io
 import adadex.data.reference as reference_module
 from adadex.data.reference import (
     FORMAT_VERSION,
@@ -662,7 +663,7 @@ def test_failed_final_rename_restores_the_old_dataset(tmp_path, monkeypatch):
             raise OSError("rename failed")
         return real(src, dst)
 
-    monkeypatch.setattr(reference_module.os, "replace", replace)
+    monkeypatch.setattr(adadex.io.os, "replace", replace)   # the folder swap moved to adadex.io
     with pytest.raises(OSError, match="rename failed"):
         save_dataset(some_refs()[:1], out, info={"v": "new"})
     monkeypatch.undo()

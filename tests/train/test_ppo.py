@@ -130,3 +130,41 @@ def test_kill_9_then_resume_continues_from_the_checkpoint(tiny_dataset, tmp_path
     assert final["frames"] == total and final["iteration"] == saved["iteration"] + 2
     iterations = [int(r["iteration"]) for r in _rows(out)]
     assert iterations[:-1] == list(range(1, final["iteration"] + 1))   # no gap, no repeat (last: evaluation)
+
+
+def _residual_mean(batch) -> float:
+    """Mean of action − kinematic replay's action over a collected batch (the learned correction)."""
+    from adadex.envs.observation import JOINT_TARGET
+    from adadex.modules.tracker import _NEXT_REF
+
+    ff = batch["observation"][..., _NEXT_REF] - batch[JOINT_TARGET]
+    return float((batch["action"] - ff).mean())
+
+
+@pytest.mark.parametrize("backend", ["local", "ray"])
+def test_updated_weights_reach_the_workers(tiny_dataset, backend):
+    """After update_policy_weights_(), the workers act with the new weights: the learned correction
+    pushed to +residual everywhere (tanh(20 ± noise) = 1) shows up in the next batch's actions."""
+    if backend == "ray":
+        pytest.importorskip("ray", reason="the ray extra is not installed")
+    from adadex.train.collectors import make_collector
+
+    tracker = Tracker(hidden=(16,), residual=0.05)
+    factory = TrackingEnvFactory(str(tiny_dataset), (1, 2, 5), num_worlds=4, seed=0, nthread=1)
+    col = make_collector(factory, tracker.actor, CollectorConfig(workers=2, backend=backend, worlds=4),
+                         frames_per_batch=64, total_frames=64 * 4)
+    try:
+        it = iter(col)
+        before = _residual_mean(next(it))
+        head = tracker.actor.module[0].module[0].module.heads[0]
+        with torch.no_grad():
+            head.bias[:22] = 20.0                                     # loc → tanh = 1: correction = +residual
+        col.update_policy_weights_()
+        after = _residual_mean(next(it))
+    finally:
+        col.shutdown()
+        if backend == "ray":
+            import ray
+
+            ray.shutdown()
+    assert abs(before) < 0.01 and after == pytest.approx(0.05, abs=2e-3), (before, after)

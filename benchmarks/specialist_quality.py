@@ -1,0 +1,113 @@
+"""Does a specialist learn? PPO on one semantic group of the ``small`` dataset against kinematic
+replay, with Table 3 randomization, and the vanilla-PPO baseline at the same frame budget beside it.
+
+* ``replay``: kinematic replay of the group's references through the PD servos (the floor);
+* ``specialist``: ``adadex.train`` PPO (residual tracker) on the group's training references;
+* ``ppo``: the same trainer on all training references of the unseen-trajectory split.
+
+All three are evaluated on the group's training references (a specialist is trained on exactly
+these; paper A.3.1), each reference ``--repeats`` times under independent Table 3 draws, with the
+paper's metrics. Targets: specialist completion success ≥ replay's + 15 points, and the specialist's
+mean T_o ≤ 0.7 × replay's.
+
+Writes ``benchmarks/results/specialist_quality.json`` (``replay``, ``specialist``, ``ppo``: each with
+``completion_pct``, ``mean_error_pct``, ``T_o`` …, plus the training wall times) and keeps the runs
+(checkpoints, metrics.csv) under ``--runs``; rerunning resumes them. Run it in the background:
+
+    nohup python benchmarks/specialist_quality.py --dataset data/small > specialist.log 2>&1 &
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from collections import Counter
+from pathlib import Path
+
+import torch
+
+from adadex.io import atomic_write_text
+
+RESULTS = Path(__file__).resolve().parent / "results"
+METRICS = ("completion_pct", "success_mean_error_pct", "T_o", "R_o", "T_h", "R_h", "E_finger")
+
+
+def _summary(res: dict) -> dict:
+    s = res["summary"]
+    out = {k: s[k] for k in METRICS if k in s}
+    out["mean_error_pct"] = out.pop("success_mean_error_pct")
+    return out
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--dataset", type=Path, default=Path("data/small"))
+    p.add_argument("--group", type=int, default=None, help="semantic group (default: the first of the largest)")
+    p.add_argument("--frames", type=int, default=1_000_000)
+    p.add_argument("--repeats", type=int, default=16, help="randomized episodes per reference in evaluation")
+    p.add_argument("--runs", type=Path, default=Path("runs/specialist_quality"))
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--skip-ppo", action="store_true")
+    p.add_argument("--out", type=Path, default=RESULTS / "specialist_quality.json")
+    a = p.parse_args(argv)
+    torch.set_num_threads(1)
+
+    from adadex.data.build import build_dataset
+    from adadex.data.reference import ReferenceDataset
+    from adadex.envs.randomization import Randomization
+    from adadex.envs.replay import replay_policy
+    from adadex.envs.tracking import episode_references
+    from adadex.eval.evaluate import evaluate, format_summary
+    from adadex.modules.tracker import Tracker
+    from adadex.train.config import CollectorConfig, TrainConfig, PPOConfig
+    from adadex.train.ppo import train
+
+    if not (a.dataset / "index.json").exists():
+        build_dataset("small", a.dataset, seed=0)
+    ds = ReferenceDataset(a.dataset)
+    split = ("unseen_trajectory", "train")
+    train_refs = episode_references(ds, split)
+    counts = Counter(ds.entries[i]["group"] for i in train_refs)
+    group = a.group if a.group is not None else min(g for g, n in counts.items() if n == max(counts.values()))
+    refs = [i for i in train_refs if ds.entries[i]["group"] == group]
+    print(f"group {group}: {len(refs)} references ({ds.entries[refs[0]]['instruction']!r} on "
+          f"{ds.entries[refs[0]]['object']}), evaluated {a.repeats}× each under Table 3 randomization")
+
+    def score(policy) -> dict:
+        res = evaluate(policy, ds, references=refs * a.repeats, max_worlds=64, randomize=Randomization(), seed=123,
+                       progress=False)
+        print(format_summary(res["summary"]))
+        return _summary(res)
+
+    out = {"group": group, "references": len(refs), "repeats": a.repeats, "frames": a.frames}
+    out["replay"] = score(replay_policy())
+    runs = {"specialist": TrainConfig(dataset=str(a.dataset), out=str(a.runs / f"specialist_{group}"), group=group,
+                                      resume=True, progress=False, ppo=PPOConfig(total_frames=a.frames),
+                                      collector=CollectorConfig(workers=a.workers))}
+    if not a.skip_ppo:
+        runs["ppo"] = TrainConfig(dataset=str(a.dataset), out=str(a.runs / "ppo"), resume=True, progress=False,
+                                  ppo=PPOConfig(total_frames=a.frames), collector=CollectorConfig(workers=a.workers))
+    for name, cfg in runs.items():
+        t0 = time.perf_counter()
+        res = train(cfg, run_name=name)
+        out[name] = score(Tracker.load(res["tracker"]).actor)
+        out[name]["train_wall_s"] = time.perf_counter() - t0
+        out[name]["train_frames"] = res["frames"]
+        atomic_write_text(a.out, json.dumps(out, indent=1))
+    r, s = out["replay"], out["specialist"]
+    out["completion_gain_points"] = s["completion_pct"] - r["completion_pct"]
+    out["T_o_ratio"] = s["T_o"] / r["T_o"]
+    atomic_write_text(a.out, json.dumps(out, indent=1))
+    print(f"specialist vs replay: completion {s['completion_pct']:.1f} vs {r['completion_pct']:.1f} % "
+          f"({out['completion_gain_points']:+.1f} points, target ≥ +15); T_o {s['T_o']:.1f} vs {r['T_o']:.1f} cm "
+          f"(× {out['T_o_ratio']:.2f}, target ≤ 0.7)")
+    if "ppo" in out:
+        print(f"vanilla PPO at the same budget: completion {out['ppo']['completion_pct']:.1f} %, "
+              f"T_o {out['ppo']['T_o']:.1f} cm")
+    print(f"wrote {a.out}")
+    return out
+
+
+if __name__ == "__main__":
+    main()

@@ -25,16 +25,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from _data import RESULTS, dataset_or_tiny
+
 from adadex.io import atomic_write_text
 
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def main(argv=None) -> dict:
@@ -51,14 +51,9 @@ def main(argv=None) -> dict:
     from torchrl.envs import GymEnv
 
     import adadex.envs  # noqa: F401  (registers adadex/Tracking-v0)
-    from adadex.data.build import build_dataset
     from adadex.envs.tracking import TrackingEnv
 
-    with tempfile.TemporaryDirectory() as tmp:
-        dataset = a.dataset
-        if dataset is None:
-            dataset = Path(tmp) / "tiny"
-            build_dataset("tiny", dataset, seed=4, progress=False)
+    with dataset_or_tiny(a.dataset) as dataset:
         B, N = a.worlds, a.steps
         env = TrackingEnv(dataset, num_worlds=B, split=None, nthread=a.threads, seed=0)
         gen = torch.Generator().manual_seed(0)

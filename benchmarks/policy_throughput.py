@@ -15,15 +15,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import tempfile
 import time
 from pathlib import Path
 
 import torch
 
+from _data import RESULTS, dataset_or_tiny
+
 from adadex.io import atomic_write_text
 
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def main(argv=None) -> dict:
@@ -39,7 +39,6 @@ def main(argv=None) -> dict:
     from torchrl.envs import TransformedEnv
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    from adadex.data.build import build_dataset
     from adadex.envs.tracking import TrackingConfig, TrackingEnv
     from adadex.modules.modulator import Modulator
     from adadex.modules.tracker import Tracker
@@ -52,11 +51,7 @@ def main(argv=None) -> dict:
     policy = make_policy(tracker, modulator)
     cfg = TrackingConfig(terminate_object_error=0, terminate_palm_error=0)   # same work in every run
     fps = {}
-    with tempfile.TemporaryDirectory() as tmp:
-        dataset = a.dataset
-        if dataset is None:
-            dataset = Path(tmp) / "tiny"
-            build_dataset("tiny", dataset, seed=4, progress=False)
+    with dataset_or_tiny(a.dataset) as dataset:
         runs = {
             "tracker": (lambda: TrackingEnv(dataset, num_worlds=a.worlds, split=None, config=cfg), tracker.actor),
             "transformed env": (lambda: TransformedEnv(TrackingEnv(dataset, num_worlds=a.worlds, split=None, config=cfg),

@@ -34,9 +34,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from _data import RESULTS, dataset_or_tiny
+
 from adadex.io import atomic_write_text
 
-RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def _physics_fps(factory, steps: int) -> float:
@@ -80,7 +81,6 @@ def main(argv=None) -> dict:
 
     from torchrl.collectors import Collector, MultiSyncCollector
 
-    from adadex.data.build import build_dataset
     from adadex.data.reference import ReferenceDataset
     from adadex.envs.tracking import episode_references
     from adadex.modules.tracker import Tracker
@@ -88,11 +88,7 @@ def main(argv=None) -> dict:
     from adadex.train.envs import TrackingEnvFactory
     from adadex.train.ppo import PPOTrainer
 
-    with tempfile.TemporaryDirectory() as tmp:
-        dataset = a.dataset
-        if dataset is None:
-            dataset = Path(tmp) / "tiny"
-            build_dataset("tiny", dataset, seed=4, progress=False)
+    with dataset_or_tiny(a.dataset) as dataset, tempfile.TemporaryDirectory() as tmp:
         ds = ReferenceDataset(dataset)
         refs = tuple(episode_references(ds, ("unseen_trajectory", "train")))
         B, fpb = a.worlds, a.worlds * 64

@@ -101,6 +101,15 @@ def bad_frame_env(key, change):
     return make
 
 
+def bad_frame_item(key, change):
+    """``ds[i]`` of the reference whose frame ``change`` corrupted."""
+    def make(tmp, ds):
+        folder = dataset_copy(tmp, ds)
+        i = corrupt_frame(folder, key, change)[0]
+        return lambda: ReferenceDataset(folder)[i]
+    return make
+
+
 def _env(folder, **kw):
     from adadex.envs.tracking import TrackingEnv
 
@@ -193,16 +202,12 @@ CASES = [
     # --- one validation of reference frames, in ds[i] and in TrackingEnv (up front, naming reference and frame)
     Case("NaN in a reference: TrackingEnv", bad_frame_env("object_pose", _nan), ReferenceValueError,
          "frame "),
-    Case("NaN in a reference: ds[i]",
-         lambda t, ds: (lambda f: (lambda i: lambda: ReferenceDataset(f)[i])(
-             corrupt_frame(f, "hand_joint_pos", _nan)[0]))(dataset_copy(t, ds)),
-         ReferenceValueError, "hand_joint_pos: non-finite"),
+    Case("NaN in a reference: ds[i]", bad_frame_item("hand_joint_pos", _nan), ReferenceValueError,
+         "hand_joint_pos: non-finite"),
     Case("object quaternion x3: TrackingEnv", bad_frame_env("object_pose", _times3), QuaternionNormError,
          "object_pose: quaternion norm 3.0"),
-    Case("object quaternion x3: ds[i]",
-         lambda t, ds: (lambda f: (lambda i: lambda: ReferenceDataset(f)[i])(
-             corrupt_frame(f, "object_pose", _times3)[0]))(dataset_copy(t, ds)),
-         QuaternionNormError, "quaternion norm 3.0"),
+    Case("object quaternion x3: ds[i]", bad_frame_item("object_pose", _times3), QuaternionNormError,
+         "quaternion norm 3.0"),
     Case("zero object quaternion: TrackingEnv", bad_frame_env("object_pose", _zero_quat), QuaternionNormError,
          "quaternion norm 0.0"),
     Case("joint at 25 rad: TrackingEnv", bad_frame_env("hand_joint_pos", _joint25), JointLimitError,

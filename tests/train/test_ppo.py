@@ -41,7 +41,7 @@ def test_in_process_run_writes_a_loadable_tracker_and_metrics(tiny_dataset, tmp_
     res = train(_config(tiny_dataset, tmp_path / "run", frames=768, checkpoint_every=2))
     assert res["frames"] == 768 and res["iterations"] == 3
     tracker = Tracker.load(res["tracker"])
-    assert tracker.config["residual"] == 0.05
+    assert tracker.config["residual"] == PolicyConfig().residual > 0
     rows = _rows(tmp_path / "run")
     assert [int(r["iteration"]) for r in rows] == [1, 2, 3, 3]        # the last row: final evaluation
     for k in ("reward", "T_o", "E_finger", "frame_success_pct", "loss_objective", "loss_critic", "kl_approx",
@@ -58,7 +58,7 @@ def test_in_process_run_writes_a_loadable_tracker_and_metrics(tiny_dataset, tmp_
 
 def test_training_changes_the_policy(tiny_dataset, tmp_path):
     res = train(_config(tiny_dataset, tmp_path / "run", frames=512))
-    fresh = Tracker(hidden=(32, 32), residual=0.05)
+    fresh = Tracker(hidden=(32, 32), residual=PolicyConfig().residual)
     trained = Tracker.load(res["tracker"])
     moved = [k for k, v in trained.state_dict().items() if "norm" not in k and not torch.equal(v, fresh.state_dict()[k])]
     assert moved

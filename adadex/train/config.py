@@ -78,6 +78,29 @@ class PolicyConfig:
 
 
 @dataclass
+class ModulatorSettings:
+    """Modulator RL (paper Sec. 3.2): PPO on ``TransformedEnv(TrackingEnv, modulation(channels, tracker))``
+    with the generalist ``tracker`` (a checkpoint) frozen inside the env; the policy trained is a
+    :class:`~adadex.modules.modulator.Modulator` for ``channels``. ``modulation`` overrides
+    :class:`~adadex.modules.channels.ModulationConfig` fields (λ's, bounds, persistence)."""
+
+    tracker: str
+    channels: str = "R+O+T"
+    hidden: tuple[int, ...] = (256, 256, 128)
+    init_scale: float = 0.5
+    modulation: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        from pathlib import Path
+
+        self.hidden = tuple(int(h) for h in self.hidden)
+        check_number("ModulatorSettings.init_scale", self.init_scale)
+        if not Path(self.tracker).is_file():
+            raise ConfigError(f"ModulatorSettings.tracker: no tracker checkpoint at {self.tracker!r} "
+                              f"(train or distill one first)")
+
+
+@dataclass
 class TrainConfig:
     """A PPO tracker run: which references, which env, which learner, where results go.
 
@@ -97,6 +120,8 @@ class TrainConfig:
     ppo: PPOConfig = field(default_factory=PPOConfig)
     collector: CollectorConfig = field(default_factory=CollectorConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
+    #: set: train a modulator around this frozen tracker instead of a tracker
+    modulator: ModulatorSettings | None = None
     checkpoint_every: int = 5             # iterations
     eval_every: int = 0                   # iterations (0: only at the end)
     eval_split: tuple[str, str] | None = None   # default: the training references themselves
@@ -120,7 +145,8 @@ class TrainConfig:
         check_number("TrainConfig.checkpoint_every", self.checkpoint_every, low=1, integer=True)
         check_number("TrainConfig.eval_every", self.eval_every, integer=True)
         check_number("TrainConfig.eval_max_references", self.eval_max_references, low=1, integer=True)
-        for name, sub in (("ppo", PPOConfig), ("collector", CollectorConfig), ("policy", PolicyConfig)):
+        for name, sub in (("ppo", PPOConfig), ("collector", CollectorConfig), ("policy", PolicyConfig),
+                          ("modulator", ModulatorSettings)):
             v = getattr(self, name)
             if isinstance(v, dict):
                 setattr(self, name, sub(**v))

@@ -17,6 +17,9 @@ from torchrl.envs import RewardSum, TransformedEnv
 
 from adadex.envs.randomization import Randomization
 from adadex.envs.tracking import TrackingConfig, TrackingEnv, scene_pack
+from adadex.modules.channels import ModulationConfig
+from adadex.modules.tracker import Tracker
+from adadex.transforms.modulation import modulation
 
 
 @dataclass(frozen=True)
@@ -32,13 +35,19 @@ class TrackingEnvFactory:
     nthread: int = 2
     patch: object = None
     scenes: dict | None = field(default=None, repr=False, compare=False)
+    #: a picklable callable returning a transform appended after the env (e.g. :class:`ModulatedEnv`)
+    transform: object = None
 
     def __call__(self) -> TransformedEnv:
         """The env, with each episode's return summed into ``("next", "episode_reward")`` for the logs."""
         env = TrackingEnv(self.dataset, num_worlds=self.num_worlds, split=None, references=list(self.references),
                           config=self.config, randomize=self.randomize, patch=self.patch, nthread=self.nthread,
                           seed=self.seed, scenes=self.scenes)
-        return TransformedEnv(env, RewardSum())
+        env = TransformedEnv(env)
+        if self.transform is not None:
+            env.append_transform(self.transform())
+        env.append_transform(RewardSum())
+        return env
 
     def with_scenes(self) -> TrackingEnvFactory:
         """This factory carrying its compiled scenes (:func:`~adadex.envs.tracking.scene_pack`): compiled
@@ -51,3 +60,16 @@ class TrackingEnvFactory:
     def for_workers(self, n: int) -> list[TrackingEnvFactory]:
         """One factory per worker, worker ``i`` seeded ``1000·(i + 1) + seed`` (distinct draws)."""
         return [replace(self, seed=1000 * (i + 1) + self.seed) for i in range(n)]
+
+
+@dataclass(frozen=True)
+class ModulatedEnv:
+    """Picklable ``modulation(channels, tracker, config)`` factory: each worker loads the frozen tracker
+    from its checkpoint and builds the modulation transform (paper Sec. 3.2)."""
+
+    tracker: str
+    channels: str = "R+O+T"
+    config: ModulationConfig = field(default_factory=ModulationConfig)
+
+    def __call__(self):
+        return modulation(self.channels, Tracker.load(self.tracker).freeze(), self.config)

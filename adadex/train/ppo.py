@@ -42,14 +42,16 @@ from adadex.errors import ConfigError
 from adadex.eval.evaluate import evaluate
 from adadex.eval.metrics import ERROR_NAMES, frame_success
 from adadex.modules.nets import fit_normalizers
+from adadex.modules.channels import ModulationConfig
+from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
 from adadex.train.checkpoint import load_checkpoint, save_checkpoint, set_rng_state
 from adadex.train.collectors import make_collector
 from adadex.train.config import TrainConfig
-from adadex.train.envs import TrackingEnvFactory
+from adadex.train.envs import ModulatedEnv, TrackingEnvFactory
+from adadex.transforms.policy import make_policy
 from adadex.train.logs import RunLog
 
-TRACKER = "tracker.pt"
 ERRORS = ("next", *ERRORS_KEY)
 
 
@@ -70,7 +72,9 @@ def training_references(cfg: TrainConfig, dataset: ReferenceDataset, window: int
 
 
 class PPOTrainer:
-    """A PPO run for a :class:`Tracker` (see the module docstring); :meth:`train` runs it."""
+    """A PPO run (see the module docstring); :meth:`train` runs it. The policy trained is a
+    :class:`Tracker` (specialists, the vanilla-PPO baseline), or — with ``cfg.modulator`` — a
+    :class:`Modulator` on the modulated env with the generalist frozen inside it (paper Sec. 3.2)."""
 
     def __init__(self, cfg: TrainConfig, *, env_config: TrackingConfig = TrackingConfig(), run_name: str = "ppo"):
         self.cfg, self.env_config, self.run_name = cfg, env_config, run_name
@@ -79,17 +83,25 @@ class PPOTrainer:
         self.references = training_references(cfg, self.dataset, env_config.window)
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed)
-        p = cfg.policy
-        self.tracker = Tracker(hidden=p.hidden, max_action=env_config.max_action, init_scale=p.init_scale,
-                               residual=p.residual)
+        m = cfg.modulator
+        if m is None:
+            p = cfg.policy
+            self.policy = Tracker(hidden=p.hidden, max_action=env_config.max_action, init_scale=p.init_scale,
+                                  residual=p.residual)
+            self.transform = None
+        else:
+            self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale)
+            self.transform = ModulatedEnv(m.tracker, m.channels, ModulationConfig(**m.modulation))
         self.ppo = cfg.ppo
-        self.loss = ClipPPOLoss(self.tracker.actor, self.tracker.critic, clip_epsilon=self.ppo.clip_epsilon,
+        self.loss = ClipPPOLoss(self.policy.actor, self.policy.critic, clip_epsilon=self.ppo.clip_epsilon,
                                 entropy_coeff=self.ppo.entropy_coef, critic_coeff=self.ppo.critic_coef,
                                 normalize_advantage=True)
-        self.gae = GAE(gamma=self.ppo.gamma, lmbda=self.ppo.lmbda, value_network=self.tracker.critic,
+        self.gae = GAE(gamma=self.ppo.gamma, lmbda=self.ppo.lmbda, value_network=self.policy.critic,
                        average_gae=False)
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=self.ppo.lr)
         self.iteration, self.frames = 0, 0
+        #: ``tracker.pt`` or ``modulator.pt``: loads with ``Tracker.load`` / ``Modulator.load``
+        self.policy_path = self.out / f"{self.policy.kind}.pt"
         self.fitted = False
         self.buffer: TensorDictReplayBuffer | None = None
 
@@ -98,7 +110,7 @@ class PPOTrainer:
         c = self.cfg.collector
         return TrackingEnvFactory(str(self.dataset.path), tuple(self.references), num_worlds=c.worlds, seed=seed,
                                   randomize=Randomization() if self.cfg.randomize else None,
-                                  config=self.env_config, nthread=c.env_threads)
+                                  config=self.env_config, nthread=c.env_threads, transform=self.transform)
 
     def _resume(self) -> bool:
         blob = load_checkpoint(self.out) if self.cfg.resume else None
@@ -114,7 +126,7 @@ class PPOTrainer:
     def _checkpoint(self) -> None:
         save_checkpoint(self.out, module=self.loss, optimizer=self.optim, iteration=self.iteration,
                         frames=self.frames, config=self.cfg.to_dict())
-        self.tracker.save(self.out / TRACKER)
+        self.policy.save(self.policy_path)
 
     def _update(self, data: TensorDictBase) -> dict:
         """GAE, then ``epochs`` passes of minibatch PPO updates over ``data`` ([N, T])."""
@@ -172,7 +184,12 @@ class PPOTrainer:
         refs = references if references is not None else self.references
         eval_refs = (episode_references(self.dataset, self.cfg.eval_split, self.env_config.window)
                      if self.cfg.eval_split is not None else refs)[: self.cfg.eval_max_references]
-        res = evaluate(self.tracker.actor, self.dataset, split=None, references=eval_refs,
+        policy, primer = self.policy.actor, None
+        if self.transform is not None:
+            t = self.transform
+            policy = make_policy(Tracker.load(t.tracker), self.policy, channels=t.channels, config=t.config)
+            primer = policy.primer
+        res = evaluate(policy, self.dataset, split=None, references=eval_refs, env_transform=primer,
                        max_worlds=self.cfg.collector.worlds, config=self.env_config, progress=False,
                        randomize=Randomization() if self.cfg.randomize else None, seed=self.cfg.seed + 17,
                        nthread=self.cfg.collector.env_threads)
@@ -190,7 +207,7 @@ class PPOTrainer:
         remaining = self.ppo.total_frames - self.frames
         # a resumed run draws new references and randomizations: seeds move on with the iteration
         factory = self.env_factory(self.cfg.seed + 7919 * self.iteration)
-        collector = make_collector(factory, self.tracker.actor, self.cfg.collector,
+        collector = make_collector(factory, self.policy.actor, self.cfg.collector,
                                    frames_per_batch=self.ppo.frames_per_batch, total_frames=remaining)
         bar = tqdm(total=self.ppo.total_frames, initial=self.frames, unit="frame", desc=self.run_name,
                    disable=not self.cfg.progress)
@@ -200,7 +217,7 @@ class PPOTrainer:
                 t_collected = time.perf_counter()
                 data = data.reshape(-1, data.shape[-1])          # [worlds (of all workers), T]
                 if not self.fitted:
-                    fit_normalizers(self.tracker, data["observation"])
+                    fit_normalizers(self.policy, data["observation"])
                     self.fitted = True
                 stats = self.batch_metrics(data)
                 stats.update(self._update(data))
@@ -228,7 +245,8 @@ class PPOTrainer:
         return self._result(resumed, final)
 
     def _result(self, resumed: bool, final: dict | None = None) -> dict:
-        return {"tracker": self.out / TRACKER, "frames": self.frames, "iterations": self.iteration,
+        return {"policy": self.policy_path, "tracker": self.policy_path, "frames": self.frames,
+                "iterations": self.iteration,
                 "resumed": resumed, "eval": final or {}}
 
 

@@ -2,7 +2,8 @@
 
 The recipes stay thin: :func:`train_config` maps the recipe keys onto :class:`TrainConfig`
 (``total_frames`` → ``ppo.total_frames``, ``ray.address`` → ``collector.ray_address``,
-``split``/``part`` → ``split``), :func:`run` builds the dataset if asked and trains.
+``split``/``part`` → ``split``, ``tracker``/``channels``/``modulator``/``modulation`` → a modulator run),
+:func:`run` builds the dataset if asked and trains.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import json
 from collections.abc import Mapping
 from pathlib import Path
 
-from adadex.train.config import CollectorConfig, PolicyConfig, PPOConfig, TrainConfig
+from adadex.train.config import CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, TrainConfig
 
 _TOP = ("seed", "resume", "group", "randomize", "checkpoint_every", "eval_every", "eval_split",
         "eval_max_references", "wandb", "progress")
@@ -32,9 +33,13 @@ def train_config(cfg: Mapping) -> TrainConfig:
     collector = dict(cfg.get("collector") or {})
     collector["ray_address"] = (cfg.get("ray") or {}).get("address")
     split = (cfg["split"], cfg.get("part", "train")) if cfg.get("split") else None
+    modulator = None
+    if cfg.get("tracker") is not None:
+        modulator = ModulatorSettings(tracker=str(cfg["tracker"]), channels=str(cfg.get("channels", "R+O+T")),
+                                      modulation=dict(cfg.get("modulation") or {}), **(cfg.get("modulator") or {}))
     return TrainConfig(dataset=str(cfg["dataset"]), out=str(cfg["out"]), split=split,
                        ppo=PPOConfig(**ppo), collector=CollectorConfig(**collector),
-                       policy=PolicyConfig(**(cfg.get("policy") or {})),
+                       policy=PolicyConfig(**(cfg.get("policy") or {})), modulator=modulator,
                        **{k: cfg[k] for k in _TOP if k in cfg})
 
 
@@ -52,6 +57,6 @@ def run(cfg: Mapping, *, name: str) -> dict:
 
         build_dataset(preset, dataset, seed=tc.seed)
     result = train(tc, run_name=name)
-    print(f"{name}: {result['frames']} frames, {result['iterations']} iterations -> {result['tracker']}")
+    print(f"{name}: {result['frames']} frames, {result['iterations']} iterations -> {result['policy']}")
     print(json.dumps(result["eval"], indent=1))
     return result["eval"]

@@ -168,3 +168,30 @@ def test_updated_weights_reach_the_workers(tiny_dataset, backend):
 
             ray.shutdown()
     assert abs(before) < 0.01 and after == pytest.approx(0.05, abs=2e-3), (before, after)
+
+
+@pytest.mark.parametrize("channels", ["R+O+T", "O"])
+def test_modulator_rl_around_a_frozen_tracker(tiny_dataset, tmp_path, channels):
+    from adadex.modules.modulator import Modulator
+    from adadex.train.config import ModulatorSettings
+
+    generalist = Tracker(hidden=(32, 32), residual=0.25)
+    path = generalist.save(tmp_path / "generalist.pt")
+    before = {k: v.clone() for k, v in generalist.state_dict().items()}
+    cfg = _config(tiny_dataset, tmp_path / "mod", frames=512,
+                  modulator=ModulatorSettings(tracker=str(path), channels=channels, hidden=(32, 32)))
+    res = train(cfg)
+    assert res["policy"].name == "modulator.pt" and res["iterations"] == 2
+    mod = Modulator.load(res["policy"])
+    assert mod.config["channels"] == channels
+    assert "eval_completion_pct" in res["eval"]
+    after = Tracker.load(path).state_dict()                        # the generalist file is untouched
+    assert all(torch.equal(before[k], after[k]) for k in before)
+
+
+def test_modulator_needs_an_existing_tracker(tmp_path):
+    from adadex.errors import ConfigError
+    from adadex.train.config import ModulatorSettings
+
+    with pytest.raises(ConfigError, match="no tracker checkpoint"):
+        ModulatorSettings(tracker=str(tmp_path / "missing.pt"))

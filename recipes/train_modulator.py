@@ -1,0 +1,20 @@
+"""Train a modulator around a frozen generalist tracker — see train_modulator.yaml.
+
+    python recipes/train_modulator.py tracker=runs/generalist/tracker.pt channels=R+O+T out=runs/mod_ROT
+
+Writes ``out/modulator.pt`` (loads with ``Modulator.load``), ``out/checkpoint.pt`` and ``out/metrics.csv``.
+"""
+
+import hydra
+from omegaconf import DictConfig
+
+from adadex.train.recipe import run
+
+
+@hydra.main(config_path=".", config_name="train_modulator", version_base="1.3")
+def main(cfg: DictConfig) -> dict:
+    return run(cfg, name=f"modulator_{cfg.channels}")
+
+
+if __name__ == "__main__":
+    main()

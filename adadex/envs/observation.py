@@ -62,6 +62,8 @@ PRIVILEGED = "privileged"
 ERRORS = (PRIVILEGED, "errors")
 UNSTABLE = (PRIVILEGED, "unstable")
 REWARD_TERMS = (PRIVILEGED, "reward_terms")
+REFERENCE_INDEX = (PRIVILEGED, "reference_index")
+STEP = (PRIVILEGED, "step")
 
 _SIZES = (("joint_pos", NUM_JOINTS), ("link_pose", 7 * len(TRACKED_SITES)), ("object_pose", 7), ("object_error", 7),
           ("ref_object_future", 7 * (len(REF_OFFSETS) - 1)), ("joint_error", NUM_JOINTS),

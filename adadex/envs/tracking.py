@@ -20,6 +20,8 @@ Per step:
   :data:`adadex.envs.observation.PRIVILEGED`): ``("privileged", "errors")`` the per-frame metric
   errors T_o, R_o, T_h, R_h, E_finger (:func:`adadex.envs.frame_errors.frame_errors`), so evaluation
   never recomputes physics; ``("privileged", "reward_terms")`` the reward's terms;
+  ``("privileged", "reference_index")`` / ``("privileged", "step")`` the dataset index of each world's
+  reference and the frame's step within its episode (what an imitation term keys on);
   ``("privileged", "unstable")`` (below);
 * ``terminated`` when the object or the palm drifts beyond the configured errors, or when the
   world's physics went unstable — NaN, a MuJoCo reset, or the object flung faster than
@@ -289,7 +291,9 @@ class TrackingEnv(EnvBase):
             privileged=Composite(
                 errors=Composite({k: u() for k in ERROR_NAMES}, shape=B),
                 unstable=Categorical(2, shape=(*B, 1), dtype=torch.bool, device=self.device),
-                reward_terms=Composite({k: u() for k in TERM_NAMES}, shape=B), shape=B),
+                reward_terms=Composite({k: u() for k in TERM_NAMES}, shape=B),
+                reference_index=Unbounded(shape=B, dtype=torch.int64, device=self.device),
+                step=Unbounded(shape=B, dtype=torch.int64, device=self.device), shape=B),
             shape=B, device=self.device)
         m = self.config.max_action
         self.action_spec = Bounded(low=-m, high=m, shape=(*B, NUM_JOINTS), dtype=torch.float32, device=self.device)
@@ -465,7 +469,8 @@ class TrackingEnv(EnvBase):
             "object": td({"pose": t(object_pose), "latent": t(latent)}),
             "reference": td({"hand_joint_pos": t(ref_q), "hand_link_pose": t(ref_link), "object_pose": t(ref_obj)}),
             "observation": t(flat),
-            PRIVILEGED: {"errors": td({k: t(v) for k, v in errors.items()})},
+            PRIVILEGED: {"errors": td({k: t(v) for k, v in errors.items()}),
+                         "reference_index": t(self._ref_index.copy()), "step": t(self._t.copy())},
         }
         return out, frame
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 from tensordict.nn import TensorDictModule
 
-from adadex.envs.observation import ERRORS, PRIVILEGED, REWARD_TERMS, UNSTABLE
+from adadex.envs.observation import ERRORS, PRIVILEGED, REFERENCE_INDEX, REWARD_TERMS, STEP, UNSTABLE
 from adadex.envs.replay import replay_policy
 from adadex.envs.reward import TERM_NAMES
 from adadex.envs.tracking import TrackingConfig, TrackingEnv
@@ -65,6 +65,8 @@ def test_privileged_entries_are_apart_and_complete(tiny_dataset):
     assert set(nxt[ERRORS].keys()) == {"T_o", "R_o", "T_h", "R_h", "E_finger"}
     assert set(nxt[REWARD_TERMS].keys()) == set(TERM_NAMES)
     assert nxt[UNSTABLE].dtype == torch.bool
+    assert nxt[STEP][:, 0].tolist() == [1, 1] and td[STEP][:, 2].tolist() == [2, 2]     # steps within the episode
+    assert set(td[REFERENCE_INDEX].flatten().tolist()) <= set(env.references)
     # the terms add up to the reward the learner sees
     cfg = env.config.reward
     t = nxt[REWARD_TERMS]

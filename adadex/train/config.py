@@ -32,11 +32,14 @@ class PPOConfig:
     entropy_coef: float = 1e-3
     critic_coef: float = 0.5
     max_grad_norm: float = 1.0
+    #: weight of the DexTrack-style imitation term (needs a teacher table; 0: plain PPO)
+    imitation_coef: float = 0.0
 
     def __post_init__(self):
         for k in ("total_frames", "frames_per_batch", "epochs", "minibatch_size"):
             check_number(f"PPOConfig.{k}", getattr(self, k), low=1, integer=True)
-        check_numbers("PPOConfig", self, ("lr", "clip_epsilon", "entropy_coef", "critic_coef", "max_grad_norm"))
+        check_numbers("PPOConfig", self, ("lr", "clip_epsilon", "entropy_coef", "critic_coef", "max_grad_norm",
+                                          "imitation_coef"))
         for k in ("gamma", "lmbda"):
             check_number(f"PPOConfig.{k}", getattr(self, k), high=1.0)
 

@@ -35,7 +35,7 @@ from tqdm.auto import tqdm
 
 from adadex.data.reference import ReferenceDataset
 from adadex.envs.observation import ERRORS as ERRORS_KEY
-from adadex.envs.observation import REWARD_TERMS
+from adadex.envs.observation import REFERENCE_INDEX, REWARD_TERMS, STEP
 from adadex.envs.randomization import Randomization
 from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import ConfigError
@@ -76,7 +76,8 @@ class PPOTrainer:
     :class:`Tracker` (specialists, the vanilla-PPO baseline), or — with ``cfg.modulator`` — a
     :class:`Modulator` on the modulated env with the generalist frozen inside it (paper Sec. 3.2)."""
 
-    def __init__(self, cfg: TrainConfig, *, env_config: TrackingConfig = TrackingConfig(), run_name: str = "ppo"):
+    def __init__(self, cfg: TrainConfig, *, env_config: TrackingConfig = TrackingConfig(), run_name: str = "ppo",
+                 teacher: tuple[torch.Tensor, torch.Tensor] | None = None):
         self.cfg, self.env_config, self.run_name = cfg, env_config, run_name
         self.out = Path(cfg.out)
         self.dataset = ReferenceDataset(cfg.dataset)
@@ -99,6 +100,11 @@ class PPOTrainer:
         self.gae = GAE(gamma=self.ppo.gamma, lmbda=self.ppo.lmbda, value_network=self.policy.critic,
                        average_gae=False)
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=self.ppo.lr)
+        #: DexTrack-style imitation (paper B.2.1): (actions [references, window, 22], mask [references,
+        #: window]) — the teacher's action for each dataset reference and step, where one was logged
+        self.teacher = teacher
+        if teacher is not None and not self.ppo.imitation_coef > 0:
+            raise ConfigError("a teacher table was given but ppo.imitation_coef is 0")
         self.iteration, self.frames = 0, 0
         #: ``tracker.pt`` or ``modulator.pt``: loads with ``Tracker.load`` / ``Modulator.load``
         self.policy_path = self.out / f"{self.policy.kind}.pt"
@@ -147,6 +153,10 @@ class PPOTrainer:
                 batch = buffer.sample()
                 out = self.loss(batch)
                 total = out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
+                if self.teacher is not None:
+                    imitation = self._imitation(batch)
+                    total = total + self.ppo.imitation_coef * imitation
+                    stats.setdefault("loss_imitation", []).append(float(imitation.detach()))
                 self.optim.zero_grad()
                 total.backward()
                 grad = torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.ppo.max_grad_norm)
@@ -157,6 +167,20 @@ class PPOTrainer:
                         stats.setdefault(k, []).append(float(out[k].detach().mean()))
                 stats.setdefault("grad_norm", []).append(float(grad))
         return {k: float(np.mean(v)) for k, v in stats.items()}
+
+    def _imitation(self, batch: TensorDictBase) -> torch.Tensor:
+        """Mean squared difference between the policy's deterministic action and the teacher's logged
+        action at the same (reference, step) — keyed by time index, no observation matching (B.2.1);
+        steps without a logged teacher action do not count."""
+        actions, mask = self.teacher
+        ref, step = batch[REFERENCE_INDEX].long(), batch[STEP].long().clamp(max=actions.shape[1] - 1)
+        keep = mask[ref, step]
+        if not keep.any():
+            return torch.zeros((), requires_grad=True)
+        # the loss optimizes its own (functional) copy of the actor's parameters: compute under it
+        with self.loss.actor_network_params.to_module(self.loss.actor_network):
+            dist = self.loss.actor_network.get_dist(batch[keep])
+        return ((dist.deterministic_sample - actions[ref[keep], step[keep]]) ** 2).sum(-1).mean()
 
     @staticmethod
     def batch_metrics(data: TensorDictBase) -> dict:

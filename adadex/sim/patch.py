@@ -4,9 +4,15 @@ A patch is what the sysid workbench writes after fitting and what a TrackingEnv,
 simulator and the workbench itself load, so that every part of adadex runs the same corrected
 simulator. File format (``version`` 1)::
 
-    {"version": 1,
+    {"version": 1, "model": "builtin",
      "effects": [{"effect": "coulomb_friction", "joints": ["if_pip", "if_dip"],
                   "params": {"friction": [0.05, 0.04]}}]}
+
+``model`` is the :attr:`~adadex.sim.model_source.ModelSource.model_id` the patch was fitted on
+(``"builtin"``, or a user's MJCF file name with its content hash); a patch of one model is refused
+on another (:class:`PatchError`). Files without ``model`` are patches of the built-in robot. A
+patch made on a user's model carries that model's :class:`~adadex.sim.model_source.RobotTable`
+(``robot``): joint names and bounds are checked against it.
 
 Example
 -------
@@ -22,7 +28,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import mujoco
@@ -31,6 +37,7 @@ import numpy as np
 from adadex.errors import AdadexError
 from adadex.io import atomic_write_text
 from adadex.sim.effects import EffectError, ModelBase, get_effect
+from adadex.sim.model_source import BUILTIN_ID, same_model
 from adadex.sim.robot import joint_index
 
 PATCH_VERSION = 1
@@ -47,11 +54,13 @@ class EffectInstance:
     effect: str
     joints: tuple[str, ...]
     values: np.ndarray
+    #: The user model's joint table the joints and bounds refer to (None: the built-in robot).
+    robot: object = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         eff = get_effect(self.effect)
         object.__setattr__(self, "joints", tuple(self.joints))
-        object.__setattr__(self, "values", eff.validate(self.joints, self.values))
+        object.__setattr__(self, "values", eff.validate(self.joints, self.values, self.robot))
 
     @property
     def spec(self):
@@ -59,7 +68,7 @@ class EffectInstance:
 
     @property
     def jid(self) -> np.ndarray:
-        return joint_index(self.joints)
+        return joint_index(self.joints) if self.robot is None else self.robot.index(self.joints)
 
     def is_absent(self) -> bool:
         return self.spec.is_absent(self.values)
@@ -69,7 +78,7 @@ class EffectInstance:
                 "params": {p: [float(v) for v in self.values[:, i]] for i, p in enumerate(self.spec.param_names)}}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "EffectInstance":
+    def from_dict(cls, d: dict, robot=None) -> "EffectInstance":
         if not isinstance(d, dict) or "effect" not in d or "joints" not in d:
             raise PatchError(f"an effect entry needs 'effect' and 'joints', got {d!r}")
         eff = get_effect(d["effect"])
@@ -86,16 +95,23 @@ class EffectInstance:
             values = np.stack(cols, axis=1)
         except ValueError as e:
             raise PatchError(f"{eff.name}: one value per joint expected for {joints}: {e}") from None
-        return cls(eff.name, tuple(joints), values)
+        return cls(eff.name, tuple(joints), values, robot)
 
 
 @dataclass(frozen=True)
 class ModelPatch:
-    """An ordered set of effects; the same (effect, joint) pair may appear only once."""
+    """An ordered set of effects; the same (effect, joint) pair may appear only once. ``robot``: the
+    joint table of the user model the patch belongs to (None: the built-in robot)."""
 
     effects: tuple[EffectInstance, ...] = ()
+    robot: object = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
+        if self.robot is not None and self.robot.builtin:
+            object.__setattr__(self, "robot", None)
+        object.__setattr__(self, "effects", tuple(
+            e if e.robot is self.robot else EffectInstance(e.effect, e.joints, e.values, self.robot)
+            for e in self.effects))
         seen = set()
         for e in self.effects:
             for j in e.joints:
@@ -105,15 +121,28 @@ class ModelPatch:
 
     # ------------------------------------------------------------ composition
 
+    @property
+    def model_id(self) -> str:
+        """The model this patch belongs to (see the module docstring)."""
+        return BUILTIN_ID if self.robot is None else self.robot.model_id
+
+    def check_model(self, model_id: str | None, source: str = "patch") -> None:
+        """Raise :class:`PatchError` unless this patch belongs to model ``model_id``."""
+        if self.effects and not same_model(self.model_id, model_id):
+            raise PatchError(f"{source}: this patch was fitted on model {self.model_id}, not on "
+                             f"{model_id or BUILTIN_ID}; fit a patch on this model instead")
+
     def with_effect(self, effect: str, joints, values) -> "ModelPatch":
-        return ModelPatch(self.effects + (EffectInstance(effect, tuple(joints), values),))
+        return ModelPatch(self.effects + (EffectInstance(effect, tuple(joints), values, self.robot),), self.robot)
 
     def __add__(self, other: "ModelPatch") -> "ModelPatch":
-        return ModelPatch(self.effects + other.effects)
+        if self.effects and other.effects:
+            other.check_model(self.model_id)
+        return ModelPatch(self.effects + other.effects, self.robot if self.robot is not None else other.robot)
 
     def active(self) -> "ModelPatch":
         """The patch without effects at their absent values."""
-        return ModelPatch(tuple(e for e in self.effects if not e.is_absent()))
+        return ModelPatch(tuple(e for e in self.effects if not e.is_absent()), self.robot)
 
     def __len__(self) -> int:
         return len(self.effects)
@@ -155,23 +184,30 @@ class ModelPatch:
     # ------------------------------------------------------------ files
 
     def to_dict(self) -> dict:
-        return {"version": PATCH_VERSION, "effects": [e.to_dict() for e in self.effects]}
+        return {"version": PATCH_VERSION, "model": self.model_id, "effects": [e.to_dict() for e in self.effects]}
 
     @classmethod
-    def from_dict(cls, d: dict, *, source: str = "patch") -> "ModelPatch":
+    def from_dict(cls, d: dict, *, source: str = "patch", robot=None) -> "ModelPatch":
+        """Read a patch; ``robot`` is the joint table of the model it must belong to (None: built-in)."""
         if not isinstance(d, dict) or not isinstance(d.get("effects"), list):
             raise PatchError(f"{source}: expected an object with an 'effects' list")
         if d.get("version", PATCH_VERSION) != PATCH_VERSION:
             raise PatchError(f"{source}: unsupported patch version {d.get('version')!r} (this adadex reads {PATCH_VERSION})")
+        model = d.get("model", BUILTIN_ID)
+        expected = BUILTIN_ID if robot is None else robot.model_id
+        if d["effects"] and not same_model(model, expected):
+            raise PatchError(f"{source}: this patch was fitted on model {model}, not on {expected}; "
+                             "a patch is only valid on the model it was fitted on")
+        robot = None if robot is None or robot.builtin else robot
         effects = []
         for i, entry in enumerate(d["effects"]):
             try:
-                effects.append(EffectInstance.from_dict(entry))
+                effects.append(EffectInstance.from_dict(entry, robot))
             except (EffectError, PatchError, KeyError) as e:
                 msg = e.args[0] if e.args else str(e)
                 raise PatchError(f"{source}: effects[{i}]: {msg}") from None
         try:
-            return cls(tuple(effects))
+            return cls(tuple(effects), robot)
         except PatchError as e:
             raise PatchError(f"{source}: {e}") from None
 
@@ -180,7 +216,8 @@ class ModelPatch:
         return atomic_write_text(path, json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "ModelPatch":
+    def load(cls, path: str | os.PathLike, *, robot=None) -> "ModelPatch":
+        """Read a patch file; it must belong to ``robot``'s model (None: the built-in robot)."""
         path = Path(path)
         try:
             d = json.loads(path.read_text())
@@ -188,7 +225,7 @@ class ModelPatch:
             raise PatchError(f"{path}: no such patch file") from None
         except json.JSONDecodeError as e:
             raise PatchError(f"{path}: not valid JSON ({e})") from None
-        return cls.from_dict(d, source=str(path))
+        return cls.from_dict(d, source=str(path), robot=robot)
 
     def describe(self) -> str:
         if not self.effects:

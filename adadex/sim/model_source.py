@@ -89,6 +89,11 @@ class RobotTable:
     effort: np.ndarray
     carried_mass: np.ndarray
     gravity_torque: np.ndarray
+    path: Path | None = None    # the model file (None: the built-in scene)
+
+    @property
+    def source(self) -> "ModelSource":
+        return ModelSource(self.path)
 
     @property
     def builtin(self) -> bool:
@@ -113,7 +118,7 @@ class RobotTable:
         return np.asarray(out, dtype=np.int64)
 
     @classmethod
-    def of(cls, m: mujoco.MjModel, model_id: str) -> "RobotTable":
+    def of(cls, m: mujoco.MjModel, model_id: str, path: Path | None = None) -> "RobotTable":
         jnts, dofs, acts = robot_ids(m)
         if jnts.size == 0:
             raise ModelSourceError(f"{model_id}: no joint is driven by a position actuator (a <position> "
@@ -135,7 +140,7 @@ class RobotTable:
         gravity = np.abs(d.qfrc_bias[dofs])
         return cls(model_id, names, lim.astype(float), home.astype(float), kp, -m.actuator_biasprm[acts, 2].copy(),
                    m.dof_armature[dofs].copy(), effort.astype(float), m.body_subtreemass[m.jnt_bodyid[jnts]].copy(),
-                   gravity)
+                   gravity, path)
 
 
 @dataclass(frozen=True)
@@ -207,7 +212,7 @@ def _file_id(path: str, mtime_ns: int) -> str:
 def _nominal_cached(path: str | None, model_id: str) -> tuple[mujoco.MjModel, RobotTable]:
     src = ModelSource(None if path is None else Path(path))
     m = src.compile()
-    return m, RobotTable.of(m, model_id)
+    return m, RobotTable.of(m, model_id, src.path)
 
 
 def _nominal(src: ModelSource) -> tuple[mujoco.MjModel, RobotTable]:
@@ -217,6 +222,68 @@ def _nominal(src: ModelSource) -> tuple[mujoco.MjModel, RobotTable]:
 def builtin_robot() -> RobotTable:
     """The built-in robot's table (22 joints, :data:`~adadex.sim.robot.JOINT_NAMES` order)."""
     return ModelSource().robot()
+
+
+def export_world(path: str | os.PathLike) -> Path:
+    """Write the built-in nominal world — robot, table and physics options, no object — as MJCF,
+    atomically. ``ModelSource(path)`` replays exactly as the built-in scene does (recordings whose
+    period is a multiple of the physics step, such as 60 Hz, bit for bit; tested)."""
+    from adadex.io import atomic_write_text
+
+    spec = ModelSource().spec()
+    spec.modelname = "adadex_world"
+    model = spec.compile()
+    return atomic_write_text(path, _full_precision(spec.to_xml(), model))
+
+
+#: Per MJCF element, attribute → (compiled-model array, id kind): MuJoCo writes 6 significant digits,
+#: so these are rewritten from the compiled model at full precision (``repr``).
+_EXACT = {
+    "body": {"pos": ("body_pos", "body"), "quat": ("body_quat", "body")},
+    "inertial": {"pos": ("body_ipos", "parent"), "quat": ("body_iquat", "parent"), "mass": ("body_mass", "parent"),
+                 "diaginertia": ("body_inertia", "parent")},
+    "geom": {"size": ("geom_size", "geom"), "pos": ("geom_pos", "geom"), "quat": ("geom_quat", "geom"),
+             "friction": ("geom_friction", "geom"), "solref": ("geom_solref", "geom"),
+             "solimp": ("geom_solimp", "geom")},
+    "joint": {"range": ("jnt_range", "joint"), "actuatorfrcrange": ("jnt_actfrcrange", "joint"),
+              "axis": ("jnt_axis", "joint"), "pos": ("jnt_pos", "joint"), "armature": ("dof_armature", "dof"),
+              "damping": ("dof_damping", "dof"), "frictionloss": ("dof_frictionloss", "dof")},
+    "site": {"size": ("site_size", "site"), "pos": ("site_pos", "site"), "quat": ("site_quat", "site")},
+    "general": {"ctrlrange": ("actuator_ctrlrange", "actuator"), "forcerange": ("actuator_forcerange", "actuator"),
+                "gainprm": ("actuator_gainprm", "actuator"), "biasprm": ("actuator_biasprm", "actuator")},
+    "key": {"qpos": ("key_qpos", "key"), "ctrl": ("key_ctrl", "key")},
+}
+_OBJ = {"body": mujoco.mjtObj.mjOBJ_BODY, "geom": mujoco.mjtObj.mjOBJ_GEOM, "joint": mujoco.mjtObj.mjOBJ_JOINT,
+        "site": mujoco.mjtObj.mjOBJ_SITE, "actuator": mujoco.mjtObj.mjOBJ_ACTUATOR, "key": mujoco.mjtObj.mjOBJ_KEY}
+
+
+def _full_precision(xml: str, m: mujoco.MjModel) -> str:
+    """``xml`` with its numbers rewritten from the compiled model ``m`` at full precision."""
+    import xml.etree.ElementTree as ET
+
+    root = ET.fromstring(xml)
+    for name in ("timestep", "impratio"):
+        opt = root.find("option")
+        if opt is not None and name in opt.attrib:
+            opt.set(name, repr(float(getattr(m.opt, name))))
+    parents = {c: p for p in root.iter() for c in p}
+    for el in root.iter():
+        table = _EXACT.get("general" if el.tag == "general" else el.tag)
+        if not table:
+            continue
+        named = parents[el] if el.tag == "inertial" else el
+        tag = "actuator" if el.tag == "general" else named.tag
+        if "name" not in named.attrib or tag not in _OBJ:
+            continue
+        i = mujoco.mj_name2id(m, _OBJ[tag], named.get("name"))
+        for attr, (field, kind) in table.items():
+            if attr not in el.attrib or i < 0:
+                continue
+            row = i if kind != "dof" else int(m.jnt_dofadr[i])
+            n = len(el.get(attr).split())
+            el.set(attr, " ".join(repr(float(v)) for v in np.ravel(getattr(m, field)[row])[:n]))
+    ET.indent(root, space="  ")
+    return ET.tostring(root, encoding="unicode") + "\n"
 
 
 def same_model(a: str | None, b: str | None) -> bool:

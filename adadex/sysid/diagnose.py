@@ -63,10 +63,11 @@ class Diagnosis:
     explained_fraction: dict
     findings: list[str]
     wall_time_s: float
+    model: str = "builtin"      # the model id the diagnosis replayed on
 
-    def patch(self) -> ModelPatch:
-        """The selected effects as a model patch."""
-        p = ModelPatch()
+    def patch(self, robot=None) -> ModelPatch:
+        """The selected effects as a model patch (of ``robot``'s model; default the built-in)."""
+        p = ModelPatch(robot=robot)
         for h in self.selected:
             values = np.array(h["params"][get_effect(h["effect"]).param_names[0]])[:, None]
             p = p.with_effect(h["effect"], h["joints"], values)
@@ -75,7 +76,7 @@ class Diagnosis:
     def to_dict(self) -> dict:
         return {"verdict": self.verdict, "baseline_error": self.baseline_error, "hypotheses": self.hypotheses,
                 "selected": self.selected, "explained_fraction": self.explained_fraction,
-                "findings": self.findings, "wall_time_s": self.wall_time_s}
+                "findings": self.findings, "wall_time_s": self.wall_time_s, "model": self.model}
 
     def save(self, directory) -> Path:
         return atomic_write_text(Path(directory) / "diagnosis.json", json.dumps(self.to_dict(), indent=2))
@@ -145,14 +146,15 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
              progress: bool = True) -> Diagnosis:
     """Diagnose ``recording``; see the module docstring. ``joints`` overrides the failing-joint search."""
     t0 = time.perf_counter()
-    base_patch = base_patch if base_patch is not None else ModelPatch()
     rep = Replayer(recording, nthread=nthread)
+    base_patch = base_patch if base_patch is not None else ModelPatch(robot=rep.robot)
     noise = noise_floor(recording.joint_pos)
     baseline, failing, findings = _localize_failing_joints(recording, base_patch, rep, noise)
     if joints is not None:
         failing = list(joints)
     if not failing:
-        return Diagnosis("nothing_missing", baseline, [], [], {}, findings, time.perf_counter() - t0)
+        return Diagnosis("nothing_missing", baseline, [], [], {}, findings, time.perf_counter() - t0,
+                         rep.robot.model_id)
 
     seq_meta = list(recording.meta.get("sequences") or [{} for _ in range(recording.num_sequences)])
     setting = _Setting(rep, base_patch, list(recording.joint_names), noise, seq_meta, heldout_mask(recording))
@@ -176,7 +178,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     selected = _merge_over_joints(selected_per_joint)
     verdict, sentences = _verdict(explained, selected_per_joint, explained_at)
     return Diagnosis(verdict, baseline, hypotheses, selected, explained, findings + sentences,
-                     time.perf_counter() - t0)
+                     time.perf_counter() - t0, rep.robot.model_id)
 
 
 def _localize_failing_joints(recording, base_patch: ModelPatch, rep: Replayer, noise: np.ndarray):
@@ -232,7 +234,7 @@ def _fit_and_score_candidates(setting: _Setting, joint: str, names: list[str], p
         if k < refine_top:
             value, ci, after = _refine(fitter, name, grids[name], train_before)
         else:
-            value, ci, after = _best_on_grid(name, grids[name], joint)
+            value, ci, after = _best_on_grid(name, grids[name], joint, setting.replayer.robot)
         held_after = held_fitter.mse_per_sequence(fitter.patch_with(name, value))
         red_tr = _reduction(train_before, after, n2)
         red_ho = _reduction(held_before, held_after, n2)
@@ -258,10 +260,10 @@ def _refine(fitter: JointFitter, name: str, grid, train_before: float) -> tuple[
     return r.value, r.ci95, r.mse_after
 
 
-def _best_on_grid(name: str, grid, joint: str) -> tuple[float, tuple, float]:
+def _best_on_grid(name: str, grid, joint: str, robot=None) -> tuple[float, tuple, float]:
     """(value, the effect's bounds as the interval, training MSE) of the best grid point of ``name``."""
     i = int(np.argmin(grid[1]))
-    ci = tuple(float(b[0, 0]) for b in get_effect(name).bounds([joint]))
+    ci = tuple(float(b[0, 0]) for b in get_effect(name).bounds([joint], robot))
     return float(grid[0][i]), ci, float(grid[1][i])
 
 

@@ -69,9 +69,9 @@ def error_stages(recording, patch: ModelPatch, *, replayer=None, nthread: int = 
     from adadex.sysid.replay import Replayer
 
     rep = replayer if replayer is not None else Replayer(recording, nthread=nthread)
-    names, patches = ["baseline (nominal model)"], [ModelPatch()]
+    names, patches = ["baseline (nominal model)"], [ModelPatch(robot=rep.robot)]
     for e in patch.effects:
-        patches.append(ModelPatch(patches[-1].effects + (e,)))
+        patches.append(ModelPatch(patches[-1].effects + (e,), rep.robot))
         names.append(f"+ {e.effect} on {','.join(e.joints)}")
     comps = [Comparison(recording, p, rep.simulate(p)) for p in patches]
     return Stages(names, patches, comps, heldout_mask(recording))

@@ -179,4 +179,5 @@ def simulate_recording(plan: ExcitationPlan, patch: ModelPatch | None = None, *,
     q = Replayer(proto, nthread=nthread).simulate(patch)
     q = q + np.random.default_rng(seed).normal(0.0, noise, size=q.shape)
     # The truth patch is deliberately not recorded: the workbench must find it.
-    return plan.to_recording(q, {"simulated": True, "noise_rad": noise, "seed": seed})
+    return plan.to_recording(q, {"simulated": True, "noise_rad": noise, "seed": seed,
+                                 "model": patch.model_id if plan.robot is None else plan.robot.model_id})

@@ -62,7 +62,8 @@ def run_demo(recording, out="adadex_demo", nthread: int = 2, model=None) -> dict
             pd.append(identify_pd(rep, joint, sequences_moving(rec, joint), method=method, max_evals=120))
     for r in pd:
         print(f"   {r['joint']:<7} {r['method']:<4} kp×{r['kp_scale']:.3f} kd×{r['kd_scale']:.3f}  MSE "
-              f"{r['mse_nominal']:.2e} → {r['mse']:.2e} rad²  ({r['evaluations']} replays, {r['seconds']:.1f} s)")
+              f"{r['mse_nominal']:.2e} → {r['mse']:.2e} rad²  ({r['evaluations']} replays, {r['seconds']:.1f} s)"
+              + ("" if r.get("progress", True) else "  no progress: the nominal model is kept"))
     report = write_report(rec, patch, out / "report.html", diagnosis=d, stages=st, pd_results=pd)
     dt = time.perf_counter() - t0
     print(f"\nreport: {report}   ({dt:.0f} s)")

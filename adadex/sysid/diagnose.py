@@ -17,6 +17,14 @@ best are reported as alternatives of one hypothesis (on a position servo, viscou
 ``kd_scale`` are such a pair). The same effect selected on several joints becomes one hypothesis
 over those joints.
 
+Coupled joints: the failing joints are fitted worst first (error over noise), and after each joint's
+effects are chosen the rest are localized again on the model with those effects; a joint that no
+longer fails had only a knock-on error (the joint that moves it was the source) and gets no effect of
+its own. A candidate fitted at (or within 0.1 % of the bounds of) its absent value explains nothing
+and is dropped; explained fractions are reported clipped at 0. A selected value whose 95 % interval
+reaches its bounds or spans half of them is reported as not identifiable from the recording, with the
+``adadex sysid excite`` command whose excitation would pin it down (:data:`EXCITATION_FOR`).
+
 Verdicts: ``nothing_missing`` (no joint's error is above its noise floor), ``explained`` (every
 failing joint's held-out excess error falls by at least ``explained_at``), ``unexplained`` (the
 best candidates explain too little; the report says how much).
@@ -162,21 +170,41 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     selected_per_joint: dict[str, list[Candidate]] = {}
     explained: dict[str, float] = {}
     bar = tqdm(total=len(failing) * len(candidates), desc="diagnosing", unit="fit", disable=not progress)
-    for joint in failing:
+    # Sources first: the worst joint (relative to its noise) is fitted first, then what is left is
+    # localized again on the model with its effects, so a joint that only failed because another
+    # one moved it differently is not given an explanation of its own.
+    pending, knock_on = list(failing), []
+    while pending:
+        joint = pending.pop(0)
         first_rounds[joint], chosen = _forward_selection(
             setting, joint, candidates, max_effects=max_effects_per_joint, min_gain=min_gain, tie=tie,
-            refine_top=refine_top, bar=bar)
+            refine_top=refine_top, bar=bar, patch=_patch_of(selected_per_joint, base_patch))
         selected_per_joint[joint] = chosen
         explained[joint] = chosen[-1].heldout_error_reduction if chosen else 0.0
+        if chosen and pending and joints is None:
+            _, still, _ = _localize_failing_joints(recording, _patch_of(selected_per_joint, base_patch), rep, noise)
+            gone = [j for j in pending if j not in still]
+            knock_on += gone
+            pending = [j for j in pending if j in still]
+            bar.update(len(gone) * len(candidates))
     bar.close()
+    for joint in knock_on:
+        selected_per_joint[joint] = []
 
     if sum(len(c) for c in selected_per_joint.values()) > 1:
         _refit_jointly(setting, selected_per_joint, refine_passes)
+    if sum(len(c) for c in selected_per_joint.values()) > 1 or knock_on:
         explained.update(_score_jointly(setting, selected_per_joint))
+    explained = {j: max(0.0, v) for j, v in explained.items()}
+    if knock_on:
+        findings.append(f"{', '.join(knock_on)}: no effect of their own; their error follows from the effects "
+                        "found on the joints that move them (it falls below the failure threshold once those are "
+                        "in the model).")
 
     hypotheses = _hypotheses(first_rounds, selected_per_joint)
-    selected = _merge_over_joints(selected_per_joint)
-    verdict, sentences = _verdict(explained, selected_per_joint, explained_at)
+    selected = _merge_over_joints(selected_per_joint, rep.robot)
+    verdict, sentences = _verdict({j: v for j, v in explained.items() if j not in knock_on}, selected_per_joint,
+                                  explained_at, rep.robot)
     return Diagnosis(verdict, baseline, hypotheses, selected, explained, findings + sentences,
                      time.perf_counter() - t0, rep.robot.model_id)
 
@@ -193,14 +221,15 @@ def _localize_failing_joints(recording, base_patch: ModelPatch, rep: Replayer, n
 
 
 def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects: int, min_gain: float,
-                       tie: float, refine_top: int, bar) -> tuple[list[Candidate], list[Candidate]]:
+                       tie: float, refine_top: int, bar, patch: ModelPatch | None = None,
+                       ) -> tuple[list[Candidate], list[Candidate]]:
     """Add effects on ``joint`` one at a time, each the best-scoring on held-out sequences, while each
     adds ``min_gain`` (the first only needs a positive score). Returns the first round's candidates,
     ranked, and the chosen effects in order."""
     train, held = setting.sequences(joint)
     n2 = setting.noise2(joint)
     chosen: list[Candidate] = []
-    patch = setting.base_patch
+    patch = setting.base_patch if patch is None else patch
     held_before = JointFitter(setting.replayer, joint, held, patch).mse_per_sequence(patch)
     first_round: list[Candidate] = []
     for round_ in range(max_effects):
@@ -239,12 +268,20 @@ def _fit_and_score_candidates(setting: _Setting, joint: str, names: list[str], p
         red_tr = _reduction(train_before, after, n2)
         red_ho = _reduction(held_before, held_after, n2)
         gain = red_ho - _reduction(held_before, cur_held, n2)
-        cands.append(Candidate(name, joint, value, ci, red_tr, red_ho,
-                               gain - COMPLEXITY_PENALTY * len(get_effect(name).params)))
+        if not _is_absent(name, value, joint, setting.replayer.robot):   # "not there" explains nothing
+            cands.append(Candidate(name, joint, value, ci, red_tr, red_ho,
+                                   gain - COMPLEXITY_PENALTY * len(get_effect(name).params)))
         if bar is not None:
             bar.update(1)
     cands.sort(key=lambda c: -c.score)
     return cands
+
+
+def _is_absent(name: str, value: float, joint: str, robot) -> bool:
+    """Whether ``value`` is (within 0.1 % of the bounds' width of) the effect's absent value."""
+    eff = get_effect(name)
+    lo, hi = (float(b[0, 0]) for b in eff.bounds([joint], robot))
+    return abs(value - float(eff.absent_values()[0])) <= 1e-3 * (hi - lo)
 
 
 def _screen_on_grid(fitter: JointFitter, names: list[str]) -> tuple[dict, list[str]]:
@@ -316,8 +353,8 @@ def _hypotheses(first_rounds: dict, selected_per_joint: dict) -> list[dict]:
             hypotheses.append({"effect": c.effect, "joints": [joint],
                                "params": {get_effect(c.effect).param_names[0]: [c.value]},
                                "ci95": {get_effect(c.effect).param_names[0]: [list(c.ci95)]},
-                               "train_error_reduction": c.train_error_reduction,
-                               "heldout_error_reduction": c.heldout_error_reduction,
+                               "train_error_reduction": max(0.0, c.train_error_reduction),
+                               "heldout_error_reduction": max(0.0, c.heldout_error_reduction),
                                "score": c.score, "alternatives": []})
     hypotheses.sort(key=lambda h: -h["score"])
     for joint, chosen in selected_per_joint.items():
@@ -329,31 +366,70 @@ def _hypotheses(first_rounds: dict, selected_per_joint: dict) -> list[dict]:
     return hypotheses
 
 
-def _merge_over_joints(selected_per_joint: dict) -> list[dict]:
-    """The selected effects, one entry per effect over all the joints it was selected on."""
+def _merge_over_joints(selected_per_joint: dict, robot=None) -> list[dict]:
+    """The selected effects, one entry per effect over all the joints it was selected on, each
+    value flagged ``identifiable`` (see :func:`identifiable`) with its unit."""
     merged: dict[str, dict] = {}
     for joint, chosen in selected_per_joint.items():
         for c in chosen:
             pname = get_effect(c.effect).param_names[0]
             h = merged.setdefault(c.effect, {"effect": c.effect, "joints": [], "params": {pname: []},
                                              "ci95": {pname: []}, "heldout_error_reduction": [],
-                                             "alternatives": []})
+                                             "alternatives": [], "identifiable": [],
+                                             "unit": get_effect(c.effect).params[0].unit})
+            h["identifiable"].append(identifiable(c.effect, joint, c.ci95, robot))
             h["joints"].append(joint)
             h["params"][pname].append(c.value)
             h["ci95"][pname].append(list(c.ci95))
-            h["heldout_error_reduction"].append(c.heldout_error_reduction)
+            h["heldout_error_reduction"].append(max(0.0, c.heldout_error_reduction))
             h["alternatives"] = sorted(set(h["alternatives"]) | set(c.alternatives))
     return list(merged.values())
 
 
-def _verdict(explained: dict, selected_per_joint: dict, explained_at: float) -> tuple[str, list[str]]:
+#: The excitation that pins each effect down, as ``adadex sysid excite`` options.
+EXCITATION_FOR = {
+    "coulomb_friction": "--freqs 0.25,0.5 --amps 0.1,0.3", "backlash": "--freqs 0.25,0.5 --amps 0.05,0.2",
+    "damping": "--freqs 1,3,5 --amps 0.5,1", "kd_scale": "--freqs 1,3,5 --amps 0.5,1",
+    "armature": "--freqs 3,5 --amps 0.5,1 --kinds chirp,multisine",
+    "payload_mass": "--freqs 0.5,3 --amps 1 --poses loaded,unloaded",
+    "actuator_delay": "--freqs 2,4,6 --kinds sine,chirp", "actuator_lag": "--freqs 0.5,2,5 --kinds sine,chirp",
+    "torque_limit": "--freqs 2,4 --amps 1", "kp_scale": "--freqs 0.5,3 --amps 0.3,1 --poses loaded,unloaded",
+    "joint_spring": "--freqs 0.25 --amps 0.3,1 --poses loaded,unloaded", "encoder_offset": "--freqs 0.5 --amps 0.3",
+}
+
+
+def identifiable(effect: str, joint: str, ci95, robot=None) -> bool:
+    """False when the data cannot pin the parameter down: its 95 % interval reaches a bound or spans
+    half of the bounds (a flat error)."""
+    lo, hi = (float(b[0, 0]) for b in get_effect(effect).bounds([joint], robot))
+    a, b = ci95
+    w = hi - lo
+    return not (b - a >= 0.5 * w or a <= lo + 1e-3 * w and effect_at(effect, a) or b >= hi - 1e-3 * w)
+
+
+def effect_at(effect: str, value: float) -> bool:
+    """Whether an interval's lower end at ``value`` is informative (not the absent value itself)."""
+    return value != float(get_effect(effect).absent_values()[0])
+
+
+def _describe(c: Candidate, robot) -> str:
+    eff = get_effect(c.effect)
+    text = f"{c.effect} ({eff.param_names[0]} = {c.value:.4g} {eff.params[0].unit})"
+    if not identifiable(c.effect, c.joint, c.ci95, robot):
+        text = (f"{c.effect} (not identifiable from this recording: its 95% interval "
+                f"[{c.ci95[0]:.3g}, {c.ci95[1]:.3g}] {eff.params[0].unit} reaches the bounds; to identify it run "
+                f"`adadex sysid excite --joints {c.joint} {EXCITATION_FOR.get(c.effect, '')}`)")
+    return text
+
+
+def _verdict(explained: dict, selected_per_joint: dict, explained_at: float,
+             robot=None) -> tuple[str, list[str]]:
     """``explained`` or ``unexplained``, and one finding per joint (plus one naming the unexplained joints)."""
     verdict = "explained" if all(v >= explained_at for v in explained.values()) else "unexplained"
     findings = []
     for joint, v in explained.items():
         chosen = selected_per_joint[joint]
-        what = " + ".join(f"{c.effect} ({get_effect(c.effect).param_names[0]} = {c.value:.4g})"
-                          for c in chosen) or "nothing"
+        what = " + ".join(_describe(c, robot) for c in chosen) or "nothing"
         findings.append(f"{joint}: {what} explains {100 * v:.0f}% of the held-out error above the noise floor.")
     if verdict == "unexplained":
         weak = [j for j, v in explained.items() if v < explained_at]

@@ -152,6 +152,9 @@ def identify_pd(replayer, joint: str, seqs, *, method: str = "cma", seed: int = 
     """The paper's identification: per-joint servo gains (``kp_scale``, ``kd_scale``) that minimize
     Σ‖q_sim − q_real‖² on ``seqs``, with CMA-ES (``method="cma"``, the paper's choice, seeded) or
     MuJoCo's bounded least squares (``method="lsq"``, the optimizer behind ``mujoco.sysid``).
+
+    The starting model (kp, kd scales 1) is scored as well and kept when the optimizer ends worse
+    (``progress`` is then False): the result is never worse than the nominal ``mse_nominal``.
     """
     import io
     import time
@@ -170,6 +173,7 @@ def identify_pd(replayer, joint: str, seqs, *, method: str = "cma", seed: int = 
 
     t0 = time.perf_counter()
     x0 = np.ones(2)
+    start = fitter.mse(patch_at(x0))      # the starting (nominal) model is scored too: never return worse
     if method == "cma":
         span = hi - lo
         es = cma.CMAEvolutionStrategy(((x0 - lo) / span).tolist(), 0.15,
@@ -189,6 +193,10 @@ def identify_pd(replayer, joint: str, seqs, *, method: str = "cma", seed: int = 
         x, _ = minimize.least_squares(x0, residual, bounds=[lo, hi], verbose=0, output=io.StringIO(), max_iter=40)
     else:
         raise ValueError(f"method must be 'cma' or 'lsq', got {method!r}")
+    mse = fitter.mse(patch_at(x))
+    progress = bool(mse < start)
+    if not progress:   # the optimizer found nothing better than where it started: keep the start
+        x, mse = x0, start
     return {"joint": joint, "method": method, "kp_scale": float(x[0]), "kd_scale": float(x[1]),
-            "mse": fitter.mse(patch_at(x)), "mse_nominal": fitter.mse(fitter.base_patch),
+            "mse": mse, "mse_nominal": start, "progress": progress,
             "evaluations": fitter.evaluations, "seconds": time.perf_counter() - t0}

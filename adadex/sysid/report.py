@@ -133,7 +133,8 @@ def write_report(recording, patch: ModelPatch, out, *, diagnosis=None, title: st
                      "<th>evaluations</th><th>seconds</th></tr>")
         for r in pd_results:
             parts.append(f"<tr><td class='l'>{r['joint']}</td><td class='l'>{r['method']}</td><td>{r['kp_scale']:.3f}</td>"
-                         f"<td>{r['kd_scale']:.3f}</td><td>{r['mse_nominal']:.2e}</td><td>{r['mse']:.2e}</td>"
+                         f"<td>{r['kd_scale']:.3f}</td><td>{r['mse_nominal']:.2e}</td><td>{r['mse']:.2e}"
+                         f"{'' if r.get('progress', True) else ' (no progress: nominal kept)'}</td>"
                          f"<td>{r['evaluations']}</td><td>{r['seconds']:.1f}</td></tr>")
         parts.append("</table>")
     parts.append("<h2>Overlays: command, measured, model before and after</h2>")

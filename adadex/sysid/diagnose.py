@@ -72,6 +72,7 @@ class Diagnosis:
     findings: list[str]
     wall_time_s: float
     model: str = "builtin"      # the model id the diagnosis replayed on
+    stage_times_s: dict = field(default_factory=dict)   # wall time per stage (localize, fit, relocalize, …)
 
     def patch(self, robot=None) -> ModelPatch:
         """The selected effects as a model patch (of ``robot``'s model; default the built-in)."""
@@ -84,7 +85,8 @@ class Diagnosis:
     def to_dict(self) -> dict:
         return {"verdict": self.verdict, "baseline_error": self.baseline_error, "hypotheses": self.hypotheses,
                 "selected": self.selected, "explained_fraction": self.explained_fraction,
-                "findings": self.findings, "wall_time_s": self.wall_time_s, "model": self.model}
+                "findings": self.findings, "wall_time_s": self.wall_time_s, "model": self.model,
+                "stage_times_s": self.stage_times_s}
 
     def save(self, directory) -> Path:
         return atomic_write_text(Path(directory) / "diagnosis.json", json.dumps(self.to_dict(), indent=2))
@@ -157,12 +159,22 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     rep = Replayer(recording, nthread=nthread)
     base_patch = base_patch if base_patch is not None else ModelPatch(robot=rep.robot)
     noise = noise_floor(recording.joint_pos)
+    times = {"localize": 0.0, "fit": 0.0, "relocalize": 0.0, "joint_refit_and_scoring": 0.0}
+    tick = time.perf_counter()
+
+    def lap(stage: str) -> None:
+        nonlocal tick
+        now = time.perf_counter()
+        times[stage] += now - tick
+        tick = now
+
     baseline, failing, findings = _localize_failing_joints(recording, base_patch, rep, noise)
+    lap("localize")
     if joints is not None:
         failing = list(joints)
     if not failing:
         return Diagnosis("nothing_missing", baseline, [], [], {}, findings, time.perf_counter() - t0,
-                         rep.robot.model_id)
+                         rep.robot.model_id, times)
 
     seq_meta = list(recording.meta.get("sequences") or [{} for _ in range(recording.num_sequences)])
     setting = _Setting(rep, base_patch, list(recording.joint_names), noise, seq_meta, heldout_mask(recording))
@@ -181,8 +193,10 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
             refine_top=refine_top, bar=bar, patch=_patch_of(selected_per_joint, base_patch))
         selected_per_joint[joint] = chosen
         explained[joint] = chosen[-1].heldout_error_reduction if chosen else 0.0
+        lap("fit")
         if chosen and pending and joints is None:
             _, still, _ = _localize_failing_joints(recording, _patch_of(selected_per_joint, base_patch), rep, noise)
+            lap("relocalize")
             gone = [j for j in pending if j not in still]
             knock_on += gone
             pending = [j for j in pending if j in still]
@@ -200,13 +214,14 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         findings.append(f"{', '.join(knock_on)}: no effect of their own; their error follows from the effects "
                         "found on the joints that move them (it falls below the failure threshold once those are "
                         "in the model).")
+    lap("joint_refit_and_scoring")
 
     hypotheses = _hypotheses(first_rounds, selected_per_joint)
     selected = _merge_over_joints(selected_per_joint, rep.robot)
     verdict, sentences = _verdict({j: v for j, v in explained.items() if j not in knock_on}, selected_per_joint,
                                   explained_at, rep.robot)
     return Diagnosis(verdict, baseline, hypotheses, selected, explained, findings + sentences,
-                     time.perf_counter() - t0, rep.robot.model_id)
+                     time.perf_counter() - t0, rep.robot.model_id, {k: round(v, 3) for k, v in times.items()})
 
 
 def _localize_failing_joints(recording, base_patch: ModelPatch, rep: Replayer, noise: np.ndarray):

@@ -1,7 +1,7 @@
 """The ``adadex`` command.
 
 ``adadex sim info [--json]``   the robot, timing and object registry
-``adadex sim export``          write the robot's MJCF to assets/robot/robot.xml
+``adadex sim export [--out P]`` write the nominal world (robot + table + options) as MJCF
 ``adadex data …``              reference datasets: build, info, show, import
 ``adadex sysid …``             model vs measurement: excite, simulate, compare, diagnose, fit, report, demo
 ``adadex encoder …``           point-cloud encoder (object latent): train, eval
@@ -81,9 +81,16 @@ def _cmd_sim_info(args) -> int:
 
 
 def _cmd_sim_export(args) -> int:
-    from adadex.sim.robot import export_mjcf
+    from adadex.sim.model_source import export_world
+    from adadex.sim.robot import ROBOT_MJCF, export_mjcf
 
-    print(export_mjcf(args.out) if args.out else export_mjcf())
+    if args.robot_only:
+        print(export_mjcf(args.out) if args.out else export_mjcf())
+    elif args.out:
+        print(export_world(args.out))
+    else:
+        print(export_mjcf())
+        print(export_world(ROBOT_MJCF.with_name("world.xml")))
     return 0
 
 
@@ -105,8 +112,13 @@ def build_parser() -> argparse.ArgumentParser:
     info = sim_sub.add_parser("info", help="joint names, limits, gains, tracked links, timing, objects")
     info.add_argument("--json", action="store_true", help="print JSON instead of a table")
     info.set_defaults(func=_cmd_sim_info)
-    exp = sim_sub.add_parser("export", help="write the robot MJCF (default: assets/robot/robot.xml)")
-    exp.add_argument("--out", default=None)
+    exp = sim_sub.add_parser(
+        "export", help="write the nominal world MJCF (robot + table + physics options) for `--model`",
+        description="Write the full nominal world (robot + table + physics options) to --out; `adadex sysid "
+                    "... --model` on it replays exactly as the built-in scene. Without --out: assets/robot/"
+                    "robot.xml (the robot alone, for kinematics tools) and assets/robot/world.xml.")
+    exp.add_argument("--out", default=None, help="where to write the world (with --robot-only: the robot)")
+    exp.add_argument("--robot-only", action="store_true", help="the robot alone, without table and options")
     exp.set_defaults(func=_cmd_sim_export)
 
     from adadex.data import cli as data_cli

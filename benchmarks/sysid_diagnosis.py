@@ -5,7 +5,8 @@ in a seeded order, at a clearly visible size); one recording excites all joints 
 sweeps and chirps, loaded and unloaded poses, 2 s each at 60 Hz, sensor noise 0.2 mrad); the
 workbench diagnoses it without seeing the truth. Reported: top-1 accuracy (the truth is the best
 hypothesis for its joint, or an indistinguishable alternative of it), relative parameter error of
-correct top-1 fits, held-out excess-error reduction, verdict and wall time.
+correct top-1 fits, held-out excess-error reduction, verdict, wall time and the time of each stage of
+the diagnosis (localize, fit, relocalize, joint refit and scoring).
 Target: the whole diagnosis under 5 minutes on 2 cores.
 
     python benchmarks/sysid_diagnosis.py [--seed 0] [--out FILE]
@@ -86,7 +87,8 @@ def main(argv=None) -> dict:
            "params_within_10pct": float(np.mean([e <= 0.1 for e in rel_errs])) if rel_errs else None,
            "heldout_reduction_median": float(np.median([r["heldout_error_reduction"] for r in rows
                                                         if r["heldout_error_reduction"] is not None])),
-           "simulate_seconds": t_sim, "diagnosis_seconds": t_diag, "target_seconds": 300,
+           "simulate_seconds": t_sim, "diagnosis_seconds": t_diag, "stage_seconds": d.stage_times_s,
+           "target_seconds": 300,
            "target_met": bool(t_diag <= 300), "cases": rows}
     atomic_write_text(a.out, json.dumps(out, indent=2))
     print(f"{'joint':<8} {'truth':<18} {'value':>8}  {'top-1':<18} {'fitted':>8}  {'ok':<3} {'held-out red.':>13}")
@@ -95,6 +97,7 @@ def main(argv=None) -> dict:
               f"{(r['top1_value'] if r['top1_value'] is not None else float('nan')):8.4g}  "
               f"{'yes' if r['top1_correct'] else 'NO':<3} "
               f"{(r['heldout_error_reduction'] if r['heldout_error_reduction'] is not None else float('nan')):13.3f}")
+    print("stages (s): " + ", ".join(f"{k} {v:.1f}" for k, v in d.stage_times_s.items()))
     print(f"verdict {d.verdict}; top-1 accuracy {acc:.2f}; parameters within 10 %: {out['params_within_10pct']}; "
           f"median rel. error {out['param_rel_error_median']}; diagnosis {t_diag:.0f} s for {rec.num_sequences} "
           f"sequences (target 300 s: {'met' if out['target_met'] else 'NOT met'}); wrote {a.out}")

@@ -39,6 +39,13 @@ All arrays are float64, strings are stored as numpy unicode arrays: files load w
 the recording is built (tuples become lists, numpy scalars Python numbers), so a loaded recording
 equals the saved one.
 
+A user's model
+--------------
+A recording of a robot other than adadex's names the servoed joints of that model: pass its joint
+table (``robot=``, a :class:`~adadex.sim.model_source.RobotTable`) when building or loading.
+Joint names, limits and the width of ``initial_qpos`` (one column per servoed joint, in the
+table's order) are then the model's, and unrecorded joints default to its home pose.
+
 CSV (:func:`from_csv` / :func:`to_csv`)
 ---------------------------------------
 One file per sequence, ``time, cmd_<joint>…, pos_<joint>…[, vel_<joint>…]``, named by the sequence
@@ -66,6 +73,7 @@ adadex.data.recording_errors.CommandLimitError: command: 2.0 rad for joint 'if_p
 from __future__ import annotations
 
 import difflib
+import functools
 import json
 import unicodedata
 import zipfile
@@ -162,6 +170,8 @@ class Recording:
     sequence_labels: tuple[str, ...] = ()
     initial_qpos: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
+    #: The joint table of a user's model (None: adadex's robot); see the module docstring.
+    robot: object = None
 
     def __post_init__(self):
         put = object.__setattr__
@@ -176,20 +186,38 @@ class Recording:
         if not labels and self.command.ndim == 3:
             labels = tuple(f"seq{i}" for i in range(self.command.shape[0]))
         put(self, "sequence_labels", labels)
+        if self.robot is not None and self.robot.builtin:
+            put(self, "robot", None)
         if self.initial_qpos is not None:
             q = _float_array(self.initial_qpos, "initial_qpos")
-            if q.shape == (NUM_JOINTS,) and self.command.ndim == 3:
-                q = _float_array(np.broadcast_to(q, (self.command.shape[0], NUM_JOINTS)), "initial_qpos")
+            if q.shape == (self._width,) and self.command.ndim == 3:
+                q = _float_array(np.broadcast_to(q, (self.command.shape[0], self._width)), "initial_qpos")
             put(self, "initial_qpos", q)
         put(self, "meta", self._normalised_meta(self.meta))
 
         self.validate()
 
         if self.initial_qpos is None:
-            q = np.tile(HOME_QPOS, (self.num_sequences, 1))
+            q = np.tile(HOME_QPOS if self.robot is None else self.robot.home, (self.num_sequences, 1))
             q[:, self.joint_indices] = self.joint_pos[:, 0, :]
             q.setflags(write=False)
             put(self, "initial_qpos", q)
+
+    @property
+    def _width(self) -> int:
+        return NUM_JOINTS if self.robot is None else self.robot.num_joints
+
+    @property
+    def _all_joints(self) -> tuple[str, ...]:
+        return JOINT_NAMES if self.robot is None else self.robot.names
+
+    def _unknown(self, name, where: str):
+        if self.robot is None:
+            return unknown_joint(name, where)
+        from adadex.sim.robot import UnknownJointError
+
+        err = UnknownJointError.for_model(name, self.robot.names, self.robot.model_id)
+        return UnknownJointNameError(f"{where}: {err.args[0]}")
 
     @staticmethod
     def _normalised_meta(meta) -> dict:
@@ -251,16 +279,17 @@ class Recording:
         if self.sequence_labels and len(self.sequence_labels) != S:
             raise RecordingShapeError(
                 f"sequence_labels: expected {S} labels (one per sequence), got {len(self.sequence_labels)}")
-        if self.initial_qpos is not None and self.initial_qpos.shape != (S, NUM_JOINTS):
+        W = self._width
+        if self.initial_qpos is not None and self.initial_qpos.shape != (S, W):
             raise RecordingShapeError(
-                f"initial_qpos: expected shape (S, 22) = {(S, NUM_JOINTS)} (or (22,) for all sequences), "
+                f"initial_qpos: expected shape (S, {W}) = {(S, W)} (or ({W},) for all sequences), "
                 f"got {self.initial_qpos.shape}")
 
     def _check_joint_names(self) -> None:
         seen: dict[str, int] = {}
         for i, n in enumerate(self.joint_names):
-            if n not in JOINT_NAMES:
-                raise unknown_joint(n, f"joint_names[{i}]")
+            if n not in self._all_joints:
+                raise self._unknown(n, f"joint_names[{i}]")
             if n in seen:
                 raise JointNameError(f"joint_names: duplicate joint {n!r} at positions {seen[n]} and {i}")
             seen[n] = i
@@ -318,7 +347,7 @@ class Recording:
                 f"{int(bad.sum())} non-finite values in total")
 
     def _check_limits(self) -> None:
-        lim = joint_limits()[joint_index(self.joint_names)]
+        lim = (joint_limits() if self.robot is None else self.robot.limits)[self.joint_indices]
         lo, hi = lim[:, 0], lim[:, 1]
         below = self.command < lo - LIMIT_TOLERANCE
         above = self.command > hi + LIMIT_TOLERANCE
@@ -342,7 +371,7 @@ class Recording:
             s, j = (int(i) for i in np.argwhere(bad)[0])
             raise NonFiniteValueError(
                 f"initial_qpos: non-finite value {self.initial_qpos[s, j]} in {self._where(s)} "
-                f"for joint {JOINT_NAMES[j]!r}")
+                f"for joint {self._all_joints[j]!r}")
 
     def _check_qpos_limits(self) -> None:
         """The simulator starts each sequence at ``initial_qpos``: outside the limits it is unstable."""
@@ -384,11 +413,13 @@ class Recording:
 
     @property
     def joint_indices(self) -> np.ndarray:
-        """(J,) int64 indices of ``joint_names`` into :data:`~adadex.sim.robot.JOINT_NAMES`."""
-        return joint_index(self.joint_names)
+        """(J,) int64 indices of ``joint_names`` into :data:`~adadex.sim.robot.JOINT_NAMES` (or the
+        user model's joint table)."""
+        return joint_index(self.joint_names) if self.robot is None else self.robot.index(self.joint_names)
 
     def full_command(self) -> np.ndarray:
-        """(S, T, 22) commands for every joint, in JOINT_NAMES order: what the simulator is sent.
+        """(S, T, 22) commands for every joint, in JOINT_NAMES (or the model's table) order: what the
+        simulator is sent.
 
         Recorded joints get ``command``; the others are held at ``initial_qpos`` throughout.
         """
@@ -421,6 +452,7 @@ class Recording:
             sequence_labels=tuple(self.sequence_labels[i] for i in s_idx),
             initial_qpos=self.initial_qpos[s_idx],
             meta=meta,
+            robot=self.robot,
         )
 
     def _select_sequences(self, sequences) -> np.ndarray:
@@ -458,8 +490,8 @@ class Recording:
         names = _str_tuple([joints] if isinstance(joints, str) else joints, "joints", JointNameError)
         out: list[int] = []
         for n in names:
-            if n not in JOINT_NAMES:
-                raise unknown_joint(n, "joints")
+            if n not in self._all_joints:
+                raise self._unknown(n, "joints")
             if n not in self.joint_names:
                 raise JointNameError(f"joints: {n!r} is not recorded (recorded joints: {', '.join(self.joint_names)})")
             j = self.joint_names.index(n)
@@ -522,8 +554,9 @@ class Recording:
         return path
 
     @classmethod
-    def load(cls, path) -> Recording:
-        """Read and validate an ``.npz`` recording; errors name the file (and the key)."""
+    def load(cls, path, *, robot=None) -> Recording:
+        """Read and validate an ``.npz`` recording (of ``robot``'s model, default adadex's); errors
+        name the file (and the key)."""
         path = Path(path)
         try:
             archive = np.load(path, allow_pickle=False)
@@ -556,7 +589,7 @@ class Recording:
         if "meta" in fields:
             fields["meta"] = _meta_from_file(fields["meta"], path)
         try:
-            return cls(**fields)
+            return cls(**fields, robot=robot)
         except RecordingError as e:
             raise prefixed(e, path) from None
 
@@ -587,12 +620,15 @@ def _meta_from_file(arr: np.ndarray, path: Path) -> dict:
 # ---------------------------------------------------------------------- loading by extension
 
 
-def load_recording(path) -> Recording:
-    """Load a recording: ``.csv`` file or a directory of them via :func:`from_csv`, else ``.npz``."""
+def load_recording(path, *, robot=None) -> Recording:
+    """Load a recording: ``.csv`` file or a directory of them via :func:`from_csv`, else ``.npz``.
+    ``robot``: the joint table of the user's model the recording was made on (None: adadex's)."""
     path = Path(path)
     if path.is_dir() or path.suffix.lower() == ".csv":
-        return from_csv(path)
-    return Recording.load(path)
+        rec = from_csv(path) if robot is None else recording_csv.read_csv(
+            functools.partial(Recording, robot=robot), path, None)
+        return rec
+    return Recording.load(path, robot=robot)
 
 
 # ---------------------------------------------------------------------- CSV

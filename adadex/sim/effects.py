@@ -31,6 +31,15 @@ randomization (paper Table 3 scales masses, friction, stiffness and damping) and
 ``friction_scale`` is invisible without contact, and ``mass_scale`` and ``damping_scale`` are
 look-alikes of screened effects (``payload_mass``, ``kd_scale``).
 
+Sized to the model: every parameter with a physical unit declares the joint quantity it scales
+with (``scales_with``: the servo's ``kp`` or ``kv``, or the joint's ``armature``). On the built-in
+robot the bounds and nominal sizes are the tuned per-group tables below; on any other model
+(:class:`~adadex.sim.model_source.RobotTable`) each joint takes the built-in group nearest in
+``kp`` (log scale) and that group's sizes times the ratio of its own quantity to the group's, so a
+3 N·m/rad finger servo gets bounds half the built-in finger's and a 300 N·m/rad arm servo three
+quarters of the built-in wrist's. Hooks receive ``jid`` as positions in the robot's table; model
+hooks map them to the compiled model's joint, dof and actuator ids (:func:`robot_ids`).
+
 Example
 -------
 >>> from adadex.sim.effects import get_effect
@@ -51,7 +60,8 @@ import mujoco
 import numpy as np
 
 from adadex.errors import AdadexError
-from adadex.sim.robot import effort_limits, joint_group, joint_index
+from adadex.sim.model_source import robot_ids as _robot_ids
+from adadex.sim.robot import GAINS, joint_group, joint_index
 
 GROUPS = ("arm_shoulder", "arm_wrist", "finger", "thumb")
 
@@ -66,10 +76,46 @@ class Param:
     nominal: dict[str, float]
     lower: dict[str, float]
     upper: dict[str, float]
+    #: The joint quantity the sizes scale with on a model other than the built-in: "kp", "kv",
+    #: "armature", or None (dimensionless, seconds, radians).
+    scales_with: str | None = None
 
-    def bounds(self, joint: str) -> tuple[float, float]:
-        g = joint_group(joint)
-        return self.lower[g], self.upper[g]
+    def bounds(self, joint: str, robot=None) -> tuple[float, float]:
+        g, r = sizing(joint, robot, self.scales_with)
+        return self.lower[g] * r, self.upper[g] * r
+
+    def nominal_for(self, joint: str, robot=None) -> float:
+        g, r = sizing(joint, robot, self.scales_with)
+        return self.nominal[g] * r
+
+
+def sizing(joint: str, robot, scales_with: str | None) -> tuple[str, float]:
+    """(built-in group, size ratio) of ``joint`` on ``robot`` (None or the built-in: its own group, 1)."""
+    if robot is None or robot.builtin:
+        return joint_group(joint), 1.0
+    i = int(robot.index([joint])[0])
+    kp = max(float(robot.kp[i]), 1e-9)
+    group = min(GAINS, key=lambda g: abs(np.log(kp / GAINS[g].kp)))
+    if scales_with is None:
+        return group, 1.0
+    ref = getattr(GAINS[group], scales_with)
+    own = float(getattr(robot, scales_with)[i])
+    if own <= 0:  # a servo without damping or a joint without armature: size as the stiffness says
+        own, ref = kp, GAINS[group].kp
+    return group, own / ref
+
+
+def robot_ids(m: mujoco.MjModel, jid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(joint ids, dof ids, actuator ids) in compiled model ``m`` of robot-table positions ``jid``."""
+    key = (m.nu, m.njnt, m.actuator_trnid.tobytes())
+    ids = _IDS.get(key)
+    if ids is None:
+        ids = _IDS[key] = _robot_ids(m)
+    jid = np.asarray(jid, dtype=np.int64)
+    return ids[0][jid], ids[1][jid], ids[2][jid]
+
+
+_IDS: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
 
 def _per_group(arm_shoulder: float, arm_wrist: float, hand: float) -> dict[str, float]:
@@ -101,6 +147,7 @@ class ModelBase:
     dynprm: np.ndarray
     body_inertia: np.ndarray
     geom_friction: np.ndarray
+    forcelimited: np.ndarray | None = None   # a torque limit may limit a servo the model leaves unlimited
 
     def restore(self, m: mujoco.MjModel) -> None:
         """Put every field effects edit back to this snapshot (before applying a new patch)."""
@@ -121,6 +168,8 @@ class ModelBase:
         m.actuator_delay[:] = self.actuator_delay
         m.actuator_dynprm[:] = self.dynprm
         m.geom_friction[:] = self.geom_friction
+        if self.forcelimited is not None:
+            m.actuator_forcelimited[:] = self.forcelimited
 
     @classmethod
     def of(cls, m: mujoco.MjModel) -> "ModelBase":
@@ -128,7 +177,7 @@ class ModelBase:
                    m.jnt_stiffness.copy(), m.actuator_gainprm.copy(), m.actuator_biasprm.copy(),
                    m.actuator_forcerange.copy(), m.jnt_actfrcrange.copy(), m.body_mass.copy(),
                    m.actuator_delay.copy(), m.actuator_dynprm.copy(), m.body_inertia.copy(),
-                   m.geom_friction.copy())
+                   m.geom_friction.copy(), forcelimited=m.actuator_forcelimited.copy())
 
     def copy(self) -> "ModelBase":
         return copy.deepcopy(self)
@@ -198,15 +247,17 @@ class Effect:
     def absent_values(self) -> np.ndarray:
         return np.array([p.absent for p in self.params])
 
-    def nominal_values(self, joints) -> np.ndarray:
-        return np.array([[p.nominal[joint_group(j)] for p in self.params] for j in joints])
+    def nominal_values(self, joints, robot=None) -> np.ndarray:
+        return np.array([[p.nominal_for(j, robot) for p in self.params] for j in joints])
 
-    def bounds(self, joints) -> tuple[np.ndarray, np.ndarray]:
-        key = tuple(joints)
-        cache = self.__dict__.setdefault("_bounds", {})   # per joint list: a reset validates one per world
+    def bounds(self, joints, robot=None) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper), each (len(joints), n_params), sized to ``robot`` (default: the built-in);
+        cached per joint list and model (a reset validates one patch per world)."""
+        key = (tuple(joints), None if robot is None else robot.model_id)
+        cache = self.__dict__.setdefault("_bounds", {})
         if key not in cache:
-            lo = np.array([[p.bounds(j)[0] for p in self.params] for j in key])
-            hi = np.array([[p.bounds(j)[1] for p in self.params] for j in key])
+            lo = np.array([[p.bounds(j, robot)[0] for p in self.params] for j in key[0]])
+            hi = np.array([[p.bounds(j, robot)[1] for p in self.params] for j in key[0]])
             lo.flags.writeable = hi.flags.writeable = False
             if len(cache) > 256:
                 cache.clear()
@@ -216,12 +267,12 @@ class Effect:
     def is_absent(self, values: np.ndarray) -> bool:
         return bool(np.all(np.asarray(values) == self.absent_values()))
 
-    def validate(self, joints, values) -> np.ndarray:
-        """Check joint names and values (shape, finite, in bounds); return values as (J, P)."""
+    def validate(self, joints, values, robot=None) -> np.ndarray:
+        """Check joint names and values (shape, finite, in bounds on ``robot``); return values as (J, P)."""
         joints = list(joints)
         if not joints:
             raise EffectError(f"{self.name}: no joints given")
-        joint_index(joints)
+        joint_index(joints) if robot is None else robot.index(joints)
         if len(set(joints)) != len(joints):
             raise EffectError(f"{self.name}: duplicate joints in {joints}")
         v = np.asarray(values, dtype=float)
@@ -234,7 +285,7 @@ class Effect:
                               f"for joints {joints} and params {self.param_names}, got {np.shape(values)}")
         if not np.isfinite(v).all():
             raise EffectError(f"{self.name}: non-finite parameter values {v.tolist()}")
-        lo, hi = self.bounds(joints)
+        lo, hi = self.bounds(joints, robot)
         bad = np.argwhere((v < lo - 1e-12) | (v > hi + 1e-12))
         if bad.size:
             j, p = bad[0]
@@ -242,7 +293,8 @@ class Effect:
                               f"{joints[j]} is outside [{lo[j, p]:g}, {hi[j, p]:g}]")
         return np.array(v)
 
-    # Hooks. ``jid`` are indices into JOINT_NAMES (= joint ids = dof ids = actuator ids of the robot).
+    # Hooks. ``jid`` are positions in the robot's table (built-in: indices into JOINT_NAMES = joint ids
+    # = dof ids = actuator ids); model hooks map them with :func:`robot_ids`.
     def edit_spec(self, spec: mujoco.MjSpec, joints: list[str], values: np.ndarray, timestep: float) -> None:
         """Structural change before compiling (only ``structure`` effects)."""
 
@@ -256,15 +308,12 @@ class Effect:
         """Scale the nominal values in ``base`` (a copy) in place (scale effects only)."""
 
     def transform_command(self, command: np.ndarray, jid: np.ndarray, values: np.ndarray, dt: float) -> np.ndarray:
-        """(S, T, 22) commanded targets → what the servos receive (``command`` effects)."""
+        """(S, T, J_robot) commanded targets → what the servos receive (``command`` effects)."""
         return command
 
     def transform_measurement(self, qpos: np.ndarray, jid: np.ndarray, values: np.ndarray) -> np.ndarray:
-        """(S, T, 22) true joint positions → what the encoders report (``sensor`` effects)."""
+        """(S, T, J_robot) true joint positions → what the encoders report (``sensor`` effects)."""
         return qpos
-
-
-_EFFORT = effort_limits()
 
 
 class Damping(Effect):
@@ -277,11 +326,12 @@ class Damping(Effect):
 
     name, stage = "damping", "model"
     params = (Param("damping", "N·m·s/rad", 0.0, _per_group(5.0, 1.0, 0.05),
-                    _same(0.0), _per_group(60.0, 15.0, 0.6)),)
+                    _same(0.0), _per_group(60.0, 15.0, 0.6), "kv"),)
     lookalikes = ("kd_scale",)
 
     def apply_model(self, m, base, jid, values):
-        m.dof_damping[jid] = base.dof_damping[jid] + values[:, 0]
+        dof = robot_ids(m, jid)[1]
+        m.dof_damping[dof] = base.dof_damping[dof] + values[:, 0]
 
 
 class CoulombFriction(Effect):
@@ -294,10 +344,11 @@ class CoulombFriction(Effect):
 
     name, stage = "coulomb_friction", "model"
     params = (Param("friction", "N·m", 0.0, _per_group(3.0, 1.0, 0.05),
-                    _same(0.0), _per_group(25.0, 10.0, 0.4)),)
+                    _same(0.0), _per_group(25.0, 10.0, 0.4), "kp"),)
 
     def apply_model(self, m, base, jid, values):
-        m.dof_frictionloss[jid] = base.dof_frictionloss[jid] + values[:, 0]
+        dof = robot_ids(m, jid)[1]
+        m.dof_frictionloss[dof] = base.dof_frictionloss[dof] + values[:, 0]
 
 
 class Armature(Effect):
@@ -309,11 +360,12 @@ class Armature(Effect):
 
     name, stage = "armature", "model"
     params = (Param("armature", "kg·m²", 0.0, _per_group(0.2, 0.05, 0.003),
-                    _same(0.0), _per_group(2.0, 0.5, 0.03)),)
+                    _same(0.0), _per_group(2.0, 0.5, 0.03), "armature"),)
     lookalikes = ("payload_mass",)
 
     def apply_model(self, m, base, jid, values):
-        m.dof_armature[jid] = base.dof_armature[jid] + values[:, 0]
+        dof = robot_ids(m, jid)[1]
+        m.dof_armature[dof] = base.dof_armature[dof] + values[:, 0]
 
 
 class ActuatorDelay(Effect):
@@ -333,12 +385,12 @@ class ActuatorDelay(Effect):
         nsample = int(np.ceil(self.MAX_DELAY / timestep)) + 2
         for j, v in zip(joints, values[:, 0]):
             if v != self.absent_values()[0]:
-                act = spec.actuator(f"{j}_pos")
+                act = servo_of(spec, j)
                 act.nsample = nsample
                 act.interp = 1
 
     def apply_model(self, m, base, jid, values):
-        m.actuator_delay[jid] = values[:, 0]
+        m.actuator_delay[robot_ids(m, jid)[2]] = values[:, 0]
 
 
 class ActuatorLag(Effect):
@@ -354,18 +406,21 @@ class ActuatorLag(Effect):
     def edit_spec(self, spec, joints, values, timestep):
         for j, v in zip(joints, values[:, 0]):
             if v != 0.0:
-                act = spec.actuator(f"{j}_pos")
+                act = servo_of(spec, j)
                 act.dyntype = mujoco.mjtDyn.mjDYN_FILTEREXACT
                 act.dynprm = [float(v)] + [0.0] * 9
                 act.actlimited = mujoco.mjtLimited.mjLIMITED_FALSE
 
     def apply_model(self, m, base, jid, values):
-        lagged = m.actuator_dyntype[jid] == int(mujoco.mjtDyn.mjDYN_FILTEREXACT)
-        m.actuator_dynprm[jid[lagged], 0] = np.maximum(values[lagged, 0], 1e-6)
+        act = robot_ids(m, jid)[2]
+        lagged = m.actuator_dyntype[act] == int(mujoco.mjtDyn.mjDYN_FILTEREXACT)
+        m.actuator_dynprm[act[lagged], 0] = np.maximum(values[lagged, 0], 1e-6)
 
 
 class TorqueLimit(Effect):
     """Servo torque saturation at a fraction of the nominal effort limit (absent = 1, no change).
+
+    The effort is the servo's force limit in the model (a servo without one: ``kp`` · 1 rad).
 
     Residual signature: error only above an amplitude/frequency where the demanded torque exceeds
     the limit; clipped, triangular-looking motion; none at small amplitude.
@@ -375,11 +430,15 @@ class TorqueLimit(Effect):
     params = (Param("fraction", "× effort", 1.0, _per_group(0.7, 0.6, 0.5), _same(0.05), _same(1.0)),)
 
     def apply_model(self, m, base, jid, values):
-        lim = _EFFORT[jid] * values[:, 0]
-        m.actuator_forcerange[jid, 0] = -lim
-        m.actuator_forcerange[jid, 1] = lim
-        m.jnt_actfrcrange[jid, 0] = -lim
-        m.jnt_actfrcrange[jid, 1] = lim
+        jnt, _, act = robot_ids(m, jid)
+        limited = m.actuator_forcelimited[act].astype(bool)
+        effort = np.where(limited, np.abs(base.forcerange[act]).max(axis=1), base.gainprm[act, 0])
+        lim = effort * values[:, 0]
+        m.actuator_forcelimited[act] = 1
+        m.actuator_forcerange[act, 0] = -lim
+        m.actuator_forcerange[act, 1] = lim
+        m.jnt_actfrcrange[jnt, 0] = -lim
+        m.jnt_actfrcrange[jnt, 1] = lim
 
 
 class KpScale(Effect):
@@ -393,8 +452,9 @@ class KpScale(Effect):
     params = (Param("scale", "×", 1.0, _same(0.7), _same(0.2), _same(3.0)),)
 
     def apply_model(self, m, base, jid, values):
-        m.actuator_gainprm[jid, 0] = base.gainprm[jid, 0] * values[:, 0]
-        m.actuator_biasprm[jid, 1] = base.biasprm[jid, 1] * values[:, 0]
+        act = robot_ids(m, jid)[2]
+        m.actuator_gainprm[act, 0] = base.gainprm[act, 0] * values[:, 0]
+        m.actuator_biasprm[act, 1] = base.biasprm[act, 1] * values[:, 0]
 
 
 class KdScale(Effect):
@@ -409,7 +469,8 @@ class KdScale(Effect):
     lookalikes = ("damping",)
 
     def apply_model(self, m, base, jid, values):
-        m.actuator_biasprm[jid, 2] = base.biasprm[jid, 2] * values[:, 0]
+        act = robot_ids(m, jid)[2]
+        m.actuator_biasprm[act, 2] = base.biasprm[act, 2] * values[:, 0]
 
 
 class PayloadMass(Effect):
@@ -421,11 +482,11 @@ class PayloadMass(Effect):
 
     name, stage = "payload_mass", "model"
     params = (Param("mass", "kg", 0.0, _per_group(0.5, 0.3, 0.02),
-                    _same(0.0), _per_group(5.0, 3.0, 0.2)),)
+                    _same(0.0), _per_group(5.0, 3.0, 0.2), "kp"),)
     lookalikes = ("armature",)
 
     def apply_model(self, m, base, jid, values):
-        body = m.jnt_bodyid[jid]
+        body = m.jnt_bodyid[robot_ids(m, jid)[0]]
         m.body_mass[body] = base.body_mass[body] + values[:, 0]
         set_const(m)
 
@@ -439,10 +500,11 @@ class JointSpring(Effect):
 
     name, stage = "joint_spring", "model"
     params = (Param("stiffness", "N·m/rad", 0.0, _per_group(8.0, 4.0, 0.3),
-                    _same(0.0), _per_group(1000.0, 200.0, 5.0)),)
+                    _same(0.0), _per_group(1000.0, 200.0, 5.0), "kp"),)
 
     def apply_model(self, m, base, jid, values):
-        m.jnt_stiffness[jid] = base.jnt_stiffness[jid] + values[:, 0]
+        jnt = robot_ids(m, jid)[0]
+        m.jnt_stiffness[jnt] = base.jnt_stiffness[jnt] + values[:, 0]
 
 
 class EncoderOffset(Effect):
@@ -496,12 +558,12 @@ class MassScale(Effect):
     rescales = True
 
     def rescale(self, base, m, jid, values):
-        _, bodies, joint_of, _, _ = _links(m, jid)
+        _, bodies, joint_of, _, _ = _links(m, robot_ids(m, jid)[0])
         base.body_mass[bodies] *= values[joint_of, 0]
         base.body_inertia[bodies] *= values[joint_of, 0][:, None]
 
     def apply_model(self, m, base, jid, values):
-        bodies = _links(m, jid)[1]
+        bodies = _links(m, robot_ids(m, jid)[0])[1]
         m.body_mass[bodies] = base.body_mass[bodies]
         m.body_inertia[bodies] = base.body_inertia[bodies]
         set_const(m)
@@ -519,11 +581,11 @@ class FrictionScale(Effect):
     rescales = True
 
     def rescale(self, base, m, jid, values):
-        _, _, _, geoms, joint_of = _links(m, jid)
+        _, _, _, geoms, joint_of = _links(m, robot_ids(m, jid)[0])
         base.geom_friction[geoms, 0] *= values[joint_of, 0]
 
     def apply_model(self, m, base, jid, values):
-        geoms = _links(m, jid)[3]
+        geoms = _links(m, robot_ids(m, jid)[0])[3]
         m.geom_friction[geoms, 0] = base.geom_friction[geoms, 0]
 
 
@@ -541,12 +603,25 @@ class DampingScale(Effect):
     rescales = True
 
     def rescale(self, base, m, jid, values):
-        base.dof_damping[jid] *= values[:, 0]
-        base.biasprm[jid, 2] *= values[:, 0]
+        _, dof, act = robot_ids(m, jid)
+        base.dof_damping[dof] *= values[:, 0]
+        base.biasprm[act, 2] *= values[:, 0]
 
     def apply_model(self, m, base, jid, values):
-        m.dof_damping[jid] = base.dof_damping[jid]
-        m.actuator_biasprm[jid, 2] = base.biasprm[jid, 2]
+        _, dof, act = robot_ids(m, jid)
+        m.dof_damping[dof] = base.dof_damping[dof]
+        m.actuator_biasprm[act, 2] = base.biasprm[act, 2]
+
+
+def servo_of(spec: mujoco.MjSpec, joint: str):
+    """The position actuator of ``joint`` in ``spec`` (the built-in names it ``<joint>_pos``)."""
+    act = spec.actuator(f"{joint}_pos")
+    if act is not None and act.target == joint:
+        return act
+    for act in spec.actuators:
+        if act.target == joint and act.trntype == mujoco.mjtTrn.mjTRN_JOINT and act.biasprm[1] < 0:
+            return act
+    raise EffectError(f"no position actuator drives joint {joint!r}")
 
 
 EFFECTS: dict[str, Effect] = {e.name: e for e in (

@@ -4,7 +4,7 @@ A patch is what the sysid workbench writes after fitting and what a TrackingEnv,
 simulator and the workbench itself load, so that every part of adadex runs the same corrected
 simulator. File format (``version`` 1)::
 
-    {"version": 1,
+    {"version": 1, "model": "builtin",
      "effects": [{"effect": "coulomb_friction", "joints": ["if_pip", "if_dip"],
                   "params": {"friction": [0.05, 0.04]},
                   "ci95": {"friction": [[0.046, 0.054], [0.037, 0.043]]}}]}
@@ -15,6 +15,12 @@ domain-randomization ranges from it.
 
 :func:`patched_scene` is the one place a scene is compiled with a patch (structural edits before
 compiling, parameters after); it caches the compiled models on the patch's content.
+
+``model`` is the :attr:`~adadex.sim.model_source.ModelSource.model_id` the patch was fitted on
+(``"builtin"``, or a user's MJCF file name with its content hash); a patch of one model is refused
+on another (:class:`PatchError`). Files without ``model`` are patches of the built-in robot. A
+patch made on a user's model carries that model's :class:`~adadex.sim.model_source.RobotTable`
+(``robot``): joint names and bounds are checked against it.
 
 Example
 -------
@@ -41,6 +47,7 @@ import numpy as np
 from adadex.errors import AdadexError
 from adadex.io import atomic_write_text
 from adadex.sim.effects import EffectError, ModelBase, get_effect
+from adadex.sim.model_source import BUILTIN_ID, same_model
 from adadex.sim.robot import joint_index
 from adadex.sim.scene import PhysicsOptions, build_scene_spec
 
@@ -60,12 +67,15 @@ class EffectInstance:
     joints: tuple[str, ...]
     values: np.ndarray
     ci95: np.ndarray | None = field(default=None, compare=False)
+    #: The user model's joint table the joints and bounds refer to (None: the built-in robot).
+    robot: object = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         eff = get_effect(self.effect)
         object.__setattr__(self, "joints", tuple(self.joints))
-        object.__setattr__(self, "values", eff.validate(self.joints, self.values))
-        object.__setattr__(self, "_jid", joint_index(self.joints))
+        object.__setattr__(self, "values", eff.validate(self.joints, self.values, self.robot))
+        object.__setattr__(self, "_jid", joint_index(self.joints) if self.robot is None else
+                           self.robot.index(self.joints))
         if self.ci95 is not None:
             ci = np.asarray(self.ci95, dtype=float)
             shape = (len(self.joints), len(eff.params), 2)
@@ -99,10 +109,10 @@ class EffectInstance:
         if not keep:
             return None
         return EffectInstance(self.effect, tuple(self.joints[i] for i in keep), self.values[keep],
-                              None if self.ci95 is None else self.ci95[keep])
+                              None if self.ci95 is None else self.ci95[keep], self.robot)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "EffectInstance":
+    def from_dict(cls, d: dict, robot=None) -> "EffectInstance":
         if not isinstance(d, dict) or "effect" not in d or "joints" not in d:
             raise PatchError(f"an effect entry needs 'effect' and 'joints', got {d!r}")
         eff = get_effect(d["effect"])
@@ -128,16 +138,23 @@ class EffectInstance:
                               axis=1)
             except ValueError as e:
                 raise PatchError(f"{eff.name}: ci95 needs one [low, high] per joint for {joints}: {e}") from None
-        return cls(eff.name, tuple(joints), values, ci)
+        return cls(eff.name, tuple(joints), values, ci, robot)
 
 
 @dataclass(frozen=True)
 class ModelPatch:
-    """An ordered set of effects; the same (effect, joint) pair may appear only once."""
+    """An ordered set of effects; the same (effect, joint) pair may appear only once. ``robot``: the
+    joint table of the user model the patch belongs to (None: the built-in robot)."""
 
     effects: tuple[EffectInstance, ...] = ()
+    robot: object = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
+        if self.robot is not None and self.robot.builtin:
+            object.__setattr__(self, "robot", None)
+        object.__setattr__(self, "effects", tuple(
+            e if e.robot is self.robot else EffectInstance(e.effect, e.joints, e.values, e.ci95, self.robot)
+            for e in self.effects))
         seen = set()
         for e in self.effects:
             for j in e.joints:
@@ -147,11 +164,24 @@ class ModelPatch:
 
     # ------------------------------------------------------------ composition
 
+    @property
+    def model_id(self) -> str:
+        """The model this patch belongs to (see the module docstring)."""
+        return BUILTIN_ID if self.robot is None else self.robot.model_id
+
+    def check_model(self, model_id: str | None, source: str = "patch") -> None:
+        """Raise :class:`PatchError` unless this patch belongs to model ``model_id``."""
+        if self.effects and not same_model(self.model_id, model_id):
+            raise PatchError(f"{source}: this patch was fitted on model {self.model_id}, not on "
+                             f"{model_id or BUILTIN_ID}; fit a patch on this model instead")
+
     def with_effect(self, effect: str, joints, values) -> "ModelPatch":
-        return ModelPatch(self.effects + (EffectInstance(effect, tuple(joints), values),))
+        return ModelPatch(self.effects + (EffectInstance(effect, tuple(joints), values, robot=self.robot),), self.robot)
 
     def __add__(self, other: "ModelPatch") -> "ModelPatch":
-        return ModelPatch(self.effects + other.effects)
+        if self.effects and other.effects:
+            other.check_model(self.model_id)
+        return ModelPatch(self.effects + other.effects, self.robot if self.robot is not None else other.robot)
 
     def updated(self, other: "ModelPatch") -> "ModelPatch":
         """This patch with ``other``'s (effect, joint) entries replacing its own, ``other``'s effects last."""
@@ -179,7 +209,7 @@ class ModelPatch:
 
     def active(self) -> "ModelPatch":
         """The patch without effects at their absent values."""
-        return ModelPatch(tuple(e for e in self.effects if not e.is_absent()))
+        return ModelPatch(tuple(e for e in self.effects if not e.is_absent()), self.robot)
 
     def __len__(self) -> int:
         return len(self.effects)
@@ -223,23 +253,30 @@ class ModelPatch:
     # ------------------------------------------------------------ files
 
     def to_dict(self) -> dict:
-        return {"version": PATCH_VERSION, "effects": [e.to_dict() for e in self.effects]}
+        return {"version": PATCH_VERSION, "model": self.model_id, "effects": [e.to_dict() for e in self.effects]}
 
     @classmethod
-    def from_dict(cls, d: dict, *, source: str = "patch") -> "ModelPatch":
+    def from_dict(cls, d: dict, *, source: str = "patch", robot=None) -> "ModelPatch":
+        """Read a patch; ``robot`` is the joint table of the model it must belong to (None: built-in)."""
         if not isinstance(d, dict) or not isinstance(d.get("effects"), list):
             raise PatchError(f"{source}: expected an object with an 'effects' list")
         if d.get("version", PATCH_VERSION) != PATCH_VERSION:
             raise PatchError(f"{source}: unsupported patch version {d.get('version')!r} (this adadex reads {PATCH_VERSION})")
+        model = d.get("model", BUILTIN_ID)
+        expected = BUILTIN_ID if robot is None else robot.model_id
+        if d["effects"] and not same_model(model, expected):
+            raise PatchError(f"{source}: this patch was fitted on model {model}, not on {expected}; "
+                             "a patch is only valid on the model it was fitted on")
+        robot = None if robot is None or robot.builtin else robot
         effects = []
         for i, entry in enumerate(d["effects"]):
             try:
-                effects.append(EffectInstance.from_dict(entry))
+                effects.append(EffectInstance.from_dict(entry, robot))
             except (EffectError, PatchError, KeyError) as e:
                 msg = e.args[0] if e.args else str(e)
                 raise PatchError(f"{source}: effects[{i}]: {msg}") from None
         try:
-            return cls(tuple(effects))
+            return cls(tuple(effects), robot)
         except PatchError as e:
             raise PatchError(f"{source}: {e}") from None
 
@@ -248,7 +285,8 @@ class ModelPatch:
         return atomic_write_text(path, json.dumps(self.to_dict(), indent=2) + "\n")
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "ModelPatch":
+    def load(cls, path: str | os.PathLike, *, robot=None) -> "ModelPatch":
+        """Read a patch file; it must belong to ``robot``'s model (None: the built-in robot)."""
         path = Path(path)
         try:
             d = json.loads(path.read_text())
@@ -256,7 +294,7 @@ class ModelPatch:
             raise PatchError(f"{path}: no such patch file") from None
         except json.JSONDecodeError as e:
             raise PatchError(f"{path}: not valid JSON ({e})") from None
-        return cls.from_dict(d, source=str(path))
+        return cls.from_dict(d, source=str(path), robot=robot)
 
     def describe(self) -> str:
         if not self.effects:

@@ -160,12 +160,19 @@ def joint_group(name: str) -> str:
 class UnknownJointError(AdadexError, KeyError):
     """A joint name that is not one of :data:`JOINT_NAMES`."""
 
-    def __init__(self, name: str):
+    def __init__(self, name: str, known=None, model: str | None = None):
         import difflib
 
-        close = difflib.get_close_matches(str(name), JOINT_NAMES, n=3)
+        known = JOINT_NAMES if known is None else tuple(known)
+        close = difflib.get_close_matches(str(name), known, n=3)
         hint = f"; did you mean {', '.join(close)}?" if close else ""
-        super().__init__(f"unknown joint {name!r}: adadex joints are {', '.join(JOINT_NAMES)}{hint}")
+        whose = "adadex joints" if model is None else f"the servoed joints of {model}"
+        super().__init__(f"unknown joint {name!r}: {whose} are {', '.join(known)}{hint}")
+
+    @classmethod
+    def for_model(cls, name: str, known, model: str) -> "UnknownJointError":
+        """The error for a joint that is not among the servoed joints of a user's model."""
+        return cls(name, known, model)
 
 
 def joint_index(names) -> np.ndarray:

@@ -11,6 +11,10 @@
 Output folders (compare, diagnose) are written as one unit and replace only an earlier output of the
 same command; an existing --out that is something else (your files, another kind of output) is
 refused unless --force, checked before any work starts.
+
+Every command takes ``--model PATH``: replay on that MJCF (its servoed joints by name, its own
+options and contacts) instead of the built-in scene; patches made on it record it and are refused
+on another model. ``adadex sim export --out world.xml`` writes the built-in world as such a file.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from adadex.errors import AdadexError
 from adadex.io import check_output, output_folder
 from adadex.resources import asset
 from adadex.sim.effects import EFFECT_NAMES, EffectError
+from adadex.sim.model_source import ModelSourceError, same_model
 from adadex.sim.patch import ModelPatch, PatchError
 from adadex.sim.robot import UnknownJointError
 
@@ -36,17 +41,27 @@ class CliError(AdadexError):
     """A user error: printed as one line, exit code 2."""
 
 
-def _load_rec(path):
+def _robot(model):
+    """The joint table of the ``--model`` file (None: the built-in robot)."""
+    if not model:
+        return None
+    from adadex.sim.model_source import ModelSource
+
+    return ModelSource(model).robot()
+
+
+def _load_rec(path, model=None):
     from adadex.data.recording import load_recording
 
-    return load_recording(path)
+    return load_recording(path, robot=_robot(model))
 
 
-def _load_patch(path) -> ModelPatch:
+def _load_patch(path, model=None) -> ModelPatch:
+    robot = _robot(model)
     if not path:
-        return ModelPatch()
+        return ModelPatch(robot=robot)
     try:
-        return ModelPatch.load(path)
+        return ModelPatch.load(path, robot=robot)
     except PatchError:
         raise
     except (OSError, ValueError, TypeError) as e:    # a folder, bad UTF-8, a value that is not a number
@@ -91,7 +106,7 @@ def _cmd_excite(a) -> int:
 
     plan = design_excitation(a.joints.split(","), freqs=_floats(a.freqs), amps=_floats(a.amps),
                              poses=tuple(a.poses.split(",")), kinds=tuple(a.kinds.split(",")),
-                             duration=a.duration, rate=a.rate)
+                             duration=a.duration, rate=a.rate, robot=_robot(a.model))
     out = Path(a.out)
     if out.suffix == ".csv":
         from adadex.data.recording import to_csv
@@ -108,12 +123,12 @@ def _cmd_excite(a) -> int:
 def _cmd_simulate(a) -> int:
     from adadex.sysid.excite import ExcitationPlan, simulate_recording
 
-    plan = ExcitationPlan.load(a.plan)
+    plan = ExcitationPlan.load(a.plan, robot=_robot(a.model))
     _check_out(a, "recording")
-    rec = simulate_recording(plan, _load_patch(a.patch), noise=a.noise, seed=a.seed, nthread=a.threads)
+    rec = simulate_recording(plan, _load_patch(a.patch, a.model), noise=a.noise, seed=a.seed, nthread=a.threads)
     rec.save(a.out)
     print(f"wrote {a.out}: {rec.num_sequences} sequences simulated"
-          + (f" with {len(_load_patch(a.patch))} effect(s)" if a.patch else " on the nominal model")
+          + (f" with {len(_load_patch(a.patch, a.model))} effect(s)" if a.patch else " on the nominal model")
           + f", sensor noise {a.noise:g} rad, seed {a.seed}")
     return 0
 
@@ -130,8 +145,8 @@ def _print_stages(rec, patch, threads):
 def _cmd_compare(a) -> int:
     from adadex.sysid.compare import compare, localize
 
-    rec = _load_rec(a.recording)
-    patch = _load_patch(a.patch)
+    rec = _load_rec(a.recording, a.model)
+    patch = _load_patch(a.patch, a.model)
     _check_out(a, "compare")
     cmp0 = compare(rec, nthread=a.threads)
     loc = localize(cmp0)
@@ -163,13 +178,13 @@ def _cmd_compare(a) -> int:
 def _cmd_diagnose(a) -> int:
     from adadex.sysid.diagnose import diagnose
 
-    rec = _load_rec(a.recording)
+    rec = _load_rec(a.recording, a.model)
     cands = tuple(a.candidates.split(",")) if a.candidates else EFFECT_NAMES
     for c in cands:
         if c not in EFFECT_NAMES:
             raise CliError(f"unknown candidate effect {c!r}; known: {', '.join(EFFECT_NAMES)}")
     _check_out(a, "diagnosis")
-    d = diagnose(rec, base_patch=_load_patch(a.patch), candidates=cands,
+    d = diagnose(rec, base_patch=_load_patch(a.patch, a.model), candidates=cands,
                  joints=a.joints.split(",") if a.joints else None, nthread=a.threads)
     print("\n".join(d.findings))
     print(f"verdict: {d.verdict}  ({d.wall_time_s:.0f} s)")
@@ -211,18 +226,24 @@ def _cmd_fit(a) -> int:
     from adadex.sysid.diagnose import Diagnosis
     from adadex.sysid.fit import fit_patch
 
-    rec = _load_rec(a.recording)
+    rec = _load_rec(a.recording, a.model)
     if bool(a.add) == bool(a.accept):
         raise CliError("give either --add EFFECT:JOINTS (repeatable) or --accept DIAGNOSIS_DIR")
     _check_out(a, "patch")
     if a.accept:
-        patch = Diagnosis.load(a.accept).patch()
+        diag = Diagnosis.load(a.accept)
+        robot = _robot(a.model)
+        if not same_model(diag.model, robot.model_id if robot else None):
+            raise CliError(f"{a.accept}: the diagnosis was made on model {diag.model}, not "
+                           f"{robot.model_id if robot else 'builtin'}; pass the same --model")
+        patch = diag.patch(robot)
         if not len(patch):
             raise CliError(f"{a.accept}: the diagnosis selected no effect (verdict "
                            f"{Diagnosis.load(a.accept).verdict}); nothing to accept")
     else:
-        patch = fit_patch(rec, [_parse_add(s) for s in a.add], base_patch=_load_patch(a.patch), nthread=a.threads)
-    patch = _load_patch(a.patch) + patch if a.patch and a.accept else patch
+        patch = fit_patch(rec, [_parse_add(s) for s in a.add], base_patch=_load_patch(a.patch, a.model),
+                          nthread=a.threads)
+    patch = _load_patch(a.patch, a.model) + patch if a.patch and a.accept else patch
     patch.save(a.out)
     print(f"wrote {a.out}: {patch.describe()}")
     _print_stages(rec, patch, a.threads)
@@ -233,7 +254,7 @@ def _cmd_report(a) -> int:
     from adadex.sysid.diagnose import Diagnosis
     from adadex.sysid.report import write_report
 
-    rec = _load_rec(a.recording)
+    rec = _load_rec(a.recording, a.model)
     d = Diagnosis.load(a.diagnosis) if a.diagnosis else None
     _check_out(a, "report")
     pd = None
@@ -246,7 +267,7 @@ def _cmd_report(a) -> int:
         rep = Replayer(rec, nthread=a.threads)
         pd = [identify_pd(rep, j, sequences_moving(rec, j), method=m)
               for j in tqdm(rec.joint_names, desc="kp/kd fits", unit="joint") for m in ("cma", "lsq")]
-    path = write_report(rec, _load_patch(a.patch), a.out, diagnosis=d, nthread=a.threads, pd_results=pd)
+    path = write_report(rec, _load_patch(a.patch, a.model), a.out, diagnosis=d, nthread=a.threads, pd_results=pd)
     print(f"wrote {path}")
     return 0
 
@@ -254,7 +275,7 @@ def _cmd_report(a) -> int:
 def _cmd_demo(a) -> int:
     from adadex.sysid.demo import run_demo
 
-    run_demo(recording=a.recording or DEMO_RECORDING, out=a.out, nthread=a.threads)
+    run_demo(recording=a.recording or DEMO_RECORDING, out=a.out, nthread=a.threads, model=a.model)
     return 0
 
 
@@ -268,6 +289,11 @@ def add_parser(sub) -> None:
         q.add_argument("--threads", type=int, default=2, help="rollout threads (default 2)")
         q.add_argument("--force", action="store_true", help="replace --out even if it is not an earlier output "
                        "of this command")
+        add_model(q)
+
+    def add_model(q):
+        q.add_argument("--model", metavar="MJCF", help="replay on this MJCF (its position-servoed joints, by "
+                                                       "name, its own options) instead of the built-in scene")
 
     q = s.add_parser("excite", help="design per-joint excitation (sine sweeps, chirp, multisine)")
     q.add_argument("--joints", required=True, help="comma-separated joint names")
@@ -278,6 +304,7 @@ def add_parser(sub) -> None:
     q.add_argument("--duration", type=float, default=3.0)
     q.add_argument("--rate", type=float, default=60.0, help="sample rate, Hz")
     q.add_argument("--out", required=True, help="plan.npz, or plan.csv for a folder of CSV files")
+    add_model(q)
     q.set_defaults(func=_cmd_excite)
 
     q = s.add_parser("simulate", help="make a recording from a plan with the model plus effects")
@@ -331,7 +358,7 @@ def add_parser(sub) -> None:
     q.set_defaults(func=_cmd_demo)
 
 
-USER_ERRORS = (CliError, PatchError, EffectError, UnknownJointError, FileNotFoundError)
+USER_ERRORS = (CliError, PatchError, EffectError, UnknownJointError, FileNotFoundError, ModelSourceError)
 
 
 def run(args) -> int:

@@ -110,8 +110,8 @@ def compare(recording, patch: ModelPatch | None = None, *, replayer=None, nthrea
     """Replay ``recording`` under ``patch`` (default: the nominal model)."""
     from adadex.sysid.replay import Replayer
 
-    patch = patch if patch is not None else ModelPatch()
     rep = replayer if replayer is not None else Replayer(recording, nthread=nthread)
+    patch = patch if patch is not None else ModelPatch(robot=rep.robot)
     return Comparison(recording, patch, rep.simulate(patch))
 
 

@@ -17,17 +17,18 @@ from adadex.data.recording import load_recording
 from adadex.sysid.compare import compare, localize
 from adadex.sysid.diagnose import diagnose
 from adadex.sysid.fit import identify_pd, sequences_moving
+from adadex.sim.model_source import ModelSource
 from adadex.sysid.replay import Replayer
 from adadex.sysid.report import error_stages, write_report
 
 
-def run_demo(recording, out="adadex_demo", nthread: int = 2) -> dict:
+def run_demo(recording, out="adadex_demo", nthread: int = 2, model=None) -> dict:
     """Walk the loop on ``recording`` (a path; ``adadex sysid demo`` passes the shipped demo recording),
     writing the diagnosis, the patch and the report under ``out``. The caller names the recording, so
     this module needs nothing from the CLI (which imports it)."""
     t0 = time.perf_counter()
     out = Path(out)
-    rec = load_recording(recording)
+    rec = load_recording(recording, robot=None if model is None else ModelSource(model).robot())
     print(f"adadex sysid demo: {rec.num_sequences} sequences × {rec.duration:.1f} s at {1 / rec.dt:.0f} Hz on "
           f"{len(rec.joint_names)} joints ({', '.join(rec.joint_names)})\n")
     rep = Replayer(rec, nthread=nthread)
@@ -46,7 +47,7 @@ def run_demo(recording, out="adadex_demo", nthread: int = 2) -> dict:
         print("   " + f)
     print(f"   verdict: {d.verdict}")
 
-    patch = d.patch()
+    patch = d.patch(rep.robot)
     patch.save(out / "patch.json")
     print(f"\n4. add: {patch.describe()}  → {out / 'patch.json'}")
 
@@ -61,7 +62,8 @@ def run_demo(recording, out="adadex_demo", nthread: int = 2) -> dict:
             pd.append(identify_pd(rep, joint, sequences_moving(rec, joint), method=method, max_evals=120))
     for r in pd:
         print(f"   {r['joint']:<7} {r['method']:<4} kp×{r['kp_scale']:.3f} kd×{r['kd_scale']:.3f}  MSE "
-              f"{r['mse_nominal']:.2e} → {r['mse']:.2e} rad²  ({r['evaluations']} replays, {r['seconds']:.1f} s)")
+              f"{r['mse_nominal']:.2e} → {r['mse']:.2e} rad²  ({r['evaluations']} replays, {r['seconds']:.1f} s)"
+              + ("" if r.get("progress", True) else "  no progress: the nominal model is kept"))
     report = write_report(rec, patch, out / "report.html", diagnosis=d, stages=st, pd_results=pd)
     dt = time.perf_counter() - t0
     print(f"\nreport: {report}   ({dt:.0f} s)")

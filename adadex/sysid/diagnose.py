@@ -22,6 +22,14 @@ training sequences only: the diagnosis lists it in ``train_only_joints``, says s
 marks its hypotheses ``"scored_on": "train"`` and gives them no held-out figure
 (``heldout_error_reduction`` is ``None``).
 
+Coupled joints: the failing joints are fitted worst first (error over noise), and after each joint's
+effects are chosen the rest are localized again on the model with those effects; a joint that no
+longer fails had only a knock-on error (the joint that moves it was the source) and gets no effect of
+its own. A candidate fitted at (or within 0.1 % of the bounds of) its absent value explains nothing
+and is dropped; explained fractions are reported clipped at 0. A selected value whose 95 % interval
+reaches its bounds or spans half of them is reported as not identifiable from the recording, with the
+``adadex sysid excite`` command whose excitation would pin it down (:data:`EXCITATION_FOR`).
+
 Verdicts: ``nothing_missing`` (no joint's error is above its noise floor), ``explained`` (every
 failing joint's held-out excess error falls by at least ``explained_at``), ``unexplained`` (the
 best candidates explain too little; the report says how much).
@@ -74,23 +82,27 @@ class Diagnosis:
     findings: list[str]
     wall_time_s: float
     train_only_joints: list[str] = field(default_factory=list)   # scored on training sequences only
+    model: str = "builtin"      # the model id the diagnosis replayed on
+    stage_times_s: dict = field(default_factory=dict)   # wall time per stage (localize, fit, relocalize, …)
 
-    def patch(self) -> ModelPatch:
-        """The selected effects as a model patch."""
-        p = ModelPatch()
+    def patch(self, robot=None) -> ModelPatch:
+        """The selected effects as a model patch (of ``robot``'s model; default the built-in)."""
+        p = ModelPatch(robot=robot)
         for h in self.selected:
             pname = get_effect(h["effect"]).param_names[0]
             values = np.array(h["params"][pname])[:, None]
             ci = h.get("ci95", {}).get(pname)
             p = p + ModelPatch((EffectInstance(h["effect"], tuple(h["joints"]), values,
-                                               None if not ci else np.array(ci, dtype=float)[:, None]),))
+                                               None if not ci else np.array(ci, dtype=float)[:, None],
+                                               robot=robot),), robot)
         return p
 
     def to_dict(self) -> dict:
         return {"verdict": self.verdict, "baseline_error": self.baseline_error, "hypotheses": self.hypotheses,
                 "selected": self.selected, "explained_fraction": self.explained_fraction,
                 "findings": self.findings, "wall_time_s": self.wall_time_s,
-                "train_only_joints": self.train_only_joints}
+                "train_only_joints": self.train_only_joints, "model": self.model,
+                "stage_times_s": self.stage_times_s}
 
     def save(self, directory) -> Path:
         return atomic_write_text(Path(directory) / "diagnosis.json", json.dumps(self.to_dict(), indent=2))
@@ -173,14 +185,25 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
              progress: bool = True) -> Diagnosis:
     """Diagnose ``recording``; see the module docstring. ``joints`` overrides the failing-joint search."""
     t0 = time.perf_counter()
-    base_patch = base_patch if base_patch is not None else ModelPatch()
     rep = Replayer(recording, nthread=nthread)
+    base_patch = base_patch if base_patch is not None else ModelPatch(robot=rep.robot)
     noise = noise_floor(recording.joint_pos)
+    times = {"localize": 0.0, "fit": 0.0, "relocalize": 0.0, "joint_refit_and_scoring": 0.0}
+    tick = time.perf_counter()
+
+    def lap(stage: str) -> None:
+        nonlocal tick
+        now = time.perf_counter()
+        times[stage] += now - tick
+        tick = now
+
     baseline, failing, findings = _localize_failing_joints(recording, base_patch, rep, noise)
+    lap("localize")
     if joints is not None:
         failing = list(joints)
     if not failing:
-        return Diagnosis("nothing_missing", baseline, [], [], {}, findings, time.perf_counter() - t0)
+        return Diagnosis("nothing_missing", baseline, [], [], {}, findings, time.perf_counter() - t0,
+                         rep.robot.model_id, times)
 
     seq_meta = list(recording.meta.get("sequences") or [{} for _ in range(recording.num_sequences)])
     setting = _Setting(rep, base_patch, list(recording.joint_names), noise, seq_meta, heldout_mask(recording))
@@ -188,28 +211,52 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     selected_per_joint: dict[str, list[Candidate]] = {}
     explained: dict[str, float] = {}
     bar = tqdm(total=len(failing) * len(candidates), desc="diagnosing", unit="fit", disable=not progress)
-    for joint in failing:
+    # Sources first: the worst joint (relative to its noise) is fitted first, then what is left is
+    # localized again on the model with its effects, so a joint that only failed because another
+    # one moved it differently is not given an explanation of its own.
+    pending, knock_on = list(failing), []
+    while pending:
+        joint = pending.pop(0)
         first_rounds[joint], chosen = _forward_selection(
             setting, joint, candidates, max_effects=max_effects_per_joint, min_gain=min_gain, tie=tie,
-            refine_top=refine_top, bar=bar)
+            refine_top=refine_top, bar=bar, patch=_patch_of(selected_per_joint, base_patch))
         selected_per_joint[joint] = chosen
         explained[joint] = chosen[-1].heldout_error_reduction if chosen else 0.0
+        lap("fit")
+        if chosen and pending and joints is None:
+            _, still, _ = _localize_failing_joints(recording, _patch_of(selected_per_joint, base_patch), rep, noise)
+            lap("relocalize")
+            gone = [j for j in pending if j not in still]
+            knock_on += gone
+            pending = [j for j in pending if j in still]
+            bar.update(len(gone) * len(candidates))
     bar.close()
+    for joint in knock_on:
+        selected_per_joint[joint] = []
 
     if sum(len(c) for c in selected_per_joint.values()) > 1:
         _refit_jointly(setting, selected_per_joint, refine_passes)
+    if sum(len(c) for c in selected_per_joint.values()) > 1 or knock_on:
         explained.update(_score_jointly(setting, selected_per_joint))
+    explained = {j: max(0.0, v) for j, v in explained.items()}
+    if knock_on:
+        findings.append(f"{', '.join(knock_on)}: no effect of their own; their error follows from the effects "
+                        "found on the joints that move them (it falls below the failure threshold once those are "
+                        "in the model).")
+    lap("joint_refit_and_scoring")
 
     hypotheses = _hypotheses(first_rounds, selected_per_joint)
-    selected = _merge_over_joints(selected_per_joint)
+    selected = _merge_over_joints(selected_per_joint, rep.robot)
     train_only = [j for j in failing if setting.train_only(j)]
     _mark_train_only(hypotheses, selected, train_only)
-    verdict, sentences = _verdict(explained, selected_per_joint, explained_at, train_only)
+    verdict, sentences = _verdict({j: v for j, v in explained.items() if j not in knock_on}, selected_per_joint,
+                                  explained_at, rep.robot, train_only)
     if train_only:
         sentences.insert(0, f"Too few sequences to hold any out on {', '.join(train_only)} (at least 3 of a "
                             f"joint's own are needed): scored on the training sequences only, no held-out figure.")
     return Diagnosis(verdict, baseline, hypotheses, selected, explained, findings + sentences,
-                     time.perf_counter() - t0, train_only)
+                     time.perf_counter() - t0, train_only, rep.robot.model_id,
+                     {k: round(v, 3) for k, v in times.items()})
 
 
 def _mark_train_only(hypotheses: list[dict], selected: list[dict], train_only: list[str]) -> None:
@@ -236,14 +283,15 @@ def _localize_failing_joints(recording, base_patch: ModelPatch, rep: Replayer, n
 
 
 def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects: int, min_gain: float,
-                       tie: float, refine_top: int, bar) -> tuple[list[Candidate], list[Candidate]]:
+                       tie: float, refine_top: int, bar, patch: ModelPatch | None = None,
+                       ) -> tuple[list[Candidate], list[Candidate]]:
     """Add effects on ``joint`` one at a time, each the best-scoring on held-out sequences, while each
     adds ``min_gain`` (the first only needs a positive score). Returns the first round's candidates,
     ranked, and the chosen effects in order."""
     train, held = setting.sequences(joint)
     n2 = setting.noise2(joint)
     chosen: list[Candidate] = []
-    patch = setting.base_patch
+    patch = setting.base_patch if patch is None else patch
     held_before = JointFitter(setting.replayer, joint, held, patch).mse_per_sequence(patch)
     first_round: list[Candidate] = []
     for round_ in range(max_effects):
@@ -277,17 +325,25 @@ def _fit_and_score_candidates(setting: _Setting, joint: str, names: list[str], p
         if k < refine_top:
             value, ci, after = _refine(fitter, name, grids[name], train_before)
         else:
-            value, ci, after = _best_on_grid(name, grids[name], joint)
+            value, ci, after = _best_on_grid(name, grids[name], joint, setting.replayer.robot)
         held_after = held_fitter.mse_per_sequence(fitter.patch_with(name, value))
         red_tr = _reduction(train_before, after, n2)
         red_ho = _reduction(held_before, held_after, n2)
         gain = red_ho - _reduction(held_before, cur_held, n2)
-        cands.append(Candidate(name, joint, value, ci, red_tr, red_ho,
-                               gain - COMPLEXITY_PENALTY * len(get_effect(name).params)))
+        if not _is_absent(name, value, joint, setting.replayer.robot):   # "not there" explains nothing
+            cands.append(Candidate(name, joint, value, ci, red_tr, red_ho,
+                                   gain - COMPLEXITY_PENALTY * len(get_effect(name).params)))
         if bar is not None:
             bar.update(1)
     cands.sort(key=lambda c: -c.score)
     return cands
+
+
+def _is_absent(name: str, value: float, joint: str, robot) -> bool:
+    """Whether ``value`` is (within 0.1 % of the bounds' width of) the effect's absent value."""
+    eff = get_effect(name)
+    lo, hi = (float(b[0, 0]) for b in eff.bounds([joint], robot))
+    return abs(value - float(eff.absent_values()[0])) <= 1e-3 * (hi - lo)
 
 
 def _screen_on_grid(fitter: JointFitter, names: list[str]) -> tuple[dict, list[str]]:
@@ -303,10 +359,10 @@ def _refine(fitter: JointFitter, name: str, grid, train_before: float) -> tuple[
     return r.value, r.ci95, r.mse_after
 
 
-def _best_on_grid(name: str, grid, joint: str) -> tuple[float, tuple, float]:
+def _best_on_grid(name: str, grid, joint: str, robot=None) -> tuple[float, tuple, float]:
     """(value, the effect's bounds as the interval, training MSE) of the best grid point of ``name``."""
     i = int(np.argmin(grid[1]))
-    ci = tuple(float(b[0, 0]) for b in get_effect(name).bounds([joint]))
+    ci = tuple(float(b[0, 0]) for b in get_effect(name).bounds([joint], robot))
     return float(grid[0][i]), ci, float(grid[1][i])
 
 
@@ -359,8 +415,8 @@ def _hypotheses(first_rounds: dict, selected_per_joint: dict) -> list[dict]:
             hypotheses.append({"effect": c.effect, "joints": [joint],
                                "params": {get_effect(c.effect).param_names[0]: [c.value]},
                                "ci95": {get_effect(c.effect).param_names[0]: [list(c.ci95)]},
-                               "train_error_reduction": c.train_error_reduction,
-                               "heldout_error_reduction": c.heldout_error_reduction,
+                               "train_error_reduction": max(0.0, c.train_error_reduction),
+                               "heldout_error_reduction": max(0.0, c.heldout_error_reduction),
                                "score": c.score, "alternatives": []})
     hypotheses.sort(key=lambda h: -h["score"])
     for joint, chosen in selected_per_joint.items():
@@ -372,31 +428,70 @@ def _hypotheses(first_rounds: dict, selected_per_joint: dict) -> list[dict]:
     return hypotheses
 
 
-def _merge_over_joints(selected_per_joint: dict) -> list[dict]:
-    """The selected effects, one entry per effect over all the joints it was selected on."""
+def _merge_over_joints(selected_per_joint: dict, robot=None) -> list[dict]:
+    """The selected effects, one entry per effect over all the joints it was selected on, each
+    value flagged ``identifiable`` (see :func:`identifiable`) with its unit."""
     merged: dict[str, dict] = {}
     for joint, chosen in selected_per_joint.items():
         for c in chosen:
             pname = get_effect(c.effect).param_names[0]
             h = merged.setdefault(c.effect, {"effect": c.effect, "joints": [], "params": {pname: []},
                                              "ci95": {pname: []}, "heldout_error_reduction": [],
-                                             "alternatives": []})
+                                             "alternatives": [], "identifiable": [],
+                                             "unit": get_effect(c.effect).params[0].unit})
+            h["identifiable"].append(identifiable(c.effect, joint, c.ci95, robot))
             h["joints"].append(joint)
             h["params"][pname].append(c.value)
             h["ci95"][pname].append(list(c.ci95))
-            h["heldout_error_reduction"].append(c.heldout_error_reduction)
+            h["heldout_error_reduction"].append(max(0.0, c.heldout_error_reduction))
             h["alternatives"] = sorted(set(h["alternatives"]) | set(c.alternatives))
     return list(merged.values())
 
 
-def _verdict(explained: dict, selected_per_joint: dict, explained_at: float, train_only=()) -> tuple[str, list[str]]:
+#: The excitation that pins each effect down, as ``adadex sysid excite`` options.
+EXCITATION_FOR = {
+    "coulomb_friction": "--freqs 0.25,0.5 --amps 0.1,0.3", "backlash": "--freqs 0.25,0.5 --amps 0.05,0.2",
+    "damping": "--freqs 1,3,5 --amps 0.5,1", "kd_scale": "--freqs 1,3,5 --amps 0.5,1",
+    "armature": "--freqs 3,5 --amps 0.5,1 --kinds chirp,multisine",
+    "payload_mass": "--freqs 0.5,3 --amps 1 --poses loaded,unloaded",
+    "actuator_delay": "--freqs 2,4,6 --kinds sine,chirp", "actuator_lag": "--freqs 0.5,2,5 --kinds sine,chirp",
+    "torque_limit": "--freqs 2,4 --amps 1", "kp_scale": "--freqs 0.5,3 --amps 0.3,1 --poses loaded,unloaded",
+    "joint_spring": "--freqs 0.25 --amps 0.3,1 --poses loaded,unloaded", "encoder_offset": "--freqs 0.5 --amps 0.3",
+}
+
+
+def identifiable(effect: str, joint: str, ci95, robot=None) -> bool:
+    """False when the data cannot pin the parameter down: its 95 % interval reaches a bound or spans
+    half of the bounds (a flat error)."""
+    lo, hi = (float(b[0, 0]) for b in get_effect(effect).bounds([joint], robot))
+    a, b = ci95
+    w = hi - lo
+    return not (b - a >= 0.5 * w or a <= lo + 1e-3 * w and effect_at(effect, a) or b >= hi - 1e-3 * w)
+
+
+def effect_at(effect: str, value: float) -> bool:
+    """Whether an interval's lower end at ``value`` is informative (not the absent value itself)."""
+    return value != float(get_effect(effect).absent_values()[0])
+
+
+def _describe(c: Candidate, robot) -> str:
+    eff = get_effect(c.effect)
+    text = f"{c.effect} ({eff.param_names[0]} = {c.value:.4g} {eff.params[0].unit})"
+    if not identifiable(c.effect, c.joint, c.ci95, robot):
+        text = (f"{c.effect} (not identifiable from this recording: its 95% interval "
+                f"[{c.ci95[0]:.3g}, {c.ci95[1]:.3g}] {eff.params[0].unit} reaches the bounds; to identify it run "
+                f"`adadex sysid excite --joints {c.joint} {EXCITATION_FOR.get(c.effect, '')}`)")
+    return text
+
+
+def _verdict(explained: dict, selected_per_joint: dict, explained_at: float,
+             robot=None, train_only=()) -> tuple[str, list[str]]:
     """``explained`` or ``unexplained``, and one finding per joint (plus one naming the unexplained joints)."""
     verdict = "explained" if all(v >= explained_at for v in explained.values()) else "unexplained"
     findings = []
     for joint, v in explained.items():
         chosen = selected_per_joint[joint]
-        what = " + ".join(f"{c.effect} ({get_effect(c.effect).param_names[0]} = {c.value:.4g})"
-                          for c in chosen) or "nothing"
+        what = " + ".join(_describe(c, robot) for c in chosen) or "nothing"
         on = "training (no sequence held out)" if joint in train_only else "held-out"
         findings.append(f"{joint}: {what} explains {100 * v:.0f}% of the {on} error above the noise floor.")
     if verdict == "unexplained":

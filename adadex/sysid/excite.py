@@ -5,7 +5,10 @@ identification (A.2): sinusoid sweeps A·sin(2πft) over frequencies and amplitu
 limits, plus a linear chirp and a Schroeder-phased multisine, each from a gravity-loaded and an
 unloaded arm pose. One joint moves per sequence while the others hold the pose, so errors can be
 pinned on joints; every sequence reverses velocity many times, so friction and backlash show.
-A smooth 0.25 s ramp starts each sequence from rest.
+A smooth 0.25 s ramp starts each sequence from rest. On a user's model (``robot=``, its
+:class:`~adadex.sim.model_source.RobotTable`) the sweeps start from the model's home pose
+(``poses=("home",)``: its ``home``/first keyframe, else its reference configuration) within its
+own joint limits.
 
 :func:`simulate_recording` turns a plan into a :class:`~adadex.data.recording.Recording` by
 replaying it on the model plus any effects (a "truth" patch) and adding seeded sensor noise: this
@@ -59,6 +62,8 @@ class ExcitationPlan:
     def sequence_labels(self) -> tuple[str, ...]:
         return tuple(s["label"] for s in self.sequences)
 
+    robot: object = None     # the user model's joint table (None: adadex's robot)
+
     def to_recording(self, joint_pos: np.ndarray, meta: dict | None = None):
         from adadex.data.recording import Recording
 
@@ -66,7 +71,7 @@ class ExcitationPlan:
         m.update(meta or {})
         return Recording(time=self.time, joint_names=self.joint_names, command=self.command,
                          joint_pos=joint_pos, sequence_labels=self.sequence_labels,
-                         initial_qpos=self.initial_qpos, meta=m)
+                         initial_qpos=self.initial_qpos, meta=m, robot=self.robot)
 
     def save(self, path) -> None:
         """Save as a recording file whose measured positions equal the commands (marked as a plan)."""
@@ -75,13 +80,14 @@ class ExcitationPlan:
     @classmethod
     def from_recording(cls, rec) -> "ExcitationPlan":
         seqs = rec.meta.get("sequences") or [{"label": lab} for lab in rec.sequence_labels]
-        return cls(rec.time, tuple(rec.joint_names), rec.command, rec.initial_qpos, tuple(seqs))
+        return cls(rec.time, tuple(rec.joint_names), rec.command, rec.initial_qpos, tuple(seqs),
+                   getattr(rec, "robot", None))
 
     @classmethod
-    def load(cls, path) -> "ExcitationPlan":
+    def load(cls, path, *, robot=None) -> "ExcitationPlan":
         from adadex.data.recording import load_recording
 
-        return cls.from_recording(load_recording(path))
+        return cls.from_recording(load_recording(path, robot=robot))
 
 
 def _ramp(t: np.ndarray) -> np.ndarray:
@@ -102,16 +108,16 @@ def _waveform(kind: str, t: np.ndarray, freq: float, duration: float) -> np.ndar
     raise ExcitationError(f"unknown excitation kind {kind!r}; choose from {', '.join(KINDS)}")
 
 
-def max_amplitude(joint: str, pose: np.ndarray, margin: float = 0.05) -> float:
+def max_amplitude(joint: str, pose: np.ndarray, margin: float = 0.05, robot=None) -> float:
     """Largest amplitude (rad) around ``pose`` that stays ``margin`` inside the joint's limits."""
-    j = JOINT_NAMES.index(joint)
-    lo, hi = joint_limits()[j]
+    j = JOINT_NAMES.index(joint) if robot is None else int(robot.index([joint])[0])
+    lo, hi = (joint_limits() if robot is None else robot.limits)[j]
     return float(max(0.0, min(pose[j] - lo, hi - pose[j]) - margin))
 
 
 def design_excitation(joints, *, freqs=(0.5, 1.5, 3.0), amps=(0.25, 1.0), poses=("loaded", "unloaded"),
                       kinds=KINDS, duration: float = 3.0, rate: float = 60.0,
-                      max_amp: float = 0.6) -> ExcitationPlan:
+                      max_amp: float = 0.6, robot=None) -> ExcitationPlan:
     """Per-joint sweeps; see the module docstring.
 
     ``amps`` are fractions of the joint's largest in-limit amplitude at the pose (capped at
@@ -121,10 +127,14 @@ def design_excitation(joints, *, freqs=(0.5, 1.5, 3.0), amps=(0.25, 1.0), poses=
     joints = list(joints)
     if not joints:
         raise ExcitationError("no joints to excite")
-    joint_index(joints)
+    robot = None if robot is None or robot.builtin else robot
+    base_poses = BASE_POSES if robot is None else {"home": robot.home}
+    if robot is not None and tuple(poses) == ("loaded", "unloaded"):
+        poses = ("home",)
+    joint_index(joints) if robot is None else robot.index(joints)
     for p in poses:
-        if p not in BASE_POSES:
-            raise ExcitationError(f"unknown pose {p!r}; choose from {', '.join(BASE_POSES)}")
+        if p not in base_poses:
+            raise ExcitationError(f"unknown pose {p!r}; choose from {', '.join(base_poses)}")
     if rate <= 0 or duration <= 2 * RAMP_S:
         raise ExcitationError(f"rate must be > 0 and duration > {2 * RAMP_S} s (got rate={rate}, duration={duration})")
     if any(f <= 0 or f > rate / 4 for f in freqs):
@@ -134,12 +144,12 @@ def design_excitation(joints, *, freqs=(0.5, 1.5, 3.0), amps=(0.25, 1.0), poses=
     t = np.arange(int(round(duration * rate)) + 1) / rate
     env = _ramp(t)
     cmds, inits, seqs = [], [], []
-    jidx = joint_index(joints)
+    jidx = joint_index(joints) if robot is None else robot.index(joints)
     for joint in joints:
-        j = JOINT_NAMES.index(joint)
+        j = JOINT_NAMES.index(joint) if robot is None else int(robot.index([joint])[0])
         for pose_name in poses:
-            pose = BASE_POSES[pose_name]
-            a_max = min(max_amplitude(joint, pose), max_amp)
+            pose = base_poses[pose_name]
+            a_max = min(max_amplitude(joint, pose, robot=robot), max_amp)
             combos = []
             if "sine" in kinds:
                 combos += [("sine", f, a) for f in freqs for a in amps]
@@ -154,7 +164,7 @@ def design_excitation(joints, *, freqs=(0.5, 1.5, 3.0), amps=(0.25, 1.0), poses=
                 seqs.append({"label": f"{joint}/{pose_name}/{kind}/f{f:g}/a{a:g}", "joint": joint,
                              "pose": pose_name, "kind": kind, "freq": float(f), "amp": float(a * a_max)})
     return ExcitationPlan(time=t, joint_names=tuple(joints), command=np.stack(cmds),
-                          initial_qpos=np.stack(inits), sequences=tuple(seqs))
+                          initial_qpos=np.stack(inits), sequences=tuple(seqs), robot=robot)
 
 
 def simulate_recording(plan: ExcitationPlan, patch: ModelPatch | None = None, *, noise: float = 0.0,
@@ -164,9 +174,10 @@ def simulate_recording(plan: ExcitationPlan, patch: ModelPatch | None = None, *,
 
     if noise < 0:
         raise ExcitationError(f"noise must be >= 0, got {noise}")
-    patch = patch if patch is not None else ModelPatch()
+    patch = patch if patch is not None else ModelPatch(robot=plan.robot)
     proto = plan.to_recording(plan.command.copy())
     q = Replayer(proto, nthread=nthread).simulate(patch)
     q = q + np.random.default_rng(seed).normal(0.0, noise, size=q.shape)
     # The truth patch is deliberately not recorded: the workbench must find it.
-    return plan.to_recording(q, {"simulated": True, "noise_rad": noise, "seed": seed})
+    return plan.to_recording(q, {"simulated": True, "noise_rad": noise, "seed": seed,
+                                 "model": patch.model_id if plan.robot is None else plan.robot.model_id})

@@ -43,7 +43,7 @@ class JointFitter:
         self.seqs = np.asarray(seqs, dtype=np.int64)
         self.col = list(replayer.rec.joint_names).index(joint)
         self.measured = replayer.rec.joint_pos[self.seqs][..., self.col]
-        self.base_patch = base_patch if base_patch is not None else ModelPatch()
+        self.base_patch = base_patch if base_patch is not None else ModelPatch(robot=replayer.robot)
         self.evaluations = 0
 
     def residual(self, patch: ModelPatch) -> np.ndarray:
@@ -67,7 +67,7 @@ class JointFitter:
         parameters (positive lower bound), quadratic (dense near 0) for sizes that start at 0,
         linear for signed ones."""
         eff = get_effect(effect)
-        lo, hi = (float(b[0, 0]) for b in eff.bounds([self.joint]))
+        lo, hi = (float(b[0, 0]) for b in eff.bounds([self.joint], self.rep.robot))
         absent = float(eff.absent_values()[0])
         ramp = np.linspace(0, 1, points)
         if lo > 0:
@@ -83,7 +83,7 @@ class JointFitter:
             mse_before: float | None = None) -> FitResult:
         """Grid, then bounded Brent refinement around the best grid point, then the CI."""
         eff = get_effect(effect)
-        lo, hi = (float(b[0, 0]) for b in eff.bounds([self.joint]))
+        lo, hi = (float(b[0, 0]) for b in eff.bounds([self.joint], self.rep.robot))
         start = self.evaluations
         before = self.mse(self.base_patch) if mse_before is None else mse_before
         xs, costs = grid if grid is not None else self.grid(effect, points)
@@ -132,8 +132,8 @@ def fit_patch(recording, additions, *, base_patch: ModelPatch | None = None, nth
     from adadex.sysid.replay import Replayer
 
     rep = Replayer(recording, nthread=nthread)
-    base = base_patch if base_patch is not None else ModelPatch()
-    added = ModelPatch()
+    base = base_patch if base_patch is not None else ModelPatch(robot=rep.robot)
+    added = ModelPatch(robot=rep.robot)
     for effect, joints in additions:
         get_effect(effect)
         missing = [j for j in joints if j not in recording.joint_names]
@@ -145,7 +145,8 @@ def fit_patch(recording, additions, *, base_patch: ModelPatch | None = None, nth
             r = JointFitter(rep, j, sequences_moving(recording, j), base + added).fit(effect)
             values.append([r.value])
             intervals.append([list(r.ci95)])
-        added = added + ModelPatch((EffectInstance(effect, tuple(joints), np.array(values), np.array(intervals)),))
+        added = added + ModelPatch((EffectInstance(effect, tuple(joints), np.array(values), np.array(intervals),
+                                                   robot=rep.robot),), rep.robot)
     return added
 
 
@@ -154,6 +155,9 @@ def identify_pd(replayer, joint: str, seqs, *, method: str = "cma", seed: int = 
     """The paper's identification: per-joint servo gains (``kp_scale``, ``kd_scale``) that minimize
     Σ‖q_sim − q_real‖² on ``seqs``, with CMA-ES (``method="cma"``, the paper's choice, seeded) or
     MuJoCo's bounded least squares (``method="lsq"``, the optimizer behind ``mujoco.sysid``).
+
+    The starting model (kp, kd scales 1) is scored as well and kept when the optimizer ends worse
+    (``progress`` is then False): the result is never worse than the nominal ``mse_nominal``.
     """
     import io
     import time
@@ -162,8 +166,9 @@ def identify_pd(replayer, joint: str, seqs, *, method: str = "cma", seed: int = 
     from mujoco import minimize
 
     fitter = JointFitter(replayer, joint, seqs, base_patch)
-    lo = np.array([get_effect("kp_scale").bounds([joint])[0][0, 0], get_effect("kd_scale").bounds([joint])[0][0, 0]])
-    hi = np.array([get_effect("kp_scale").bounds([joint])[1][0, 0], get_effect("kd_scale").bounds([joint])[1][0, 0]])
+    robot = replayer.robot
+    lo = np.array([get_effect(n).bounds([joint], robot)[0][0, 0] for n in ("kp_scale", "kd_scale")])
+    hi = np.array([get_effect(n).bounds([joint], robot)[1][0, 0] for n in ("kp_scale", "kd_scale")])
 
     def patch_at(x):
         return (fitter.base_patch.with_effect("kp_scale", [joint], [[float(x[0])]])
@@ -171,6 +176,7 @@ def identify_pd(replayer, joint: str, seqs, *, method: str = "cma", seed: int = 
 
     t0 = time.perf_counter()
     x0 = np.ones(2)
+    start = fitter.mse(patch_at(x0))      # the starting (nominal) model is scored too: never return worse
     if method == "cma":
         span = hi - lo
         es = cma.CMAEvolutionStrategy(((x0 - lo) / span).tolist(), 0.15,
@@ -190,6 +196,10 @@ def identify_pd(replayer, joint: str, seqs, *, method: str = "cma", seed: int = 
         x, _ = minimize.least_squares(x0, residual, bounds=[lo, hi], verbose=0, output=io.StringIO(), max_iter=40)
     else:
         raise ValueError(f"method must be 'cma' or 'lsq', got {method!r}")
+    mse = fitter.mse(patch_at(x))
+    progress = bool(mse < start)
+    if not progress:   # the optimizer found nothing better than where it started: keep the start
+        x, mse = x0, start
     return {"joint": joint, "method": method, "kp_scale": float(x[0]), "kd_scale": float(x[1]),
-            "mse": fitter.mse(patch_at(x)), "mse_nominal": fitter.mse(fitter.base_patch),
+            "mse": mse, "mse_nominal": start, "progress": progress,
             "evaluations": fitter.evaluations, "seconds": time.perf_counter() - t0}

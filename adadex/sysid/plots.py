@@ -35,10 +35,18 @@ def overlay(rec, sims: dict[str, np.ndarray], seq: int, joint: str):
     return fig
 
 
-def heatmap(rms: np.ndarray, joints, labels, title: str, vmax: float | None = None):
-    """Joint × sequence RMS error (deg)."""
+def heatmap(rms: np.ndarray, joints, labels, title: str, vmax: float | None = None, *, log: bool = True):
+    """Joint × sequence RMS error (deg), on a log colour scale by default (three decades below the
+    largest error) so a joint failing by 0.05° shows next to one failing by 5°."""
+    from matplotlib.colors import LogNorm
+
     fig, ax = plt.subplots(figsize=(max(4.0, 0.35 * len(joints) + 2), max(2.5, 0.12 * len(labels) + 1.5)))
-    im = ax.imshow(np.degrees(rms), aspect="auto", cmap="magma", vmin=0, vmax=vmax)
+    deg = np.degrees(rms)
+    if log:
+        top = vmax if vmax else max(float(deg.max()), 1e-6)
+        im = ax.imshow(np.maximum(deg, top * 1e-3), aspect="auto", cmap="magma", norm=LogNorm(top * 1e-3, top))
+    else:
+        im = ax.imshow(deg, aspect="auto", cmap="magma", vmin=0, vmax=vmax)
     ax.set_xticks(range(len(joints)), joints, rotation=60, fontsize=7)
     step = max(1, len(labels) // 40)
     ax.set_yticks(range(0, len(labels), step), [labels[i] for i in range(0, len(labels), step)], fontsize=5)

@@ -4,7 +4,13 @@ Every sequence of a recording is rolled out with ``mujoco.rollout`` (batched ove
 persistent thread pool), from the recording's initial configuration, first holding the initial
 command for :data:`PREROLL_S` so the robot is at rest at t = 0, then with the commands held
 constant between samples. The physics step divides the recording period: ``k`` substeps of
-``dt_rec / k`` with the smallest ``k`` giving a step ≤ the scene's :data:`PHYSICS_TIMESTEP`.
+``dt_rec / k`` with the smallest ``k`` giving a step ≤ the model's own step (the built-in scene's
+:data:`PHYSICS_TIMESTEP`).
+
+The model is the built-in scene or a user's MJCF (``model=``, a
+:class:`~adadex.sim.model_source.ModelSource`; default: the recording's own model), used with its
+own options and contacts; recorded joints, initial positions and commands map to its servoed
+joints by name, and the other actuators are sent 0.
 
 A :class:`Replayer` compiles one model per *structure* (which actuators carry a delay buffer or a
 lag state) and re-uses it: evaluating a new patch only rewrites model parameters (absolute values
@@ -20,15 +26,16 @@ Example::
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 
 import mujoco
 import numpy as np
 
 from adadex.sim.batched import RolloutPool
-from adadex.sim.effects import ModelBase
+from adadex.sim.effects import ModelBase, robot_ids
+from adadex.sim.model_source import ModelSource, same_model
 from adadex.sim.patch import ModelPatch, patched_scene
-from adadex.sim.robot import NUM_JOINTS
 from adadex.sim.scene import PHYSICS_TIMESTEP, PhysicsOptions
 
 FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
@@ -50,17 +57,26 @@ class Replayer(RolloutPool):
     Args:
         recording: a :class:`adadex.data.recording.Recording`.
         nthread: threads of the rollout pool.
+        model: the model to replay on (default: the recording's model, the built-in scene unless the
+            recording was loaded with a user model's joint table).
     """
 
-    def __init__(self, recording, *, nthread: int = 2, preroll_s: float = PREROLL_S):
+    def __init__(self, recording, *, nthread: int = 2, preroll_s: float = PREROLL_S,
+                 model: ModelSource | None = None):
+        rec_robot = getattr(recording, "robot", None)
+        self.source = model if model is not None else (rec_robot.source if rec_robot is not None else ModelSource())
+        self.robot = self.source.robot()
+        if not same_model(self.robot.model_id, rec_robot.model_id if rec_robot is not None else None):
+            # Read the recording's joints as the model's (same names and columns, else a RecordingError).
+            recording = dataclasses.replace(recording, robot=self.robot)
         self.rec = recording
         self.nthread = nthread
-        self.k = substeps_for(recording.dt)
+        self.k = substeps_for(recording.dt, self.source.timestep)
         self.timestep = recording.dt / self.k
         self.jid = np.asarray(recording.joint_indices)
         self._models: dict[tuple, tuple[mujoco.MjModel, ModelBase, list[mujoco.MjData]]] = {}
         self._open_pool(nthread)
-        self._command = np.asarray(recording.full_command(), dtype=np.float64)   # (S, T, 22)
+        self._command = np.asarray(recording.full_command(), dtype=np.float64)   # (S, T, J_robot)
         S, T, _ = self._command.shape
         self.num_steps = (T - 1) * self.k
         self.preroll_steps = int(round(preroll_s / self.timestep))
@@ -75,12 +91,20 @@ class Replayer(RolloutPool):
     def model_for(self, patch: ModelPatch) -> tuple[mujoco.MjModel, ModelBase, list[mujoco.MjData]]:
         """The compiled model with ``patch``'s structure, its parameters set to ``patch``."""
         key = self._structure_key(patch)
+        if patch.effects:
+            patch.check_model(self.robot.model_id)
         if key not in self._models:
             # Compiled with the structural effects only, so the snapshot holds the nominal parameters
             # (the structural effects' own parameters are set absolutely, whatever the snapshot says);
-            # a copy, as this model's parameters are rewritten for every patch evaluated.
-            model = copy.copy(patched_scene(None, patch.stage("structure"),
-                                            options=PhysicsOptions(timestep=self.timestep)))
+            # a copy, as this model's parameters are rewritten for every patch evaluated. The built-in
+            # scene comes from the one patched-scene builder (cached); a user's MJCF from its source.
+            if self.source.builtin:
+                model = copy.copy(patched_scene(None, patch.stage("structure"),
+                                                options=PhysicsOptions(timestep=self.timestep)))
+            else:
+                spec = self.source.spec(self.timestep)
+                patch.stage("structure").edit_spec(spec)
+                model = spec.compile()
             self._models[key] = (model, ModelBase.of(model), [mujoco.MjData(model) for _ in range(max(1, self.nthread))])
         model, base, datas = self._models[key]
         base.restore(model)
@@ -94,24 +118,26 @@ class Replayer(RolloutPool):
         nstate = mujoco.mj_stateSize(model, FULLPHYSICS)
         out = np.empty((S, nstate))
         d = mujoco.MjData(model)
-        lag = np.flatnonzero(model.actuator_dyntype == int(mujoco.mjtDyn.mjDYN_FILTEREXACT))
-        hist = np.flatnonzero(model.actuator_history[:, 0] > 0)
+        jnt, _, act = robot_ids(model, np.arange(self.robot.num_joints))
+        qadr = model.jnt_qposadr[jnt]
+        lag = np.flatnonzero(model.actuator_dyntype[act] == int(mujoco.mjtDyn.mjDYN_FILTEREXACT))
+        hist = np.flatnonzero(model.actuator_history[act, 0] > 0)
         q0 = np.asarray(self.rec.initial_qpos)[seq_idx]
         for s in range(S):
             mujoco.mj_resetData(model, d)
-            d.qpos[:NUM_JOINTS] = q0[s]
-            d.ctrl[:] = command0[s]
+            d.qpos[qadr] = q0[s]
+            d.ctrl[act] = command0[s]
             if lag.size:
-                d.act[model.actuator_actadr[lag]] = command0[s, lag]
-            for a in hist:
-                n = int(model.actuator_history[a, 0])
-                mujoco.mj_initCtrlHistory(model, d, int(a), None, np.full((n, 1), command0[s, a]))
+                d.act[model.actuator_actadr[act[lag]]] = command0[s, lag]
+            for c in hist:
+                n = int(model.actuator_history[act[c], 0])
+                mujoco.mj_initCtrlHistory(model, d, int(act[c]), None, np.full((n, 1), command0[s, c]))
             mujoco.mj_forward(model, d)
             mujoco.mj_getState(model, d, out[s], FULLPHYSICS)
         return out
 
     def simulate(self, patch: ModelPatch | None = None, *, sequences=None, full: bool = False) -> np.ndarray:
-        """Simulated joint positions, (S, T, J) for the recording's joints (``full``: all 22).
+        """Simulated joint positions, (S, T, J) for the recording's joints (``full``: all the robot's).
 
         ``sequences`` restricts the replay to some sequence indices (fitting uses this to replay
         only the sequences that excite the joints being fitted).
@@ -123,14 +149,20 @@ class Replayer(RolloutPool):
         S, T, _ = cmd.shape
         init = self._initial_states(model, cmd[:, 0], idx)
         P = self.preroll_steps
-        ctrl = np.ascontiguousarray(np.concatenate(
-            [np.repeat(cmd[:, :1], P, axis=1), np.repeat(cmd[:, :-1], self.k, axis=1)], axis=1))
+        ctrl = np.concatenate([np.repeat(cmd[:, :1], P, axis=1), np.repeat(cmd[:, :-1], self.k, axis=1)], axis=1)
+        jnt, _, act = robot_ids(model, np.arange(self.robot.num_joints))
+        if not np.array_equal(act, np.arange(model.nu)):
+            full_ctrl = np.zeros(ctrl.shape[:2] + (model.nu,))
+            full_ctrl[..., act] = ctrl
+            ctrl = full_ctrl
+        ctrl = np.ascontiguousarray(ctrl)
         n = P + self.num_steps
         state = np.empty((S, n, init.shape[1]))
         self._pool.rollout([model] * S, datas, init, ctrl, control_spec=CTRL_SPEC, skip_checks=True,
                            nstep=n, state=state, sensordata=np.empty((S, n, model.nsensordata)))
-        qpos = np.empty((S, T, NUM_JOINTS))
-        qpos[:, 0] = state[:, P - 1, 1:1 + NUM_JOINTS] if P else init[:, 1:1 + NUM_JOINTS]
-        qpos[:, 1:] = state[:, P + self.k - 1::self.k, 1:1 + NUM_JOINTS]
+        cols = 1 + model.jnt_qposadr[jnt]          # a FULLPHYSICS state is time, qpos, qvel, …
+        qpos = np.empty((S, T, len(jnt)))
+        qpos[:, 0] = state[:, P - 1, cols] if P else init[:, cols]
+        qpos[:, 1:] = state[:, P + self.k - 1::self.k][..., cols]
         qpos = patch.transform_measurement(qpos)
         return qpos if full else qpos[..., self.jid]

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import base64
 import html
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from adadex.io import atomic_write_text
+from adadex.sim.effects import get_effect
 from adadex.sim.patch import ModelPatch
 from adadex.sysid import plots
 from adadex.sysid.compare import Comparison, heldout_mask, localize
@@ -69,9 +69,9 @@ def error_stages(recording, patch: ModelPatch, *, replayer=None, nthread: int = 
     from adadex.sysid.replay import Replayer
 
     rep = replayer if replayer is not None else Replayer(recording, nthread=nthread)
-    names, patches = ["baseline (nominal model)"], [ModelPatch()]
+    names, patches = ["baseline (nominal model)"], [ModelPatch(robot=rep.robot)]
     for e in patch.effects:
-        patches.append(ModelPatch(patches[-1].effects + (e,)))
+        patches.append(ModelPatch(patches[-1].effects + (e,), rep.robot))
         names.append(f"+ {e.effect} on {','.join(e.joints)}")
     comps = [Comparison(recording, p, rep.simulate(p)) for p in patches]
     return Stages(names, patches, comps, heldout_mask(recording))
@@ -80,6 +80,21 @@ def error_stages(recording, patch: ModelPatch, *, replayer=None, nthread: int = 
 def _percent(x) -> str:
     """A reduction as a percentage; "—" (train only: no sequence held out) for ``None``."""
     return "— (train only)" if x is None else f"{100 * x:.0f}%"
+
+
+def _with_units(h: dict) -> tuple[str, str]:
+    """A hypothesis' parameters and 95 % intervals as text with units, intervals that reach the bounds
+    marked "not identifiable"."""
+    eff = get_effect(h["effect"])
+    units = {p.name: p.unit for p in eff.params}
+    ident = h.get("identifiable") or [True] * len(h["joints"])
+    params, cis = [], []
+    for name, values in h["params"].items():
+        for k, (joint, v) in enumerate(zip(h["joints"], values)):
+            params.append(f"{name} = {v:.4g} {units[name]}" + (f" ({joint})" if len(h["joints"]) > 1 else ""))
+            a, b = h["ci95"][name][k]
+            cis.append(f"[{a:.4g}, {b:.4g}] {units[name]}" + ("" if ident[k] else " — not identifiable"))
+    return "; ".join(params), "; ".join(cis)
 
 
 def _img(png: bytes, alt: str) -> str:
@@ -124,8 +139,9 @@ def write_report(recording, patch: ModelPatch, out, *, diagnosis=None, title: st
                      "<th class='l'>joints</th><th class='l'>parameters</th><th class='l'>95% CI</th>"
                      "<th>train reduction</th><th>held-out reduction</th><th class='l'>alternatives</th></tr>")
         for h in diagnosis.hypotheses[:15]:
+            params, cis = _with_units(h)
             parts.append(f"<tr><td class='l'>{h['effect']}</td><td class='l'>{','.join(h['joints'])}</td>"
-                         f"<td class='l'>{html.escape(json.dumps(h['params']))}</td><td class='l'>{html.escape(json.dumps(h['ci95']))}</td>"
+                         f"<td class='l'>{html.escape(params)}</td><td class='l'>{html.escape(cis)}</td>"
                          f"<td>{100 * h['train_error_reduction']:.0f}%</td><td>{_percent(h['heldout_error_reduction'])}</td>"
                          f"<td class='l'>{', '.join(h['alternatives'])}</td></tr>")
         parts.append("</table><ul>" + "".join(f"<li>{html.escape(f)}</li>" for f in diagnosis.findings[-len(diagnosis.explained_fraction) - 1:]) + "</ul>")
@@ -138,21 +154,22 @@ def write_report(recording, patch: ModelPatch, out, *, diagnosis=None, title: st
                      "<th>evaluations</th><th>seconds</th></tr>")
         for r in pd_results:
             parts.append(f"<tr><td class='l'>{r['joint']}</td><td class='l'>{r['method']}</td><td>{r['kp_scale']:.3f}</td>"
-                         f"<td>{r['kd_scale']:.3f}</td><td>{r['mse_nominal']:.2e}</td><td>{r['mse']:.2e}</td>"
+                         f"<td>{r['kd_scale']:.3f}</td><td>{r['mse_nominal']:.2e}</td><td>{r['mse']:.2e}"
+                         f"{'' if r.get('progress', True) else ' (no progress: nominal kept)'}</td>"
                          f"<td>{r['evaluations']}</td><td>{r['seconds']:.1f}</td></tr>")
         parts.append("</table>")
     parts.append("<h2>Overlays: command, measured, model before and after</h2>")
     err = base.rms_per_sequence_joint()
-    worst = np.dstack(np.unravel_index(np.argsort(-err, axis=None), err.shape))[0]
-    shown = set()
-    for s, j in worst:
-        if len(shown) >= max_overlays:
-            break
-        if joints[j] in {x[1] for x in shown}:
-            continue
-        shown.add((s, joints[j]))
-        sims = {"model (nominal)": base.simulated, "model + patch": final.simulated}
-        parts.append(_img(plots.fig_to_png(plots.overlay(recording, sims, int(s), joints[j])), f"overlay {joints[j]}"))
+    # Each failing joint (then the others, worst first) on its own worst sequence: the one that moves it.
+    seqs = list(recording.meta.get("sequences") or [{} for _ in range(recording.num_sequences)])
+    order = loc.failing_joints + [e["joint"] for e in loc.joints if e["joint"] not in loc.failing_joints]
+    sims = {"model (nominal)": base.simulated, "model + patch": final.simulated}
+    for name in order[:max_overlays]:
+        j = joints.index(name)
+        own = np.array([s.get("joint", name) == name for s in seqs])
+        own = own if own.any() else np.ones(len(seqs), dtype=bool)
+        s = int(np.flatnonzero(own)[np.argmax(err[own, j])])
+        parts.append(_img(plots.fig_to_png(plots.overlay(recording, sims, s, name)), f"overlay {name}"))
     vmax = float(np.degrees(err.max())) or None
     parts.append("<h2>Error by joint and sequence</h2>")
     parts.append(_img(plots.fig_to_png(plots.heatmap(err, joints, recording.sequence_labels, "nominal model", vmax)), "heatmap before"))

@@ -1,0 +1,40 @@
+"""Effects that span joints: one effect on several joints is one hypothesis; absent values never count."""
+
+import numpy as np
+import pytest
+
+from adadex.sim.patch import ModelPatch
+from adadex.sysid.diagnose import diagnose
+from adadex.sysid.excite import design_excitation, simulate_recording
+
+
+@pytest.fixture(scope="module")
+def delayed():
+    joints = ["arm_j5", "if_pip", "mf_pip", "rf_pip"]
+    truth = ModelPatch().with_effect("actuator_delay", joints, 0.05)
+    plan = design_excitation(joints, freqs=(1.0, 3.0), amps=(0.5,), poses=("loaded",), kinds=("sine", "chirp"),
+                             duration=2.0)
+    rec = simulate_recording(plan, truth, noise=2e-4, seed=3)
+    return joints, diagnose(rec, candidates=("actuator_delay", "actuator_lag", "kd_scale", "damping", "armature"),
+                            progress=False)
+
+
+def test_a_delay_on_the_arm_and_three_fingers_is_one_delay_hypothesis(delayed):
+    joints, d = delayed
+    assert d.verdict == "explained"
+    assert [h["effect"] for h in d.selected] == ["actuator_delay"]
+    assert sorted(d.selected[0]["joints"]) == sorted(joints)
+    np.testing.assert_allclose(d.selected[0]["params"]["delay"], 0.05, rtol=0.1)
+    assert all(d.selected[0]["identifiable"])
+    assert set(d.stage_times_s) >= {"localize", "fit", "relocalize"}
+
+
+def test_explained_fractions_are_never_negative_and_absent_values_never_explain(delayed):
+    _, d = delayed
+    assert all(v >= 0 for v in d.explained_fraction.values())
+    assert all(h["heldout_error_reduction"] >= 0 for h in d.hypotheses)
+    from adadex.sim.effects import get_effect
+
+    for h in d.hypotheses:
+        value = list(h["params"].values())[0][0]
+        assert value != float(get_effect(h["effect"]).absent_values()[0]), h

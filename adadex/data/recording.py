@@ -375,7 +375,7 @@ class Recording:
 
     def _check_qpos_limits(self) -> None:
         """The simulator starts each sequence at ``initial_qpos``: outside the limits it is unstable."""
-        lim = joint_limits()
+        lim = joint_limits() if self.robot is None else self.robot.limits
         over = np.maximum(lim[:, 0] - self.initial_qpos, self.initial_qpos - lim[:, 1]) > INITIAL_QPOS_TOLERANCE
         # A recorded joint may start where it was measured (measurements are not limit-checked).
         idx = self.joint_indices
@@ -383,7 +383,7 @@ class Recording:
         if over.any():
             s, j = (int(i) for i in np.argwhere(over)[0])
             raise CommandLimitError(
-                f"initial_qpos: {float(self.initial_qpos[s, j])!r} rad for joint {JOINT_NAMES[j]!r} in "
+                f"initial_qpos: {float(self.initial_qpos[s, j])!r} rad for joint {self._all_joints[j]!r} in "
                 f"{self._where(s)} is outside the joint's limits [{lim[j, 0]:g}, {lim[j, 1]:g}] rad "
                 f"(tolerance {INITIAL_QPOS_TOLERANCE:g} rad); the simulator cannot start there")
 

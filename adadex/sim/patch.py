@@ -74,8 +74,6 @@ class EffectInstance:
         eff = get_effect(self.effect)
         object.__setattr__(self, "joints", tuple(self.joints))
         object.__setattr__(self, "values", eff.validate(self.joints, self.values, self.robot))
-        object.__setattr__(self, "_jid", joint_index(self.joints) if self.robot is None else
-                           self.robot.index(self.joints))
         if self.ci95 is not None:
             ci = np.asarray(self.ci95, dtype=float)
             shape = (len(self.joints), len(eff.params), 2)
@@ -90,7 +88,11 @@ class EffectInstance:
 
     @property
     def jid(self) -> np.ndarray:
-        return self._jid
+        jid = self.__dict__.get("_jid")        # computed once: a reset applies a patch per world
+        if jid is None:
+            jid = joint_index(self.joints) if self.robot is None else self.robot.index(self.joints)
+            object.__setattr__(self, "_jid", jid)
+        return jid
 
     def is_absent(self) -> bool:
         return self.spec.is_absent(self.values)
@@ -193,11 +195,11 @@ class ModelPatch:
             rest = e.without(taken[e.effect]) if e.effect in taken else e
             if rest is not None:
                 kept.append(rest)
-        return ModelPatch(tuple(kept) + other.effects)
+        return ModelPatch(tuple(kept) + other.effects, self.robot if self.robot is not None else other.robot)
 
     def stage(self, *stages: str) -> "ModelPatch":
         """The effects acting at ``stages`` (``"model"``, ``"structure"``, ``"command"``, ``"sensor"``)."""
-        return ModelPatch(tuple(e for e in self.effects if e.spec.stage in stages))
+        return ModelPatch(tuple(e for e in self.effects if e.spec.stage in stages), self.robot)
 
     def content_key(self) -> str:
         """Canonical JSON of what this patch does to a compiled model (its active model- and

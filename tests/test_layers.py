@@ -109,3 +109,22 @@ def test_no_import_cycles():
         if m not in state:
             visit(m, [])
     assert not cycles, "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
+
+
+def test_every_adadex_exception_derives_from_the_root():
+    """One error root: every exception class defined under adadex/ subclasses adadex.AdadexError."""
+    import importlib
+    import inspect
+
+    from adadex import AdadexError
+
+    strays = []
+    for name in sorted(GRAPH):
+        if name.endswith("__main__"):
+            continue
+        module = importlib.import_module(name)
+        for cls_name, cls in vars(module).items():
+            if (inspect.isclass(cls) and issubclass(cls, BaseException) and cls.__module__ == name
+                    and not issubclass(cls, AdadexError)):
+                strays.append(f"{name}.{cls_name}")
+    assert not strays, f"exception classes outside the adadex.AdadexError root: {strays}"

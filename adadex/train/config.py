@@ -34,8 +34,11 @@ class PPOConfig:
     max_grad_norm: float = 1.0
     #: weight of the DexTrack-style imitation term (needs a teacher table; 0: plain PPO)
     imitation_coef: float = 0.0
+    #: torch threads for the minibatch updates (0: all cores); collection always runs torch on one
+    update_threads: int = 0
 
     def __post_init__(self):
+        check_number("PPOConfig.update_threads", self.update_threads, integer=True)
         for k in ("total_frames", "frames_per_batch", "epochs", "minibatch_size"):
             check_number(f"PPOConfig.{k}", getattr(self, k), low=1, integer=True)
         check_numbers("PPOConfig", self, ("lr", "clip_epsilon", "entropy_coef", "critic_coef", "max_grad_norm",

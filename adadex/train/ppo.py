@@ -20,6 +20,8 @@ Example (a few iterations on a tiny dataset)::
 
 from __future__ import annotations
 
+import contextlib
+import os
 import time
 from pathlib import Path
 
@@ -53,6 +55,18 @@ from adadex.transforms.policy import make_policy
 from adadex.train.logs import RunLog
 
 ERRORS = ("next", *ERRORS_KEY)
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int):
+    """Torch on ``n`` threads inside the block. Collection keeps one (the policy's small batches only
+    spin against MuJoCo's rollout threads); the minibatch updates use the cores."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def training_references(cfg: TrainConfig, dataset: ReferenceDataset, window: int) -> list[int]:
@@ -235,33 +249,35 @@ class PPOTrainer:
                                    frames_per_batch=self.ppo.frames_per_batch, total_frames=remaining)
         bar = tqdm(total=self.ppo.total_frames, initial=self.frames, unit="frame", desc=self.run_name,
                    disable=not self.cfg.progress)
-        try:
-            t_iter = time.perf_counter()
-            for data in collector:
-                t_collected = time.perf_counter()
-                data = data.reshape(-1, data.shape[-1])          # [worlds (of all workers), T]
-                if not self.fitted:
-                    fit_normalizers(self.policy, data["observation"])
-                    self.fitted = True
-                stats = self.batch_metrics(data)
-                stats.update(self._update(data))
-                collector.update_policy_weights_()
-                n = data.numel()
-                self.frames += n
-                self.iteration += 1
-                now = time.perf_counter()
-                stats.update(frames=self.frames, fps=n / (now - t_iter), collect_fps=n / (t_collected - t_iter))
-                if self.cfg.eval_every and self.iteration % self.cfg.eval_every == 0:
-                    stats.update(self.evaluate())
-                if self.iteration % self.cfg.checkpoint_every == 0:
-                    self._checkpoint()
-                log.log(self.iteration, stats)
-                bar.update(n)
-                bar.set_postfix(ret=f"{stats['reward']:.3f}", succ=f"{stats['frame_success_pct']:.0f}%")
+        with _torch_threads(1):                  # collection: one torch thread beside MuJoCo's
+            try:
                 t_iter = time.perf_counter()
-        finally:
-            bar.close()
-            collector.shutdown()
+                for data in collector:
+                    t_collected = time.perf_counter()
+                    data = data.reshape(-1, data.shape[-1])          # [worlds (of all workers), T]
+                    if not self.fitted:
+                        fit_normalizers(self.policy, data["observation"])
+                        self.fitted = True
+                    stats = self.batch_metrics(data)
+                    with _torch_threads(self.ppo.update_threads or os.cpu_count() or 1):
+                        stats.update(self._update(data))
+                    collector.update_policy_weights_()
+                    n = data.numel()
+                    self.frames += n
+                    self.iteration += 1
+                    now = time.perf_counter()
+                    stats.update(frames=self.frames, fps=n / (now - t_iter), collect_fps=n / (t_collected - t_iter))
+                    if self.cfg.eval_every and self.iteration % self.cfg.eval_every == 0:
+                        stats.update(self.evaluate())
+                    if self.iteration % self.cfg.checkpoint_every == 0:
+                        self._checkpoint()
+                    log.log(self.iteration, stats)
+                    bar.update(n)
+                    bar.set_postfix(ret=f"{stats['reward']:.3f}", succ=f"{stats['frame_success_pct']:.0f}%")
+                    t_iter = time.perf_counter()
+            finally:
+                bar.close()
+                collector.shutdown()
         self._checkpoint()
         final = self.evaluate()
         log.log(self.iteration, {**final, "frames": self.frames})

@@ -44,7 +44,22 @@ def train_config(cfg: Mapping) -> TrainConfig:
 
 
 def run(cfg: Mapping, *, name: str) -> dict:
-    """Build the dataset if missing (``build_preset``), train, print and return the final evaluation."""
+    """Build the dataset if missing (``build_preset``), train, print and return the final evaluation.
+
+    Bad input — a missing dataset or checkpoint, a bad setting, an unknown group — is one line on
+    stderr and exit code 2, no traceback (anything else is a bug and keeps its traceback)."""
+    import sys
+
+    from adadex.errors import AdadexError
+
+    try:
+        return _run(cfg, name)
+    except (AdadexError, FileNotFoundError) as e:
+        print(f"{name}: error: {e}", file=sys.stderr)
+        sys.exit(2)
+
+
+def _run(cfg: Mapping, name: str) -> dict:
     from adadex.train.ppo import train
 
     tc = train_config(cfg)

@@ -234,3 +234,19 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
     assert a_il < b_il and a_il < a_plain, losses
     with pytest.raises(ConfigError, match="imitation_coef"):
         PPOTrainer(_config(tiny_dataset, tmp_path / "x"), teacher=teacher)
+
+
+@pytest.mark.parametrize("recipe, args, fragment", [
+    ("train_modulator.py", ["tracker=/nonexistent/generalist.pt"], "no tracker checkpoint"),
+    ("train_specialist.py", ["group=999"], "semantic group 999"),
+    ("train_ppo.py", ["collector.backend=slurm"], "backend must be 'local' or 'ray'"),
+])
+def test_recipes_refuse_bad_input_in_one_line(tiny_dataset, tmp_path, recipe, args, fragment):
+    out = tmp_path / "run"
+    res = subprocess.run([sys.executable, str(ROOT / "recipes" / recipe), f"dataset={tiny_dataset}", f"out={out}",
+                          "wandb=false", "progress=false", *args], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert res.returncode == 2, res.stderr[-2000:]
+    lines = [l for l in res.stderr.splitlines() if l.strip()]
+    assert len(lines) == 1 and fragment in lines[0] and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert not (out / "checkpoint.pt").exists()

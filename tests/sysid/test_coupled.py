@@ -38,3 +38,20 @@ def test_explained_fractions_are_never_negative_and_absent_values_never_explain(
     for h in d.hypotheses:
         value = list(h["params"].values())[0][0]
         assert value != float(get_effect(h["effect"]).absent_values()[0]), h
+
+
+@pytest.fixture(scope="module")
+def shoulder_limited():
+    joints = ["arm_j2", "arm_j4", "if_pip", "mf_pip"]
+    truth = ModelPatch().with_effect("torque_limit", ["arm_j2"], 0.35)
+    plan = design_excitation(joints, freqs=(1.0, 3.0), amps=(1.0,), poses=("loaded",), kinds=("sine", "chirp"),
+                             duration=2.0)
+    rec = simulate_recording(plan, truth, noise=2e-4, seed=4)
+    return diagnose(rec, candidates=("torque_limit", "kp_scale", "armature", "damping"), progress=False)
+
+
+def test_a_saturating_shoulder_is_one_torque_limit_and_nothing_on_the_fingers(shoulder_limited):
+    d = shoulder_limited
+    assert d.verdict == "explained", d.findings
+    assert [(h["effect"], h["joints"]) for h in d.selected] == [("torque_limit", ["arm_j2"])], d.selected
+    np.testing.assert_allclose(d.selected[0]["params"]["fraction"], 0.35, rtol=0.1)

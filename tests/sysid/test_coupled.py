@@ -58,3 +58,24 @@ def test_a_saturating_shoulder_is_one_torque_limit_and_nothing_on_the_fingers(sh
     assert d.verdict == "explained", d.findings
     assert [(h["effect"], h["joints"]) for h in d.selected] == [("torque_limit", ["arm_j2"])], d.selected
     np.testing.assert_allclose(d.selected[0]["params"]["fraction"], 0.45, rtol=0.05)
+
+
+@pytest.fixture(scope="module")
+def hand_payload():
+    truth = ModelPatch().with_effect("payload_mass", ["arm_j6"], 1.0)
+    plan = design_excitation(["arm_j2", "arm_j4", "arm_j6", "if_pip"], freqs=(0.5, 3.0), amps=(1.0,),
+                             poses=("loaded", "unloaded"), kinds=("sine", "chirp"), duration=2.0)
+    rec = simulate_recording(plan, truth, noise=2e-4, seed=5)
+    return diagnose(rec, candidates=("payload_mass", "armature", "kp_scale", "damping"), progress=False)
+
+
+def test_a_payload_on_the_hand_is_one_payload_on_one_link_not_split_over_the_arm(hand_payload):
+    d = hand_payload
+    assert d.verdict == "explained", d.findings
+    assert [(h["effect"], h["joints"]) for h in d.selected] == [("payload_mass", ["arm_j6"])], d.selected
+    np.testing.assert_allclose(d.selected[0]["params"]["mass"], 1.0, rtol=0.05)
+    assert all(d.selected[0]["identifiable"])
+    assert set(d.explained_fraction) == {"arm_j2", "arm_j4"}   # the joints that failed, all explained by the load
+    assert min(d.explained_fraction.values()) >= 0.8
+    assert any("one payload_mass on the link of arm_j6" in f for f in d.findings)
+    assert d.hypotheses[0]["effect"] == "payload_mass" and d.hypotheses[0]["joints"] == ["arm_j6"]

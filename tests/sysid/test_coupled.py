@@ -16,11 +16,11 @@ def delayed():
                              duration=2.0)
     rec = simulate_recording(plan, truth, noise=2e-4, seed=3)
     return joints, diagnose(rec, candidates=("actuator_delay", "actuator_lag", "kd_scale", "damping", "armature"),
-                            progress=False)
+                            progress=False), rec
 
 
 def test_a_delay_on_the_arm_and_three_fingers_is_one_delay_hypothesis(delayed):
-    joints, d = delayed
+    joints, d, _ = delayed
     assert d.verdict == "explained"
     assert [h["effect"] for h in d.selected] == ["actuator_delay"]
     assert sorted(d.selected[0]["joints"]) == sorted(joints)
@@ -30,7 +30,7 @@ def test_a_delay_on_the_arm_and_three_fingers_is_one_delay_hypothesis(delayed):
 
 
 def test_explained_fractions_are_never_negative_and_absent_values_never_explain(delayed):
-    _, d = delayed
+    _, d, _ = delayed
     assert all(v >= 0 for v in d.explained_fraction.values())
     assert all(h["heldout_error_reduction"] >= 0 for h in d.hypotheses)
     from adadex.sim.effects import get_effect
@@ -38,6 +38,24 @@ def test_explained_fractions_are_never_negative_and_absent_values_never_explain(
     for h in d.hypotheses:
         value = list(h["params"].values())[0][0]
         assert value != float(get_effect(h["effect"]).absent_values()[0]), h
+
+
+def test_an_effect_on_several_joints_is_scored_per_joint_on_that_joints_own_held_out_sequences(delayed):
+    from adadex.sysid.compare import heldout_mask, noise_floor
+    from adadex.sysid.diagnose import _reduction
+    from adadex.sysid.fit import JointFitter
+    from adadex.sysid.replay import Replayer
+
+    joints, d, rec = delayed
+    rep, held = Replayer(rec), heldout_mask(rec)
+    noise = noise_floor(rec.joint_pos)
+    h = d.selected[0]
+    for joint, reported in zip(h["joints"], h["heldout_error_reduction"]):
+        own = [i for i, s in enumerate(rec.meta["sequences"]) if s["joint"] == joint and held[i]]
+        f = JointFitter(rep, joint, own)
+        expected = _reduction(f.mse_per_sequence(ModelPatch()), f.mse_per_sequence(d.patch()),
+                              float(noise[list(rec.joint_names).index(joint)] ** 2))
+        np.testing.assert_allclose(reported, expected, atol=1e-6, err_msg=joint)
 
 
 @pytest.fixture(scope="module")

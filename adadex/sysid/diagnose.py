@@ -50,7 +50,7 @@ from adadex.errors import AdadexError
 from adadex.io import atomic_write_text
 from adadex.sim.effects import EFFECT_NAMES, get_effect, robot_ids
 from adadex.sim.patch import EffectInstance, ModelPatch
-from adadex.sysid.compare import compare, heldout_mask, localize, noise_floor
+from adadex.sysid.compare import FAIL_ABS, FAIL_RATIO, compare, heldout_mask, localize, noise_floor
 from adadex.sysid.fit import JointFitter
 from adadex.sysid.replay import Replayer
 
@@ -225,7 +225,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         explained[joint] = chosen[-1].heldout_error_reduction if chosen else 0.0
         lap("fit")
         if chosen and pending and joints is None:
-            _, still, _ = _localize_failing_joints(recording, _patch_of(selected_per_joint, base_patch), rep, noise)
+            still = _still_failing(setting, pending, _patch_of(selected_per_joint, base_patch))
             lap("relocalize")
             gone = [j for j in pending if j not in still]
             knock_on += gone
@@ -296,6 +296,25 @@ def _localize_failing_joints(recording, base_patch: ModelPatch, rep: Replayer, n
                 "per_joint_rms_rad": dict(zip(names, map(float, cmp.rms_per_joint()))),
                 "noise_floor_rad": dict(zip(names, map(float, noise)))}
     return baseline, loc.failing_joints, list(loc.sentences)
+
+
+def _still_failing(setting: _Setting, joints: list[str], patch: ModelPatch) -> list[str]:
+    """Which of ``joints`` still fail on ``patch``: :func:`~adadex.sysid.compare.localize`'s test (RMS error
+    on a joint's own sequences against its noise floor over the whole recording), replaying only those
+    joints' sequences rather than the whole recording."""
+    every = np.arange(len(setting.seq_meta))
+    own = {j: np.concatenate(setting.sequences(j)).astype(np.int64) for j in joints}
+    own = {j: s if s.size else every for j, s in own.items()}   # as localize: no own sequences -> all
+    seqs = np.unique(np.concatenate(list(own.values())))
+    sim = setting.replayer.simulate(patch, sequences=seqs)
+    measured = setting.replayer.rec.joint_pos[seqs]
+    out = []
+    for j in joints:
+        col, rows = setting.joint_names.index(j), np.searchsorted(seqs, np.unique(own[j]))
+        rms = float(np.sqrt(np.mean((sim[rows, :, col] - measured[rows, :, col]) ** 2)))
+        if rms / max(float(setting.noise[col]), 1e-6) > FAIL_RATIO and rms > FAIL_ABS:
+            out.append(j)
+    return out
 
 
 def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects: int, min_gain: float,

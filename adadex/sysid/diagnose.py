@@ -25,7 +25,11 @@ marks its hypotheses ``"scored_on": "train"`` and gives them no held-out figure
 Coupled joints: the failing joints are fitted worst first (error over noise), and after each joint's
 effects are chosen the rest are localized again on the model with those effects; a joint that no
 longer fails had only a knock-on error (the joint that moves it was the source) and gets no effect of
-its own. A candidate fitted at (or within 0.1 % of the bounds of) its absent value explains nothing
+its own (re-localization replays only the still-pending joints' sequences). Load-like effects (a
+payload, or armature, its look-alike) chosen on several joints of one chain are tried as one payload on
+one link of the unbranched chain below them, fitted to all their sequences; it replaces them when it
+explains their held-out sequences as well (a mass on the hand is one hypothesis, not a payload on the
+shoulder plus armature on the elbow). A candidate fitted at (or within 0.1 % of the bounds of) its absent value explains nothing
 and is dropped; explained fractions are reported clipped at 0. A selected value whose 95 % interval
 reaches its bounds or spans half of them is reported as not identifiable from the recording, with the
 ``adadex sysid excite`` command whose excitation would pin it down (:data:`EXCITATION_FOR`).

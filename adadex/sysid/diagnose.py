@@ -29,7 +29,8 @@ its own (re-localization replays only the still-pending joints' sequences). Load
 payload, or armature, its look-alike) chosen on several joints of one chain are tried as one payload on
 one link of the unbranched chain below them, fitted to all their sequences; it replaces them when it
 explains their held-out sequences as well (a mass on the hand is one hypothesis, not a payload on the
-shoulder plus armature on the elbow). A candidate fitted at (or within 0.1 % of the bounds of) its absent value explains nothing
+shoulder plus armature on the elbow). A candidate fitted at (or within 0.1 % of the bounds of) its
+absent value explains nothing
 and is dropped; explained fractions are reported clipped at 0. A selected value whose 95 % interval
 reaches its bounds or spans half of them is reported as not identifiable from the recording, with the
 ``adadex sysid excite`` command whose excitation would pin it down (:data:`EXCITATION_FOR`).
@@ -258,8 +259,9 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         explained.update(_score_jointly(setting, selected_per_joint, carried))
     explained = {j: max(0.0, v) for j, v in explained.items() if j in failing}
     loaded = {j: selected_per_joint[k] for k, aff in carried.items() for j in aff}
-    if [j for j in knock_on if j not in loaded]:
-        findings.append(f"{', '.join(j for j in knock_on if j not in loaded)}: no effect of their own; their error follows from the effects "
+    own_knock_on = [j for j in knock_on if j not in loaded]
+    if own_knock_on:
+        findings.append(f"{', '.join(own_knock_on)}: no effect of their own; their error follows from the effects "
                         "found on the joints that move them (it falls below the failure threshold once those are "
                         "in the model).")
     lap("joint_refit_and_scoring")

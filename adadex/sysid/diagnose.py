@@ -25,7 +25,12 @@ marks its hypotheses ``"scored_on": "train"`` and gives them no held-out figure
 Coupled joints: the failing joints are fitted worst first (error over noise), and after each joint's
 effects are chosen the rest are localized again on the model with those effects; a joint that no
 longer fails had only a knock-on error (the joint that moves it was the source) and gets no effect of
-its own. A candidate fitted at (or within 0.1 % of the bounds of) its absent value explains nothing
+its own (re-localization replays only the still-pending joints' sequences). Load-like effects (a
+payload, or armature, its look-alike) chosen on several joints of one chain are tried as one payload on
+one link of the unbranched chain below them, fitted to all their sequences; it replaces them when it
+explains their held-out sequences as well (a mass on the hand is one hypothesis, not a payload on the
+shoulder plus armature on the elbow). A candidate fitted at (or within 0.1 % of the bounds of) its
+absent value explains nothing
 and is dropped; explained fractions are reported clipped at 0. A selected value whose 95 % interval
 reaches its bounds or spans half of them is reported as not identifiable from the recording, with the
 ``adadex sysid excite`` command whose excitation would pin it down (:data:`EXCITATION_FOR`).
@@ -43,13 +48,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 from tqdm import tqdm
 
 from adadex.errors import AdadexError
 from adadex.io import atomic_write_text
-from adadex.sim.effects import EFFECT_NAMES, get_effect
+from adadex.sim.effects import EFFECT_NAMES, get_effect, robot_ids
 from adadex.sim.patch import EffectInstance, ModelPatch
-from adadex.sysid.compare import compare, heldout_mask, localize, noise_floor
+from adadex.sysid.compare import FAIL_ABS, FAIL_RATIO, compare, heldout_mask, localize, noise_floor
 from adadex.sysid.fit import JointFitter
 from adadex.sysid.replay import Replayer
 
@@ -224,7 +230,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         explained[joint] = chosen[-1].heldout_error_reduction if chosen else 0.0
         lap("fit")
         if chosen and pending and joints is None:
-            _, still, _ = _localize_failing_joints(recording, _patch_of(selected_per_joint, base_patch), rep, noise)
+            still = _still_failing(setting, pending, _patch_of(selected_per_joint, base_patch))
             lap("relocalize")
             gone = [j for j in pending if j not in still]
             knock_on += gone
@@ -233,14 +239,29 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     bar.close()
     for joint in knock_on:
         selected_per_joint[joint] = []
+    carried: dict[str, list[str]] = {}   # a single load's joint -> the failing joints it explains
+    load = _single_load_alternative(setting, selected_per_joint, explained, tie, candidates) if joints is None else None
+    if load is not None:
+        cand, affected = load
+        for j in affected:
+            selected_per_joint[j] = []
+        selected_per_joint[cand.joint] = [cand]
+        carried[cand.joint] = affected
+        first_rounds.setdefault(cand.joint, []).insert(0, cand)
+        knock_on += [j for j in affected if j != cand.joint]
+        findings.append(f"{', '.join(affected)}: one {cand.effect} on the link of {cand.joint} "
+                        f"({cand.value:.4g} {get_effect(cand.effect).params[0].unit}) explains their errors as well "
+                        f"as separate effects on each (it moves with all of them).")
 
     if sum(len(c) for c in selected_per_joint.values()) > 1:
-        _refit_jointly(setting, selected_per_joint, refine_passes)
+        _refit_jointly(setting, selected_per_joint, refine_passes, skip=set(carried))
     if sum(len(c) for c in selected_per_joint.values()) > 1 or knock_on:
-        explained.update(_score_jointly(setting, selected_per_joint))
-    explained = {j: max(0.0, v) for j, v in explained.items()}
-    if knock_on:
-        findings.append(f"{', '.join(knock_on)}: no effect of their own; their error follows from the effects "
+        explained.update(_score_jointly(setting, selected_per_joint, carried))
+    explained = {j: max(0.0, v) for j, v in explained.items() if j in failing}
+    loaded = {j: selected_per_joint[k] for k, aff in carried.items() for j in aff}
+    own_knock_on = [j for j in knock_on if j not in loaded]
+    if own_knock_on:
+        findings.append(f"{', '.join(own_knock_on)}: no effect of their own; their error follows from the effects "
                         "found on the joints that move them (it falls below the failure threshold once those are "
                         "in the model).")
     lap("joint_refit_and_scoring")
@@ -249,7 +270,8 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     selected = _merge_over_joints(selected_per_joint, rep.robot)
     train_only = [j for j in failing if setting.train_only(j)]
     _mark_train_only(hypotheses, selected, train_only)
-    verdict, sentences = _verdict({j: v for j, v in explained.items() if j not in knock_on}, selected_per_joint,
+    verdict, sentences = _verdict({j: v for j, v in explained.items() if j not in knock_on or j in loaded},
+                                  {**selected_per_joint, **loaded},
                                   explained_at, rep.robot, train_only)
     if train_only:
         sentences.insert(0, f"Too few sequences to hold any out on {', '.join(train_only)} (at least 3 of a "
@@ -280,6 +302,25 @@ def _localize_failing_joints(recording, base_patch: ModelPatch, rep: Replayer, n
                 "per_joint_rms_rad": dict(zip(names, map(float, cmp.rms_per_joint()))),
                 "noise_floor_rad": dict(zip(names, map(float, noise)))}
     return baseline, loc.failing_joints, list(loc.sentences)
+
+
+def _still_failing(setting: _Setting, joints: list[str], patch: ModelPatch) -> list[str]:
+    """Which of ``joints`` still fail on ``patch``: :func:`~adadex.sysid.compare.localize`'s test (RMS error
+    on a joint's own sequences against its noise floor over the whole recording), replaying only those
+    joints' sequences rather than the whole recording."""
+    every = np.arange(len(setting.seq_meta))
+    own = {j: np.concatenate(setting.sequences(j)).astype(np.int64) for j in joints}
+    own = {j: s if s.size else every for j, s in own.items()}   # as localize: no own sequences -> all
+    seqs = np.unique(np.concatenate(list(own.values())))
+    sim = setting.replayer.simulate(patch, sequences=seqs)
+    measured = setting.replayer.rec.joint_pos[seqs]
+    out = []
+    for j in joints:
+        col, rows = setting.joint_names.index(j), np.searchsorted(seqs, np.unique(own[j]))
+        rms = float(np.sqrt(np.mean((sim[rows, :, col] - measured[rows, :, col]) ** 2)))
+        if rms / max(float(setting.noise[col]), 1e-6) > FAIL_RATIO and rms > FAIL_ABS:
+            out.append(j)
+    return out
 
 
 def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects: int, min_gain: float,
@@ -374,7 +415,96 @@ def _lookalikes(best: Candidate, others: list[Candidate], tie: float) -> list[st
             best.heldout_error_reduction - c.heldout_error_reduction < 3 * tie]
 
 
-def _refit_jointly(setting: _Setting, selected_per_joint: dict, passes: int) -> None:
+def _single_load_alternative(setting: _Setting, selected_per_joint: dict, explained: dict, tie: float,
+                             candidates=EFFECT_NAMES):
+    """One payload on one link instead of load-like effects on several joints of a chain, if it explains
+    their held-out sequences as well (mean reduction within ``tie``): ``(candidate, affected joints)`` or None.
+
+    A mass on the hand shows as extra inertia and sag on every arm joint that carries it; fitted joint by
+    joint it becomes a payload on one joint plus armature on another. The load is tried on each link of the
+    unbranched chain below the deepest affected joint, fitted to all affected joints' training sequences
+    (each joint's error relative to its own baseline, so that every joint counts alike).
+    """
+    affected = [j for j, chosen in selected_per_joint.items() if chosen and
+                any(c.effect == "payload_mass" or "payload_mass" in get_effect(c.effect).lookalikes for c in chosen)]
+    if len(affected) < 2 or "payload_mass" not in candidates:
+        return None
+    chain = _chain_below(setting, affected)
+    if not chain:
+        return None
+    others = _patch_of({j: c for j, c in selected_per_joint.items() if j not in affected}, setting.base_patch)
+    fitters = []
+    for j in affected:
+        train, held = setting.sequences(j)
+        f, hf = JointFitter(setting.replayer, j, train, others), JointFitter(setting.replayer, j, held, others)
+        fitters.append((j, f, f.mse(others), hf, hf.mse_per_sequence(others)))
+    eff = get_effect("payload_mass")
+
+    def cost(k: str, x: float) -> float:
+        p = others.with_effect("payload_mass", [k], [[x]])
+        return float(np.mean([f.mse(p) / max(b, 1e-12) for _, f, b, _, _ in fitters]))
+
+    best = None
+    for k in chain:
+        lo, hi = (float(b[0, 0]) for b in eff.bounds([k], setting.replayer.robot))
+        xs = lo + (hi - lo) * np.linspace(0, 1, 9) ** 2
+        cs = [cost(k, float(x)) for x in xs]
+        i = int(np.argmin(cs))
+        res = minimize_scalar(lambda x: cost(k, float(x)), bounds=(xs[max(i - 1, 0)], xs[min(i + 1, 8)]),
+                              method="bounded", options={"xatol": 1e-3 * (hi - lo), "maxiter": 30})
+        x, c = (float(res.x), float(res.fun)) if res.fun < cs[i] else (float(xs[i]), cs[i])
+        if best is None or c < best[2]:
+            best = (k, x, c)
+    k, x, _ = best
+    if _is_absent("payload_mass", x, k, setting.replayer.robot):
+        return None
+    p = others.with_effect("payload_mass", [k], [[x]])
+    reds = [_reduction(hb, hf.mse_per_sequence(p), setting.noise2(j)) for j, _, _, hf, hb in fitters]
+    if np.mean(reds) < np.mean([explained[j] for j in affected]) - tie:
+        return None
+    lo, hi = (float(b[0, 0]) for b in eff.bounds([k], setting.replayer.robot))
+    ci = _load_ci95(lambda v: cost(k, v), x, lo, hi)
+    red = float(np.mean(reds))
+    return Candidate("payload_mass", k, x, ci, red, red, red - COMPLEXITY_PENALTY), affected
+
+
+def _load_ci95(cost, x: float, lo: float, hi: float) -> tuple[float, float]:
+    """A rough 95 % interval of a load: where the (relative) cost rises by 10 % of its minimum."""
+    c0, h = cost(x), 1e-3 * (hi - lo)
+    curv = (cost(min(x + h, hi)) - 2 * c0 + cost(max(x - h, lo))) / h ** 2
+    half = float(np.sqrt(0.1 * max(c0, 1e-12) / curv)) if curv > 0 else hi - lo
+    return max(lo, x - half), min(hi, x + half)
+
+
+def _chain_below(setting: _Setting, affected: list[str]) -> list[str]:
+    """The recording's joints on the unbranched chain of links from the deepest of ``affected`` down
+    (that joint included); empty if ``affected`` are not all on one chain."""
+    m = setting.replayer.model_for(setting.base_patch)[0]
+    names = list(setting.replayer.rec.joint_names)
+    jid = np.asarray(setting.replayer.rec.joint_indices)
+    body = {n: int(m.jnt_bodyid[robot_ids(m, [jid[names.index(n)]])[0][0]]) for n in names}
+
+    def ancestors(b: int) -> set[int]:
+        out = {b}
+        while b > 0:
+            b = int(m.body_parentid[b])
+            out.add(b)
+        return out
+
+    deepest = max(affected, key=lambda j: len(ancestors(body[j])))
+    if not all(body[j] in ancestors(body[deepest]) for j in affected):
+        return []
+    chain, b = [], body[deepest]
+    while True:
+        chain += [n for n in names if body[n] == b]
+        children = np.flatnonzero(m.body_parentid == b)
+        children = children[children != b]
+        if len(children) != 1:
+            return chain
+        b = int(children[0])
+
+
+def _refit_jointly(setting: _Setting, selected_per_joint: dict, passes: int, skip=frozenset()) -> None:
     """Refit every selected value with all the other selected effects in place (coordinate descent).
 
     Effects on one joint change how the others move (a finger that no longer flops changes the load on
@@ -382,7 +512,7 @@ def _refit_jointly(setting: _Setting, selected_per_joint: dict, passes: int) -> 
     """
     for _ in range(passes):
         for joint, chosen in selected_per_joint.items():
-            for c in chosen:
+            for c in ([] if joint in skip else chosen):
                 others = ModelPatch(tuple(
                     e for e in _patch_of(selected_per_joint, setting.base_patch).effects
                     if not (e.joints == (joint,) and e.effect == c.effect)))
@@ -391,12 +521,17 @@ def _refit_jointly(setting: _Setting, selected_per_joint: dict, passes: int) -> 
                 c.value, c.ci95 = r.value, r.ci95
 
 
-def _score_jointly(setting: _Setting, selected_per_joint: dict) -> dict[str, float]:
+def _score_jointly(setting: _Setting, selected_per_joint: dict, carried=None) -> dict[str, float]:
     """Each joint's held-out excess-error reduction with all selected effects in place; also stored on
-    the joint's last chosen candidate."""
+    the joint's last chosen candidate. A load in ``carried`` (joint -> the joints it explains) is scored
+    by the mean over the joints it explains."""
     full = _patch_of(selected_per_joint, setting.base_patch)
     explained = {}
-    for joint, chosen in selected_per_joint.items():
+    carried = carried or {}
+    for joint, chosen in sorted(selected_per_joint.items(), key=lambda kv: kv[0] in carried):
+        if joint in carried:
+            chosen[-1].heldout_error_reduction = float(np.mean([explained[j] for j in carried[joint]]))
+            continue
         _, held = setting.sequences(joint)
         hf = JointFitter(setting.replayer, joint, held, setting.base_patch)
         red = _reduction(hf.mse_per_sequence(setting.base_patch), hf.mse_per_sequence(full), setting.noise2(joint))

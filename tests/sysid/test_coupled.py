@@ -58,17 +58,20 @@ def test_an_effect_on_several_joints_is_scored_per_joint_on_that_joints_own_held
         np.testing.assert_allclose(reported, expected, atol=1e-6, err_msg=joint)
 
 
+def _diagnosed(truth, joints, candidates, *, freqs, poses, seed):
+    """Diagnosis of a 2 s sine + chirp recording of ``joints`` made with ``truth`` hidden."""
+    plan = design_excitation(joints, freqs=freqs, amps=(1.0,), poses=poses, kinds=("sine", "chirp"), duration=2.0)
+    return diagnose(simulate_recording(plan, truth, noise=2e-4, seed=seed), candidates=candidates, progress=False)
+
+
 @pytest.fixture(scope="module")
 def shoulder_limited():
     # 0.45 of the effort still holds the arm up at rest; below ~0.36 the shoulder sags whenever another
     # joint moves, and the sag is so sensitive to the limit (0.3502 vs 0.35 leaves 15x-noise errors on the
     # fingers) that the fingers then fail as knock-ons: not covered yet.
-    joints = ["arm_j2", "arm_j4", "if_pip", "mf_pip"]
-    truth = ModelPatch().with_effect("torque_limit", ["arm_j2"], 0.45)
-    plan = design_excitation(joints, freqs=(1.0, 3.0), amps=(1.0,), poses=("loaded",), kinds=("sine", "chirp"),
-                             duration=2.0)
-    rec = simulate_recording(plan, truth, noise=2e-4, seed=4)
-    return diagnose(rec, candidates=("torque_limit", "kp_scale", "armature", "damping"), progress=False)
+    return _diagnosed(ModelPatch().with_effect("torque_limit", ["arm_j2"], 0.45),
+                      ["arm_j2", "arm_j4", "if_pip", "mf_pip"],
+                      ("torque_limit", "kp_scale", "armature", "damping"), freqs=(1.0, 3.0), poses=("loaded",), seed=4)
 
 
 def test_a_saturating_shoulder_is_one_torque_limit_and_nothing_on_the_fingers(shoulder_limited):
@@ -80,11 +83,10 @@ def test_a_saturating_shoulder_is_one_torque_limit_and_nothing_on_the_fingers(sh
 
 @pytest.fixture(scope="module")
 def hand_payload():
-    truth = ModelPatch().with_effect("payload_mass", ["arm_j6"], 1.0)
-    plan = design_excitation(["arm_j2", "arm_j4", "arm_j6", "if_pip"], freqs=(0.5, 3.0), amps=(1.0,),
-                             poses=("loaded", "unloaded"), kinds=("sine", "chirp"), duration=2.0)
-    rec = simulate_recording(plan, truth, noise=2e-4, seed=5)
-    return diagnose(rec, candidates=("payload_mass", "armature", "kp_scale", "damping"), progress=False)
+    return _diagnosed(ModelPatch().with_effect("payload_mass", ["arm_j6"], 1.0),
+                      ["arm_j2", "arm_j4", "arm_j6", "if_pip"],
+                      ("payload_mass", "armature", "kp_scale", "damping"), freqs=(0.5, 3.0),
+                      poses=("loaded", "unloaded"), seed=5)
 
 
 def test_a_payload_on_the_hand_is_one_payload_on_one_link_not_split_over_the_arm(hand_payload):

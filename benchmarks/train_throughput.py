@@ -26,6 +26,7 @@ Without ``--dataset`` the ``tiny`` preset is built into a temporary folder first
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import tempfile
 import time
@@ -113,7 +114,7 @@ def main(argv=None) -> dict:
         res["ppo_fps"] = float(np.median([r["fps"] for r in rows[1:]]))      # the first fits normalizers
 
         one = factory.with_scenes()
-        w1 = TrackingEnvFactory(**{**one.__dict__, "nthread": 1})
+        w1 = dataclasses.replace(one, nthread=1)
         for n in (1, 2):
             res[f"multisync_{n}_fps"], res[f"multisync_{n}_startup_s"] = _collector_fps(
                 lambda n=n: MultiSyncCollector(w1.for_workers(n), policy, frames_per_batch=fpb * n, total_frames=-1,

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from adadex.errors import ConfigError, check_number, check_numbers
 
@@ -97,8 +98,6 @@ class ModulatorSettings:
     modulation: dict = field(default_factory=dict)
 
     def __post_init__(self):
-        from pathlib import Path
-
         self.hidden = tuple(int(h) for h in self.hidden)
         check_number("ModulatorSettings.init_scale", self.init_scale)
         if not Path(self.tracker).is_file():

@@ -153,7 +153,7 @@ class PPOTrainer:
         with torch.no_grad():
             self.gae(data)
         flat = data.reshape(-1)
-        if self.buffer is None or len(self.buffer.storage) != 0 and self.buffer.storage.max_size != flat.numel():
+        if self.buffer is None or self.buffer.storage.max_size != flat.numel():
             self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(flat.numel()),
                                                  sampler=SamplerWithoutReplacement(),
                                                  batch_size=self.ppo.minibatch_size)
@@ -208,7 +208,7 @@ class PPOTrainer:
         done, term = nxt["done"], nxt["terminated"]
         out["episodes_done"] = float(done.sum())
         out["terminated_frac"] = float(term.sum()) / max(1.0, float(done.sum()))
-        if ("episode_reward",) in nxt.keys(True) or "episode_reward" in nxt.keys():
+        if "episode_reward" in nxt.keys():
             ep = nxt["episode_reward"][done]
             if ep.numel():
                 out["episode_return"] = float(ep.mean())

@@ -12,6 +12,8 @@ import json
 from collections.abc import Mapping
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
 from adadex.train.config import CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, TrainConfig
 
 _TOP = ("seed", "resume", "group", "randomize", "checkpoint_every", "eval_every", "eval_split",
@@ -20,13 +22,8 @@ _TOP = ("seed", "resume", "group", "randomize", "checkpoint_every", "eval_every"
 
 def train_config(cfg: Mapping) -> TrainConfig:
     """:class:`TrainConfig` from a recipe config (a plain mapping or an OmegaConf ``DictConfig``)."""
-    try:
-        from omegaconf import OmegaConf
-
-        if OmegaConf.is_config(cfg):
-            cfg = OmegaConf.to_container(cfg, resolve=True)
-    except ImportError:  # pragma: no cover - hydra is a dependency
-        pass
+    if OmegaConf.is_config(cfg):
+        cfg = OmegaConf.to_container(cfg, resolve=True)
     ppo = dict(cfg.get("ppo") or {})
     if "total_frames" in cfg:
         ppo["total_frames"] = cfg["total_frames"]

@@ -49,6 +49,9 @@ def main(argv=None) -> dict:
     p.add_argument("--runs", type=Path, default=Path("runs/specialist_quality"))
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--skip-ppo", action="store_true")
+    p.add_argument("--residual", type=float, default=None,
+                   help="the tracker's correction bound (default: PolicyConfig's)")
+    p.add_argument("--init-scale", type=float, default=None, help="its exploration scale (default: PolicyConfig's)")
     p.add_argument("--out", type=Path, default=RESULTS / "specialist_quality.json")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -60,7 +63,7 @@ def main(argv=None) -> dict:
     from adadex.envs.tracking import episode_references
     from adadex.eval.evaluate import evaluate, format_summary
     from adadex.modules.tracker import Tracker
-    from adadex.train.config import CollectorConfig, TrainConfig, PPOConfig
+    from adadex.train.config import CollectorConfig, PolicyConfig, PPOConfig, TrainConfig
     from adadex.train.ppo import train
 
     if not (a.dataset / "index.json").exists():
@@ -80,14 +83,18 @@ def main(argv=None) -> dict:
         print(format_summary(res["summary"]))
         return _summary(res)
 
-    out = {"group": group, "references": len(refs), "repeats": a.repeats, "frames": a.frames}
+    chosen = {"residual": a.residual, "init_scale": a.init_scale}
+    policy = PolicyConfig(**{k: v for k, v in chosen.items() if v is not None})
+    out = {"group": group, "references": len(refs), "repeats": a.repeats, "frames": a.frames,
+           "residual": policy.residual, "init_scale": policy.init_scale}
     out["replay"] = score(replay_policy())
     runs = {"specialist": TrainConfig(dataset=str(a.dataset), out=str(a.runs / f"specialist_{group}"), group=group,
                                       resume=True, progress=False, ppo=PPOConfig(total_frames=a.frames),
-                                      collector=CollectorConfig(workers=a.workers))}
+                                      collector=CollectorConfig(workers=a.workers), policy=policy)}
     if not a.skip_ppo:
         runs["ppo"] = TrainConfig(dataset=str(a.dataset), out=str(a.runs / "ppo"), resume=True, progress=False,
-                                  ppo=PPOConfig(total_frames=a.frames), collector=CollectorConfig(workers=a.workers))
+                                  ppo=PPOConfig(total_frames=a.frames), collector=CollectorConfig(workers=a.workers),
+                                  policy=policy)
     for name, cfg in runs.items():
         t0 = time.perf_counter()
         res = train(cfg, run_name=name)

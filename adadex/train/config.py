@@ -75,7 +75,8 @@ class PolicyConfig:
     hidden: tuple[int, ...] = (256, 256, 128)
     #: > 0: kinematic replay + a learned correction within ±residual rad (see Tracker). The target is
     #: then q̂_{t+1} + correction, so this bounds how far the policy may leave the reference: 0.25 rad
-    #: reaches an object Table 3 moved by ~5 cm (0.05 could not: 55.0 vs 60.2 % completion at 200k frames)
+    #: reaches an object Table 3 moved by ~5 cm (0.05 could not: 54.9 vs 58.5 %
+    #: completion at 200k frames, replay 55.5 %; benchmarks/specialist_quality.py --residual)
     residual: float = 0.25
     init_scale: float = 0.15              # pre-tanh exploration scale: ±0.04 rad at residual 0.25
 

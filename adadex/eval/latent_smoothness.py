@@ -37,8 +37,9 @@ def latent_smoothness(policy, observations: TensorDictBase, *, eps: float = 0.05
 
     Args:
         policy: a TensorDictModule reading ``"observation"`` (e.g. a tracker's actor).
-        observations: a TensorDict of any batch shape holding ``"observation"`` (273-D) and, if the
-            policy reads the structured entries, ``("object", "latent")``; both are perturbed alike.
+        observations: a TensorDict of any batch shape holding ``"observation"`` (273-D) and whatever
+            else the policy reads (``("object", "latent")``, a residual tracker's joint targets); the
+            flat and the structured latent are perturbed alike.
         eps: the perturbation norm (latents live in (−1, 1)).
         perturbations: random directions per observation.
         seed: seeds the directions.
@@ -49,8 +50,8 @@ def latent_smoothness(policy, observations: TensorDictBase, *, eps: float = 0.05
         raise ValueError(f"need eps > 0 and perturbations ≥ 1, got eps={eps}, perturbations={perturbations}")
     if OBSERVATION not in observations.keys():
         raise KeyError("observations must hold the flat 'observation' entry")
-    base = observations.reshape(-1).select(*[k for k in (OBSERVATION, OBJECT_LATENT)
-                                             if k in observations.keys(True)]).clone()
+    reads = dict.fromkeys([OBSERVATION, OBJECT_LATENT, *getattr(policy, "in_keys", ())])
+    base = observations.reshape(-1).select(*[k for k in reads if k in observations.keys(True)]).clone()
     n = base.batch_size[0]
     g = torch.Generator().manual_seed(seed)
     delta = torch.randn(perturbations, n, LAYOUT["latent"].stop - LAYOUT["latent"].start, generator=g)

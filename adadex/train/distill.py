@@ -41,6 +41,8 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
@@ -71,10 +73,14 @@ class DistillConfig:
     max_grad_norm: float = 1.0
     normalizer_samples: int = 200_000      # buffer rows the observation normalizers are fitted on
     probe_samples: int = 8192              # fixed buffer rows the logged probe_loss is measured on
+    #: < 1: learn from the rollouts of only this fraction of the stored references (a seeded draw,
+    #: at least one) — the data-scaling study (paper Fig. 6)
+    fraction: float = 1.0
     wandb: bool = True                     # offline unless WANDB_MODE says otherwise
     progress: bool = True
 
     def __post_init__(self):
+        check_number("DistillConfig.fraction", self.fraction, high=1.0, strict_low=True)
         self.hidden = tuple(int(h) for h in self.hidden)
         for k in ("steps", "batch_size", "checkpoint_every", "log_every", "normalizer_samples", "probe_samples"):
             check_number(f"DistillConfig.{k}", getattr(self, k), low=1, integer=True)
@@ -93,6 +99,19 @@ class DistillConfig:
         if unknown:
             raise ConfigError(f"DistillConfig: unknown keys {unknown}")
         return cls(**d)
+
+
+def reference_subset(buffer, fraction: float, seed: int) -> TensorDictReplayBuffer:
+    """An in-memory buffer of the rows of ``round(fraction · n)`` (at least one) of the ``n`` references
+    stored in ``buffer``, drawn with ``seed``: every kept reference keeps all its episodes."""
+    rows = buffer[:]
+    refs = rows["reference"].unique()
+    k = max(1, round(fraction * len(refs)))
+    chosen = refs[torch.randperm(len(refs), generator=torch.Generator().manual_seed(seed))[:k]]
+    keep = torch.isin(rows["reference"], chosen)
+    subset = TensorDictReplayBuffer(storage=LazyTensorStorage(int(keep.sum())), sampler=SamplerWithoutReplacement())
+    subset.extend(rows[keep])
+    return subset
 
 
 def teacher_settings(info: dict) -> dict:
@@ -141,6 +160,8 @@ class Distiller:
         self.out = Path(cfg.out)
         self.info = rollouts_info(cfg.rollouts)
         self.buffer = load_rollouts(cfg.rollouts)
+        if cfg.fraction < 1:
+            self.buffer = reference_subset(self.buffer, cfg.fraction, cfg.seed)
         self.teacher = teacher_settings(self.info)
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed)

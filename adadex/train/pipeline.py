@@ -1,0 +1,404 @@
+"""The paper's Table 1 from one command: specialists → teacher rollouts → distilled generalist →
+modulators → baselines → evaluation → ``table1.md`` / ``table1.json`` and the figures.
+
+Per training seed (``seed_<s>/`` under ``out``):
+
+=========================  ==========================================================================
+``specialists/spec_<k>``   PPO specialists (paper A.3.1), each on a block of the training split's
+                           semantic groups (the small presets cannot afford one per group)
+``rollouts``               their successful randomized rollouts, a TorchRL memmap replay buffer
+``generalist``             the distilled generalist tracker (behaviour cloning, paper A.3.2)
+``modulators/<row>``       modulator RL with the generalist frozen: R, RT, ROT, O (paper Sec. 3.2)
+``baselines/ppo``          vanilla PPO on all training references (paper B.2)
+``baselines/il_rl``        DexTrack-style IL+RL: PPO + imitation of the logged teacher actions (B.2.1)
+``scaling/frac_<f>``       generalists distilled from a fraction of the references (Fig. 6)
+``eval/<split>/<cond>/``   one ``<row>.json`` per row: the evaluation summary and per-reference results
+=========================  ==========================================================================
+
+then, over all seeds, ``table1.json`` (``{split: {condition: {row: {metric: mean, metric_ci95:
+[lo, hi]}}}}``, :mod:`adadex.eval.table1`), ``table1.md`` and ``figures/``: the ablation bars, Fig. 4
+(original, modulated and executed object path), Fig. 5 (the modulated latent decoded against the
+object), Fig. 6 (data scaling), Fig. 12 (latent smoothness ρ).
+
+**Resuming.** Every stage writes ``stage.json`` (its settings and result) when it has finished; a
+stage whose ``stage.json`` exists with the same settings is skipped, one with *other* settings is
+refused (use a new ``out``). A killed training stage continues from its ``checkpoint.pt``; rollouts
+and evaluations are written as one unit, so a killed one simply runs again.
+
+Example::
+
+    from adadex.train.pipeline import PipelineConfig, run_pipeline
+    result = run_pipeline(PipelineConfig(out="runs/table1", dataset_preset="tiny", seeds=(0,), ...))
+    result["table"]["unseen_trajectory"]["randomized"]["ROT"]["completion_pct"]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from adadex.data.reference import ReferenceDataset
+from adadex.envs.randomization import Randomization
+from adadex.envs.tracking import TrackingConfig, episode_references
+from adadex.errors import ConfigError, check_number
+from adadex.io import atomic_write_text
+from adadex.train.config import CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, TrainConfig
+
+STAGE = "stage.json"
+#: modulator rows of the table → the channel set each trains
+MODULATOR_ROWS = {"R": "R", "RT": "R+T", "ROT": "R+O+T", "O": "O"}
+EVAL_SPLITS = ("unseen_trajectory", "unseen_object")
+
+
+@dataclass
+class PipelineConfig:
+    """Everything the pipeline runs with; ``recipes/pipeline.yaml`` and its presets fill it."""
+
+    out: str
+    #: a reference dataset folder; ``None``: ``out/data``, built from ``dataset_preset`` when missing
+    dataset: str | None = None
+    dataset_preset: str = "small"
+    dataset_seed: int = 0
+    seeds: tuple[int, ...] = (0, 1, 2)       # training seeds: the whole chain runs once per seed
+    specialists: int = 4                     # specialists, each on a block of the semantic groups
+    worlds: int = 64
+    env_threads: int = 2
+    workers: int = 1
+    specialist_frames: int = 250_000
+    modulator_frames: int = 250_000
+    ppo_frames: int = 500_000                # the baselines (vanilla PPO, IL+RL) see all training references
+    ppo: dict = field(default_factory=dict)  # PPOConfig overrides (frames_per_batch, lr, …)
+    policy: dict = field(default_factory=dict)   # PolicyConfig overrides of the trackers trained
+    rollout_episodes: int = 4                # randomized teacher episodes per reference
+    rollout_criterion: str = "mean_error"    # which teacher episodes are kept (see adadex.train.rollouts)
+    distill_steps: int = 3000
+    distill_batch: int = 1024
+    imitation_coef: float = 1.0              # IL+RL's imitation weight
+    modulator: dict = field(default_factory=dict)    # ModulatorSettings fields (hidden, init_scale)
+    modulation: dict = field(default_factory=lambda: {"persistent": True})   # ModulationConfig overrides
+    eval_repeats: int = 4                    # randomized evaluation: episodes per test reference
+    scaling_fractions: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)
+    smoothness_samples: int = 512            # observations ρ is measured on (Fig. 12)
+    wandb: bool = True
+    progress: bool = True
+
+    def __post_init__(self):
+        self.seeds = tuple(int(s) for s in self.seeds)
+        self.scaling_fractions = tuple(sorted({float(f) for f in self.scaling_fractions}))
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds):
+            raise ConfigError(f"PipelineConfig.seeds must be distinct training seeds, got {list(self.seeds)}")
+        for k in ("specialists", "worlds", "env_threads", "workers", "specialist_frames", "modulator_frames",
+                  "ppo_frames", "rollout_episodes", "distill_steps", "distill_batch", "eval_repeats",
+                  "smoothness_samples"):
+            check_number(f"PipelineConfig.{k}", getattr(self, k), low=1, integer=True)
+        check_number("PipelineConfig.imitation_coef", self.imitation_coef, strict_low=True)
+        for f in self.scaling_fractions:
+            check_number("PipelineConfig.scaling_fractions[…]", f, high=1.0, strict_low=True)
+        for name, cls in (("ppo", PPOConfig), ("policy", PolicyConfig)):
+            cls(**getattr(self, name))       # a bad key or value fails here, before any stage runs
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PipelineConfig:
+        unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise ConfigError(f"PipelineConfig: unknown keys {unknown}")
+        return cls(**d)
+
+
+def _plain(x):
+    """JSON round trip: tuples become lists, so settings compare equal to their stored form."""
+    return json.loads(json.dumps(x, default=str))
+
+
+def run_stage(folder: Path, settings: dict, fn, *, label: str, log=print) -> dict:
+    """``fn()`` once: its result is stored with ``settings`` in ``folder/stage.json``; a later call with
+    the same settings returns it without running, one with other settings is refused."""
+    marker = folder / STAGE
+    settings = _plain(settings)
+    if marker.is_file():
+        done = json.loads(marker.read_text(encoding="utf-8"))
+        if done.get("settings") != settings:
+            changed = sorted(k for k in set(settings) | set(done.get("settings", {}))
+                             if settings.get(k) != done.get("settings", {}).get(k))
+            raise ConfigError(f"{folder}: this stage was run with other settings (differing: {changed}); "
+                              f"use a new out= or remove {folder}")
+        log(f"[skip] {label}: done ({folder})")
+        return done["result"]
+    log(f"[run ] {label}")
+    t0 = time.perf_counter()
+    result = _plain(fn())
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(marker, json.dumps({"stage": label, "settings": settings, "result": result,
+                                          "wall_s": time.perf_counter() - t0}, indent=1))
+    return result
+
+
+def specialist_blocks(dataset: ReferenceDataset, k: int, window: int) -> list[list[int]]:
+    """The unseen-trajectory training references in ``k`` blocks of whole semantic groups (contiguous
+    group ids, sizes as even as the groups allow): one block per specialist."""
+    refs = episode_references(dataset, ("unseen_trajectory", "train"), window)
+    groups = sorted({dataset.entries[i]["group"] for i in refs})
+    if k > len(groups):
+        raise ConfigError(f"{dataset.path}: {k} specialists but only {len(groups)} semantic groups to share out")
+    blocks = [[int(g) for g in b] for b in np.array_split(np.asarray(groups), k)]
+    return [[i for i in refs if dataset.entries[i]["group"] in set(b)] for b in blocks]
+
+
+class Pipeline:
+    """The stages of :func:`run_pipeline` (see the module docstring)."""
+
+    def __init__(self, cfg: PipelineConfig, env_config: TrackingConfig = TrackingConfig()):
+        self.cfg, self.env_config = cfg, env_config
+        self.out = Path(cfg.out)
+
+    def log(self, msg: str) -> None:
+        print(msg, flush=True)
+
+    # -- shared --------------------------------------------------------------------------------
+    def dataset(self) -> ReferenceDataset:
+        path = Path(self.cfg.dataset) if self.cfg.dataset else self.out / "data"
+        if not (path / "index.json").exists():
+            if self.cfg.dataset:
+                raise FileNotFoundError(f"{path}: no reference dataset there (leave dataset unset to build one)")
+            from adadex.data.build import build_dataset
+
+            self.log(f"[run ] dataset: preset {self.cfg.dataset_preset} → {path}")
+            build_dataset(self.cfg.dataset_preset, path, seed=self.cfg.dataset_seed, progress=self.cfg.progress)
+        return ReferenceDataset(path)
+
+    def _train_config(self, out: Path, seed: int, frames: int, **kw) -> TrainConfig:
+        c = self.cfg
+        return TrainConfig(dataset=str(self.ds.path), out=str(out), seed=seed, resume=True,
+                           ppo=PPOConfig(**{**c.ppo, "total_frames": frames}),
+                           collector=CollectorConfig(workers=c.workers, worlds=c.worlds, env_threads=c.env_threads),
+                           policy=PolicyConfig(**c.policy), wandb=c.wandb, progress=c.progress, **kw)
+
+    def _ppo(self, tc: TrainConfig, label: str, teacher=None) -> dict:
+        from adadex.train.ppo import PPOTrainer
+
+        settings = {k: v for k, v in tc.to_dict().items() if k not in ("resume", "wandb", "progress", "out")}
+        if teacher is not None:
+            settings["teacher"] = teacher[0]
+
+        def fit():
+            table = None
+            if teacher is not None:
+                from adadex.train.rollouts import load_rollouts, teacher_action_table
+
+                table = teacher_action_table(load_rollouts(teacher[0]), len(self.ds), self.env_config.window)
+            r = PPOTrainer(tc, env_config=self.env_config, run_name=label, teacher=table).train()
+            return {"policy": str(r["policy"]), "frames": r["frames"], "eval": r["eval"]}
+
+        return run_stage(Path(tc.out), settings, fit, label=label, log=self.log)
+
+    # -- per seed ------------------------------------------------------------------------------
+    def specialists(self, seed: int, root: Path) -> dict[str, list[int]]:
+        teachers = {}
+        blocks = specialist_blocks(self.ds, self.cfg.specialists, self.env_config.window)
+        for k, refs in enumerate(blocks):
+            out = root / "specialists" / f"spec_{k}"
+            tc = self._train_config(out, seed + 101 * k, self.cfg.specialist_frames, split=None, references=refs)
+            r = self._ppo(tc, f"seed {seed} specialist {k + 1}/{len(blocks)} ({len(refs)} references)")
+            teachers[r["policy"]] = refs
+        return teachers
+
+    def rollouts(self, seed: int, root: Path, teachers: dict) -> str:
+        from adadex.train.rollouts import teacher_rollouts
+
+        out = root / "rollouts"
+        c = self.cfg
+        settings = {"teachers": teachers, "episodes": c.rollout_episodes, "criterion": c.rollout_criterion,
+                    "seed": seed, "worlds": c.worlds}
+
+        def fit():
+            info = teacher_rollouts(teachers, self.ds, out / "data", episodes_per_reference=c.rollout_episodes,
+                                    seed=10_000 + seed, max_worlds=c.worlds, criterion=c.rollout_criterion,
+                                    config=self.env_config, nthread=c.env_threads, progress=c.progress)
+            return {k: info[k] for k in ("episodes_tried", "episodes_kept", "success_pct", "frames")}
+
+        run_stage(out, settings, fit, label=f"seed {seed} teacher rollouts", log=self.log)
+        return str(out / "data")
+
+    def distill(self, seed: int, out: Path, rollouts: str, fraction: float = 1.0) -> str:
+        from adadex.train.distill import DistillConfig, distill
+
+        c = self.cfg
+        dc = DistillConfig(rollouts=rollouts, out=str(out), steps=c.distill_steps, batch_size=c.distill_batch,
+                           seed=seed, resume=True, fraction=fraction, wandb=c.wandb, progress=c.progress,
+                           checkpoint_every=max(1, c.distill_steps // 5),
+                           hidden=tuple(c.policy.get("hidden", PolicyConfig().hidden)))
+        settings = {k: v for k, v in dataclasses.asdict(dc).items() if k not in ("resume", "wandb", "progress", "out")}
+        label = f"seed {seed} distill" + (f" ({fraction:g} of the references)" if fraction < 1 else "")
+        r = run_stage(out, settings, lambda: {"tracker": str(distill(dc, run_name=label)["tracker"])},
+                      label=label, log=self.log)
+        return r["tracker"]
+
+    def modulators(self, seed: int, root: Path, tracker: str) -> dict[str, str]:
+        out = {}
+        for row, channels in MODULATOR_ROWS.items():
+            m = ModulatorSettings(tracker=tracker, channels=channels, modulation=dict(self.cfg.modulation),
+                                  **self.cfg.modulator)
+            tc = self._train_config(root / "modulators" / row, seed, self.cfg.modulator_frames, modulator=m)
+            out[row] = self._ppo(tc, f"seed {seed} modulator {channels}")["policy"]
+        return out
+
+    def baselines(self, seed: int, root: Path, rollouts: str) -> dict[str, str]:
+        c = self.cfg
+        ppo = self._train_config(root / "baselines" / "ppo", seed, c.ppo_frames)
+        il = self._train_config(root / "baselines" / "il_rl", seed, c.ppo_frames)
+        il.ppo = PPOConfig(**{**dataclasses.asdict(il.ppo), "imitation_coef": c.imitation_coef})
+        return {"ppo": self._ppo(ppo, f"seed {seed} vanilla PPO")["policy"],
+                "il_rl": self._ppo(il, f"seed {seed} IL+RL", teacher=(rollouts,))["policy"]}
+
+    # -- evaluation ----------------------------------------------------------------------------
+    def policy(self, row: str, paths: dict):
+        """(policy graph, its primer) for a table row."""
+        from adadex.envs.replay import replay_policy
+        from adadex.modules.channels import ModulationConfig
+        from adadex.modules.modulator import Modulator
+        from adadex.modules.tracker import Tracker
+        from adadex.transforms.policy import make_policy
+
+        if row == "replay":
+            g = make_policy(replay_policy(), None, channels="none")
+        elif row in MODULATOR_ROWS:
+            g = make_policy(Tracker.load(paths["tracker"]), Modulator.load(paths[row]), channels=MODULATOR_ROWS[row],
+                            config=ModulationConfig(**self.cfg.modulation))
+        else:
+            g = make_policy(Tracker.load(paths[row]), None, channels="none")
+        return g
+
+    def evaluate(self, policy, split: str, condition: str, eval_seed: int, *, references=None,
+                 keep_rollouts=False) -> dict:
+        from adadex.eval.evaluate import evaluate
+
+        refs = references or episode_references(self.ds, (split, "test"), self.env_config.window)
+        if not refs:
+            raise ConfigError(f"{self.ds.path}: the {split} split has no test reference with a "
+                              f"{self.env_config.window}-frame window")
+        randomized = condition == "randomized"
+        return evaluate(policy, self.ds, split=None, references=refs * (self.cfg.eval_repeats if randomized else 1),
+                        max_worlds=self.cfg.worlds, env_transform=policy.primer, config=self.env_config,
+                        randomize=Randomization() if randomized else None, seed=eval_seed, progress=False,
+                        nthread=self.cfg.env_threads, keep_rollouts=keep_rollouts)
+
+    def evaluations(self, seed: int, root: Path, paths: dict) -> dict:
+        """Every row on both splits, nominal and randomized; the same environment seed for every row of
+        a seed (common random numbers: rows differ by their policy, not their draws)."""
+        results = {}
+        for split in EVAL_SPLITS:
+            for condition in ("nominal", "randomized"):
+                for row in ("replay", "ppo", "il_rl", "tracker", *MODULATOR_ROWS):
+                    folder = root / "eval" / split / condition / row
+                    settings = {"policy": paths.get(row, "replay"), "tracker": paths["tracker"],
+                                "repeats": self.cfg.eval_repeats, "seed": seed}
+
+                    def run(row=row, split=split, condition=condition):
+                        r = self.evaluate(self.policy(row, paths), split, condition, 20_000 + seed)
+                        return {"summary": r["summary"], "per_reference": r["per_reference"]}
+
+                    results[(split, condition, row)] = run_stage(
+                        folder, settings, run, label=f"seed {seed} evaluate {row} on {split}, {condition}",
+                        log=self.log)["summary"]
+        return results
+
+    def scaling(self, seed: int, root: Path, rollouts: str, tracker: str) -> dict:
+        """Fig. 6: generalists distilled from fractions of the references, on the unseen-trajectory
+        test split under randomization (fraction 1 is the generalist itself)."""
+        out = {}
+        for f in self.cfg.scaling_fractions:
+            path = tracker if f == 1.0 else self.distill(seed, root / "scaling" / f"frac_{f:g}", rollouts, f)
+            folder = root / "scaling" / f"frac_{f:g}" / "eval"
+            settings = {"tracker": path, "repeats": self.cfg.eval_repeats, "seed": seed}
+            out[f] = run_stage(folder, settings, lambda p=path: {"summary": self.evaluate(
+                self.policy("tracker", {"tracker": p}), "unseen_trajectory", "randomized", 20_000 + seed)["summary"]},
+                label=f"seed {seed} evaluate the {f:g}-fraction generalist", log=self.log)["summary"]
+        return out
+
+    # -- all of it ------------------------------------------------------------------------------
+    def run(self) -> dict:
+        from adadex.eval.table1 import aggregate, table_markdown
+
+        t0 = time.perf_counter()
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.ds = self.dataset()
+        summaries: dict = {}
+        scaling: dict = {}
+        paths_by_seed = {}
+        for seed in self.cfg.seeds:
+            root = self.out / f"seed_{seed}"
+            teachers = self.specialists(seed, root)
+            rollouts = self.rollouts(seed, root, teachers)
+            tracker = self.distill(seed, root / "generalist", rollouts)
+            paths = {"tracker": tracker, **self.modulators(seed, root, tracker),
+                     **self.baselines(seed, root, rollouts)}
+            paths_by_seed[seed] = paths
+            for key, s in self.evaluations(seed, root, paths).items():
+                summaries.setdefault(key, []).append(s)
+            for f, s in self.scaling(seed, root, rollouts, tracker).items():
+                scaling.setdefault(f, []).append(s)
+        table = aggregate(summaries)
+        atomic_write_text(self.out / "table1.json", json.dumps(table, indent=1))
+        atomic_write_text(self.out / "table1.md", table_markdown(table) + "\n")
+        figures = self.figures(table, scaling, paths_by_seed[self.cfg.seeds[0]], self.cfg.seeds[0])
+        wall = time.perf_counter() - t0
+        self.log(f"table1: {self.out / 'table1.md'} ({wall:.0f} s)")
+        return {"table": table, "figures": figures, "wall_s": wall}
+
+    def figures(self, table: dict, scaling: dict, paths: dict, seed: int) -> dict[str, str]:
+        from adadex.eval import figures as fig
+        from adadex.eval.latent_smoothness import latent_smoothness, plot_latent_smoothness
+        from adadex.modules.channels import ModulationConfig
+        from adadex.envs.latent import SHIPPED_ENCODER, encoder_latent
+        from adadex.eval.table1 import ROW_LABELS, ci95
+        from adadex.modules.encoder import load_encoder
+        from adadex.modules.tracker import Tracker
+
+        folder = self.out / "figures"
+        out = {"ablation": fig.plot_ablation(table, folder / "ablation.png")}
+        # Fig. 4 and 5: the R+O+T policy of the first seed on the unseen-trajectory test references
+        refs = episode_references(self.ds, ("unseen_trajectory", "test"), self.env_config.window)[: self.cfg.worlds]
+        res = self.evaluate(self.policy("ROT", paths), "unseen_trajectory", "nominal", 20_000 + seed,
+                            references=refs, keep_rollouts=True)
+        td = res["rollouts"][0]
+        paths_xyz = [fig.object_paths(td, self.ds, refs, w) for w in range(len(refs))]
+        w = int(np.argmax([np.abs(p["modulated"] - p["original"]).max() for p in paths_xyz]))
+        name = self.ds.entries[refs[w]]["name"]
+        out["fig4_object_path"] = fig.plot_object_paths(paths_xyz[w], folder / "fig4_object_path.png",
+                                                        title=f"{name}: reference, modulated reference, executed")
+        frames, latents = fig.decoded_latents(td, w, channels="R+O+T",
+                                              config=ModulationConfig(**self.cfg.modulation))
+        obj = self.ds.entries[refs[w]]["object"]
+        out["fig5_latent"] = fig.plot_latent_decoding(load_encoder(SHIPPED_ENCODER)[0], latents, frames, obj,
+                                                      folder / "fig5_latent.png",
+                                                      original_latent=torch.as_tensor(encoder_latent(obj)))
+        # Fig. 6: completion against the fraction of references distilled from
+        series = {"generalist (unseen trajectory, randomized)": [
+            (float(np.mean([s["completion_pct"] for s in scaling[f]])), *(ci95([s["completion_pct"] for s in scaling[f]])
+                                                                           or (None, None))) for f in scaling]}
+        out["fig6_scaling"] = fig.plot_data_scaling(list(scaling), series, folder / "fig6_scaling.png")
+        # Fig. 12: latent smoothness of the trackers on the observations the generalist met
+        obs = torch.cat([t.reshape(-1).select("observation", ("object", "latent"), ("proprio", "joint_target"))
+                         for t in self.evaluate(self.policy("tracker", paths), "unseen_trajectory", "nominal",
+                                                20_000 + seed, keep_rollouts=True)["rollouts"]])
+        pick = torch.randperm(obs.shape[0], generator=torch.Generator().manual_seed(seed))[: self.cfg.smoothness_samples]
+        rho = {row: latent_smoothness(Tracker.load(paths[row]).actor, obs[pick], seed=seed)
+               for row in ("tracker", "ppo", "il_rl")}
+        plot_latent_smoothness({ROW_LABELS[k]: v for k, v in rho.items()}, folder / "fig12_smoothness.png")
+        out["fig12_smoothness"] = folder / "fig12_smoothness.png"
+        atomic_write_text(folder / "smoothness.json",
+                          json.dumps({k: {m: v[m] for m in ("mean", "median", "p95", "max", "eps")}
+                                      for k, v in rho.items()}, indent=1))
+        return {k: str(v) for k, v in out.items()}
+
+
+def run_pipeline(cfg: PipelineConfig, **kwargs) -> dict:
+    """Run every stage (skipping finished ones) and write the table and figures; see the module docstring."""
+    return Pipeline(cfg, **kwargs).run()
+

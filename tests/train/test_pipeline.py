@@ -1,0 +1,153 @@
+"""The Table 1 pipeline: ``recipes/pipeline.py preset=tiny`` end to end as a user runs it, stage
+skipping and resuming, and the pieces it is made of (stage markers, specialist blocks, the
+reference subsets of the data-scaling study)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+from adadex.data.reference import ReferenceDataset
+from adadex.envs.tracking import TrackingConfig
+from adadex.errors import ConfigError
+from adadex.eval.table1 import CONDITIONS, METRICS, ROWS, SPLITS
+from adadex.modules.tracker import Tracker
+from adadex.train.checkpoint import load_checkpoint
+from adadex.train.distill import DistillConfig, reference_subset
+from adadex.train.pipeline import PipelineConfig, run_stage, specialist_blocks
+
+ROOT = Path(__file__).resolve().parents[2]
+FIGURES = ("ablation.png", "fig4_object_path.png", "fig5_latent.png", "fig6_scaling.png", "fig12_smoothness.png")
+
+
+def _pipeline(tmp_path, out, tiny_dataset, *extra):
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "WANDB_MODE": "offline"}
+    return subprocess.run([sys.executable, ROOT / "recipes" / "pipeline.py", "preset=tiny", f"out={out}",
+                           f"dataset={tiny_dataset}", *extra],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny_dataset, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("pipeline")
+    out = tmp / "t1"
+    r = _pipeline(tmp, out, tiny_dataset)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return tmp, out, r
+
+
+def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
+    _, out, r = tiny_run
+    table = json.loads((out / "table1.json").read_text())
+    assert set(table) == set(SPLITS)
+    for split in SPLITS:
+        assert set(table[split]) == set(CONDITIONS)
+        for condition in CONDITIONS:
+            rows = table[split][condition]
+            assert set(rows) == set(ROWS)
+            for row, entry in rows.items():
+                assert entry["seeds"] == 2
+                for m in METRICS:
+                    assert isinstance(entry[m], float) and entry[m] == entry[m], (split, condition, row, m)
+                    lo, hi = entry[f"{m}_ci95"]
+                    assert lo <= entry[m] <= hi
+                assert 0 <= entry["completion_pct"] <= 100
+    md = (out / "table1.md").read_text()
+    for label in ("kinematic replay", "IL+RL", "+R+O+T", "O only", "unseen object, randomized"):
+        assert label in md
+    for name in FIGURES:
+        data = (out / "figures" / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000, name
+    # each training stage logged to CSV and wandb (offline), and left a loadable policy
+    seed0 = out / "seed_0"
+    for stage in ("specialists/spec_0", "specialists/spec_1", "generalist", "baselines/ppo", "baselines/il_rl",
+                  "modulators/ROT", "scaling/frac_0.5"):
+        assert (seed0 / stage / "metrics.csv").is_file(), stage
+        assert (seed0 / stage / "stage.json").is_file(), stage
+    assert any((seed0 / "baselines" / "ppo" / "wandb").iterdir())
+    assert Tracker.load(seed0 / "generalist" / "tracker.pt").config["residual"] == 0.25
+    # the IL+RL baseline trained with the imitation term, vanilla PPO without
+    il = (seed0 / "baselines" / "il_rl" / "metrics.csv").read_text().splitlines()[0]
+    assert "loss_imitation" in il and "loss_imitation" not in (seed0 / "baselines" / "ppo" / "metrics.csv").read_text()
+    # seeds differ: the two generalists are not the same network
+    a, b = (Tracker.load(out / f"seed_{s}" / "generalist" / "tracker.pt") for s in (0, 1))
+    assert any(not torch.equal(p, q) for p, q in zip(a.parameters(), b.parameters()))
+
+
+def test_a_second_run_skips_every_stage_and_a_killed_one_resumes(tiny_run, tiny_dataset):
+    tmp, out, first = tiny_run
+    before = json.loads((out / "table1.json").read_text())
+    stage = out / "seed_1" / "modulators" / "RT"
+    frames = load_checkpoint(stage)["frames"]
+    (stage / "stage.json").unlink()          # as if killed after its last checkpoint
+    r = _pipeline(tmp, out, tiny_dataset)
+    assert r.returncode == 0, r.stderr[-3000:]
+    ran = [line for line in r.stdout.splitlines() if line.startswith("[run ]")]
+    assert ran == ["[run ] seed 1 modulator R+T"], ran
+    assert r.stdout.count("[skip]") > 40
+    assert load_checkpoint(stage)["frames"] == frames        # continued from the checkpoint, not retrained
+    assert json.loads((out / "table1.json").read_text()) == before
+    # other settings for finished stages are refused, not silently mixed
+    bad = _pipeline(tmp, out, tiny_dataset, "specialist_frames=1024")
+    assert bad.returncode == 2 and "run with other settings" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_bad_settings_are_one_line_errors(tiny_dataset, tmp_path):
+    r = _pipeline(tmp_path, tmp_path / "o", tiny_dataset, "seeds=[0,0]")
+    assert r.returncode == 2 and "distinct training seeds" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "o" / "seed_0").exists()
+    with pytest.raises(ConfigError, match="unknown keys"):
+        PipelineConfig.from_dict({"out": "o", "specialist_frame": 10})
+    with pytest.raises(ConfigError, match="PPOConfig.lr"):
+        PipelineConfig(out="o", ppo={"lr": -1.0})
+    with pytest.raises(ConfigError, match="scaling_fractions"):
+        PipelineConfig(out="o", scaling_fractions=(0.0, 1.0))
+
+
+def test_run_stage_stores_skips_and_refuses_changed_settings(tmp_path):
+    calls = []
+    fn = lambda: calls.append(1) or {"x": (1, 2)}         # noqa: E731
+    assert run_stage(tmp_path / "s", {"a": (1,)}, fn, label="s", log=lambda m: None) == {"x": [1, 2]}
+    assert run_stage(tmp_path / "s", {"a": [1]}, fn, label="s", log=lambda m: None) == {"x": [1, 2]}
+    assert len(calls) == 1
+    with pytest.raises(ConfigError, match=r"differing: \['a'\]"):
+        run_stage(tmp_path / "s", {"a": [2]}, fn, label="s", log=lambda m: None)
+
+    def boom():
+        raise RuntimeError("killed")
+
+    with pytest.raises(RuntimeError):
+        run_stage(tmp_path / "t", {}, boom, label="t", log=lambda m: None)
+    assert not (tmp_path / "t" / "stage.json").exists()
+
+
+def test_specialist_blocks_share_out_whole_groups(tiny_dataset):
+    ds = ReferenceDataset(tiny_dataset)
+    blocks = specialist_blocks(ds, 2, TrackingConfig().window)
+    groups = [{ds.entries[i]["group"] for i in b} for b in blocks]
+    assert all(blocks) and not groups[0] & groups[1]
+    assert sorted(i for b in blocks for i in b) == [1, 2, 5]
+    with pytest.raises(ConfigError, match="semantic groups"):
+        specialist_blocks(ds, 3, TrackingConfig().window)
+
+
+def test_reference_subset_keeps_whole_references():
+    n = 60
+    rows = TensorDict({"reference": torch.arange(n) // 10, "action": torch.randn(n, 22)}, batch_size=[n])
+    buf = TensorDictReplayBuffer(storage=LazyTensorStorage(n))
+    buf.extend(rows)
+    sub = reference_subset(buf, 0.5, seed=3)
+    kept = sub[:]["reference"]
+    assert len(sub) == 30 and len(kept.unique()) == 3
+    assert torch.equal(reference_subset(buf, 0.5, seed=3)[:]["reference"], kept)
+    assert len(reference_subset(buf, 0.01, seed=0)) == 10         # at least one reference
+    with pytest.raises(ConfigError, match="fraction"):
+        DistillConfig(rollouts="r", out="o", fraction=1.5)

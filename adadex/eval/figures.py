@@ -9,7 +9,10 @@ splits under both conditions and then draws:
   reference the policy saw, with the R channel's edit), and as the simulation executed it;
 * :func:`decoded_latents` / :func:`plot_latent_decoding` — Fig. 5: the object latents the tracker
   saw (with the O channel's edit) decoded by the point-cloud autoencoder, against the object;
-* :func:`plot_data_scaling` — Fig. 6: success against the fraction of the training set.
+* :func:`plot_data_scaling` — Fig. 6: success against the fraction of the training set;
+* :func:`channel_usage` / :func:`plot_channel_usage` — how much each modulator uses each of its
+  channels (mean |action| per entry): an ablation that does not order as the paper's often has a
+  channel its modulator leaves unused.
 
 Where the modulated inputs live in a rollout of :func:`adadex.eval.evaluate.evaluate` run with
 :func:`adadex.transforms.policy.make_policy`: the reference entries show R's carried edit (row 0,
@@ -460,4 +463,45 @@ def plot_data_scaling(fractions, results: dict[str, list[tuple[float, float | No
     ax.legend(fontsize=8)
     ax.set_title(title)
     fig.tight_layout()
+    return _save(fig, path)
+
+
+def channel_usage(rollouts, channels) -> dict[str, float]:
+    """How much a modulator uses each of its action entries: the mean |a| (0: unused, 1: saturated) of
+    the stored modulator action ``("modulation", "sample")`` over every frame of ``rollouts`` (chunks
+    of an evaluation with ``keep_rollouts``) before each world's first done, per entry of ``channels``
+    (``"ref_hand"``, ``"latent"``, …)."""
+    layout = ModulationLayout(channels)
+    totals: dict[str, float] = {}
+    frames = 0
+    for td in rollouts:
+        done = td.get(("next", "done")).reshape(td.batch_size).to(torch.bool)
+        valid = ~(torch.cumsum(done.int(), 1) - done.int() > 0)
+        for key, value in layout.split(td.get(SAMPLE)[valid]).items():
+            name = key[-1] if isinstance(key, tuple) else key
+            totals[name] = totals.get(name, 0.0) + float(value.abs().reshape(value.shape[0], -1).mean(1).sum())
+        frames += int(valid.sum())
+    if frames == 0:
+        raise ConfigError("channel_usage: the rollouts hold no frame")
+    return {k: v / frames for k, v in totals.items()}
+
+
+def plot_channel_usage(usage: Mapping[str, Mapping[str, float]], path, *, title: str = "") -> Path:
+    """Grouped bars: per modulator (``{row: channel_usage(...)}``), the mean |a| of each action entry."""
+    if not usage or not all(usage.values()):
+        raise ConfigError("plot_channel_usage: give {row: {entry: mean |a|}} with at least one entry each")
+    entries = list(dict.fromkeys(e for u in usage.values() for e in u))
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(1.3 * len(entries) + 3, 3.6))
+    width = 0.8 / len(usage)
+    x = np.arange(len(entries))
+    for i, (row, u) in enumerate(usage.items()):
+        vals = [_finite(f"usage[{row!r}][{e!r}]", u[e]) if e in u else np.nan for e in entries]
+        ax.bar(x + (i - (len(usage) - 1) / 2) * width, vals, width, label=ROW_LABELS.get(row, row),
+               color=_ROW_COLOURS.get(row))
+    ax.set_xticks(x, entries)
+    ax.set_ylabel("mean |modulator action| (1 = saturated)")
+    ax.set_ylim(0, 1.05)
+    ax.legend(fontsize=8)
+    ax.set_title(title or "what each modulator uses")
     return _save(fig, path)

@@ -18,7 +18,8 @@ Per training seed (``seed_<s>/`` under ``out``):
 then, over all seeds, ``table1.json`` (``{split: {condition: {row: {metric: mean, metric_ci95:
 [lo, hi]}}}}``, :mod:`adadex.eval.table1`), ``table1.md`` and ``figures/``: the ablation bars, Fig. 4
 (original, modulated and executed object path), Fig. 5 (the modulated latent decoded against the
-object), Fig. 6 (data scaling), Fig. 12 (latent smoothness ρ).
+object), Fig. 6 (data scaling), Fig. 12 (latent smoothness ρ), and how much each modulator uses each
+of its channels (``channel_usage.png`` / ``.json``: mean |action| per entry).
 
 **Resuming.** Every stage writes ``stage.json`` (its settings and result) when it has finished; a
 stage whose ``stage.json`` exists with the same settings is skipped, one with *other* settings is
@@ -379,9 +380,12 @@ class Pipeline:
                                                       folder / "fig5_latent.png",
                                                       original_latent=torch.as_tensor(encoder_latent(obj)))
         # Fig. 6: completion against the fraction of references distilled from
-        series = {"generalist (unseen trajectory, randomized)": [
-            (float(np.mean([s["completion_pct"] for s in scaling[f]])), *(ci95([s["completion_pct"] for s in scaling[f]])
-                                                                           or (None, None))) for f in scaling]}
+        def point(values):
+            lo_hi = ci95(values)
+            return (float(np.mean(values)), *((max(lo_hi[0], 0.0), min(lo_hi[1], 100.0)) if lo_hi else (None, None)))
+
+        series = {"generalist (unseen trajectory, randomized)":
+                  [point([s["completion_pct"] for s in scaling[f]]) for f in scaling]}
         out["fig6_scaling"] = fig.plot_data_scaling(list(scaling), series, folder / "fig6_scaling.png")
         # Fig. 12: latent smoothness of the trackers on the observations the generalist met
         obs = torch.cat([t.reshape(-1).select("observation", ("object", "latent"), ("proprio", "joint_target"))
@@ -392,6 +396,12 @@ class Pipeline:
                for row in ("tracker", "ppo", "il_rl")}
         plot_latent_smoothness({ROW_LABELS[k]: v for k, v in rho.items()}, folder / "fig12_smoothness.png")
         out["fig12_smoothness"] = folder / "fig12_smoothness.png"
+        # which channels each modulator uses, on the randomized unseen-trajectory episodes
+        usage = {row: fig.channel_usage(self.evaluate(self.policy(row, paths), "unseen_trajectory", "randomized",
+                                                      20_000 + seed, keep_rollouts=True)["rollouts"], channels)
+                 for row, channels in MODULATOR_ROWS.items()}
+        out["channel_usage"] = fig.plot_channel_usage(usage, folder / "channel_usage.png")
+        atomic_write_text(folder / "channel_usage.json", json.dumps(usage, indent=1))
         atomic_write_text(folder / "smoothness.json",
                           json.dumps({k: {m: v[m] for m in ("mean", "median", "p95", "max", "eps")}
                                       for k, v in rho.items()}, indent=1))

@@ -16,8 +16,9 @@ from adadex.envs.replay import replay_policy
 from adadex.envs.tracking import TrackingConfig
 from adadex.errors import AdadexError, ConfigError
 from adadex.eval.evaluate import evaluate
-from adadex.eval.figures import ROW_LABELS, ROWS, decoded_latents, object_paths, plot_ablation, \
-    plot_data_scaling, plot_latent_decoding, plot_object_paths
+from adadex.eval.figures import ROW_LABELS, ROWS, channel_usage, decoded_latents, object_paths, plot_ablation, \
+    plot_channel_usage, plot_data_scaling, plot_latent_decoding, plot_object_paths
+from adadex.modules.channels import ModulationLayout
 from adadex.modules.encoder import load_encoder
 from adadex.modules.modulator import Modulator
 from adadex.modules.nets import GaussianHeads
@@ -212,3 +213,25 @@ def test_data_scaling_plot(tmp_path):
                         (fractions, {"t": [(1.0, 2.0, 0.0)] * 4}, "lo > hi")):
         with pytest.raises(ConfigError, match=match):
             plot_data_scaling(f, r, tmp_path / "bad.png")
+
+
+def test_channel_usage_reads_the_modulator_action_of_each_entry(modulated, tmp_path):
+    res, _ = modulated
+    usage = channel_usage(res["rollouts"], "R+O+T")
+    assert set(usage) == {"ref_hand", "ref_object", "latent", "action"}, usage
+    assert all(0.0 < v <= 1.0 for v in usage.values()), usage
+    # the latent entry by hand: its slice of the flat action, frames up to each world's first done
+    sl = next(sl for key, sl, _ in ModulationLayout("R+O+T").segments if key[-1] == "latent")
+    total, frames = 0.0, 0
+    for td in res["rollouts"]:
+        for w in range(td.batch_size[0]):
+            n = int(td["next", "done"][w].reshape(-1).int().argmax()) + 1 if td["next", "done"][w].any() \
+                else td.batch_size[1]
+            total += float(td["modulation", "sample"][w, :n, sl].abs().mean(-1).sum())
+            frames += n
+    assert usage["latent"] == pytest.approx(total / frames, rel=1e-6)
+    _png(plot_channel_usage({"ROT": usage, "O": {"latent": 0.0}}, tmp_path / "usage.png"))
+    with pytest.raises(ConfigError, match="at least one entry"):
+        plot_channel_usage({"ROT": {}}, tmp_path / "bad.png")
+    with pytest.raises(ValueError, match="must have"):
+        channel_usage(res["rollouts"], "R")

@@ -25,7 +25,8 @@ from adadex.train.distill import DistillConfig, reference_subset
 from adadex.train.pipeline import PipelineConfig, run_stage, specialist_blocks
 
 ROOT = Path(__file__).resolve().parents[2]
-FIGURES = ("ablation.png", "fig4_object_path.png", "fig5_latent.png", "fig6_scaling.png", "fig12_smoothness.png")
+FIGURES = ("ablation.png", "fig4_object_path.png", "fig5_latent.png", "fig6_scaling.png", "fig12_smoothness.png",
+           "channel_usage.png")
 
 
 def _pipeline(tmp_path, out, tiny_dataset, *extra):
@@ -66,6 +67,9 @@ def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
     for name in FIGURES:
         data = (out / "figures" / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000, name
+    usage = json.loads((out / "figures" / "channel_usage.json").read_text())
+    assert set(usage) == {"R", "RT", "ROT", "O"} and set(usage["O"]) == {"latent"}
+    assert set(usage["ROT"]) == {"ref_hand", "ref_object", "latent", "action"}
     # each training stage logged to CSV and wandb (offline), and left a loadable policy
     seed0 = out / "seed_0"
     for stage in ("specialists/spec_0", "specialists/spec_1", "generalist", "baselines/ppo", "baselines/il_rl",

@@ -25,9 +25,15 @@ marks its hypotheses ``"scored_on": "train"`` and gives them no held-out figure
 Coupled joints: the failing joints are fitted worst first (error over noise), and after each joint's
 effects are chosen the rest are localized again on the model with those effects; a joint that no
 longer fails had only a knock-on error (the joint that moves it was the source) and gets no effect of
-its own (re-localization replays only the still-pending joints' sequences). Load-like effects (a
-payload, or armature, its look-alike) chosen on several joints of one chain are tried as one payload on
-one link of the unbranched chain below them, fitted to all their sequences; it replaces them when it
+its own (re-localization replays only the still-pending joints' sequences). While failing joints are
+still pending, a joint's best candidate is refitted against their errors too (on all their training
+sequences, each joint in units of its noise floor; Brent to 1e-7 of the bounds and a compass polish):
+a source is fitted to every error it causes, not only its own joint's, which pins a sensitive value —
+a shoulder torque limit the arm barely holds at, whose 5th-6th digit decides whether the joints it
+shakes match — that its own sequences leave ambiguous. The effects of a source keep that coupled fit
+when the selected values are refined jointly. Load-like effects (a payload, or armature, its look-alike)
+chosen on several joints of one chain are tried as one payload on one link of the unbranched chain
+below them, fitted to all their sequences; it replaces them when it
 explains their held-out sequences as well (a mass on the hand is one hypothesis, not a payload on the
 shoulder plus armature on the elbow). A candidate fitted at (or within 0.1 % of the bounds of) its
 absent value explains nothing
@@ -56,10 +62,13 @@ from adadex.io import atomic_write_text
 from adadex.sim.effects import EFFECT_NAMES, get_effect, robot_ids
 from adadex.sim.patch import EffectInstance, ModelPatch
 from adadex.sysid.compare import FAIL_ABS, FAIL_RATIO, compare, heldout_mask, localize, noise_floor
-from adadex.sysid.fit import JointFitter
+from adadex.sysid.fit import CoupledFitter, JointFitter
 from adadex.sysid.replay import Replayer
 
 COMPLEXITY_PENALTY = 0.02
+#: Brent's tolerance (fraction of the bounds) when a candidate is fitted to the joints it may move too:
+#: a knock-on error can hang on the 6th digit of a torque limit (tests/sysid/test_coupled.py).
+COUPLED_XTOL = 1e-7
 
 
 class DiagnosisError(AdadexError, ValueError):
@@ -221,11 +230,13 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     # localized again on the model with its effects, so a joint that only failed because another
     # one moved it differently is not given an explanation of its own.
     pending, knock_on = list(failing), []
+    moves: dict[str, list[str]] = {}   # a source joint -> the knock-on joints that stopped failing with its effects
     while pending:
         joint = pending.pop(0)
         first_rounds[joint], chosen = _forward_selection(
             setting, joint, candidates, max_effects=max_effects_per_joint, min_gain=min_gain, tie=tie,
-            refine_top=refine_top, bar=bar, patch=_patch_of(selected_per_joint, base_patch))
+            refine_top=refine_top, bar=bar, patch=_patch_of(selected_per_joint, base_patch),
+            moved=pending if joints is None else ())
         selected_per_joint[joint] = chosen
         explained[joint] = chosen[-1].heldout_error_reduction if chosen else 0.0
         lap("fit")
@@ -234,6 +245,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
             lap("relocalize")
             gone = [j for j in pending if j not in still]
             knock_on += gone
+            moves[joint] = gone
             pending = [j for j in pending if j in still]
             bar.update(len(gone) * len(candidates))
     bar.close()
@@ -254,7 +266,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
                         f"as separate effects on each (it moves with all of them).")
 
     if sum(len(c) for c in selected_per_joint.values()) > 1:
-        _refit_jointly(setting, selected_per_joint, refine_passes, skip=set(carried))
+        _refit_jointly(setting, selected_per_joint, refine_passes, skip=set(carried), moves=moves)
     if sum(len(c) for c in selected_per_joint.values()) > 1 or knock_on:
         explained.update(_score_jointly(setting, selected_per_joint, carried))
     explained = {j: max(0.0, v) for j, v in explained.items() if j in failing}
@@ -324,11 +336,12 @@ def _still_failing(setting: _Setting, joints: list[str], patch: ModelPatch) -> l
 
 
 def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects: int, min_gain: float,
-                       tie: float, refine_top: int, bar, patch: ModelPatch | None = None,
+                       tie: float, refine_top: int, bar, patch: ModelPatch | None = None, moved=(),
                        ) -> tuple[list[Candidate], list[Candidate]]:
     """Add effects on ``joint`` one at a time, each the best-scoring on held-out sequences, while each
     adds ``min_gain`` (the first only needs a positive score). Returns the first round's candidates,
-    ranked, and the chosen effects in order."""
+    ranked, and the chosen effects in order. ``moved``: the failing joints still pending, whose errors
+    the refined candidates are fitted to as well (see :func:`_fit_and_score_candidates`)."""
     train, held = setting.sequences(joint)
     n2 = setting.noise2(joint)
     chosen: list[Candidate] = []
@@ -338,7 +351,7 @@ def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects
     for round_ in range(max_effects):
         names_left = [n for n in candidates if not any(c.effect == n for c in chosen)]
         cands = _fit_and_score_candidates(setting, joint, names_left, patch, train, held, held_before, n2,
-                                          refine_top=refine_top, bar=bar if round_ == 0 else None)
+                                          refine_top=refine_top, bar=bar if round_ == 0 else None, moved=moved)
         if round_ == 0:
             first_round = cands
         if not cands or cands[0].score < (min_gain if chosen else 0.0):
@@ -353,13 +366,30 @@ def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects
 
 
 def _fit_and_score_candidates(setting: _Setting, joint: str, names: list[str], patch: ModelPatch, train, held,
-                              held_before, n2: float, *, refine_top: int, bar) -> list[Candidate]:
+                              held_before, n2: float, *, refine_top: int, bar, moved=()) -> list[Candidate]:
     """Fit each of ``names`` on top of ``patch`` on the training sequences and score it on the held-out
-    ones; ranked best first. ``bar`` (if given) advances once per candidate."""
+    ones; ranked best first. ``bar`` (if given) advances once per candidate.
+
+    With failing joints still pending (``moved``), the best candidate is then refitted against the error
+    of ``joint`` and of those joints on all their training sequences (a
+    :class:`~adadex.sysid.fit.CoupledFitter`: grid, Brent to :data:`COUPLED_XTOL`, a compass polish): an
+    effect on ``joint`` that moves them is fitted to the error it causes there too, which pins a
+    sensitive value (a torque limit the arm barely holds at) far better than ``joint``'s own sequences.
+    It keeps the value with the lower coupled error (its own fit's or the coupled fit's) and is scored on
+    ``joint``'s own held-out sequences as before."""
     fitter = JointFitter(setting.replayer, joint, train, patch)
     held_fitter = JointFitter(setting.replayer, joint, held, patch)
     cur_held = held_fitter.mse_per_sequence(patch)
     train_before = fitter.mse(patch)
+
+    def scored(name: str, value: float, ci, after: float) -> Candidate:
+        held_after = held_fitter.mse_per_sequence(fitter.patch_with(name, value))
+        red_tr = _reduction(train_before, after, n2)
+        red_ho = _reduction(held_before, held_after, n2)
+        gain = red_ho - _reduction(held_before, cur_held, n2)
+        return Candidate(name, joint, value, ci, red_tr, red_ho,
+                         gain - COMPLEXITY_PENALTY * len(get_effect(name).params))
+
     cands = []
     grids, ranked = _screen_on_grid(fitter, names)
     for k, name in enumerate(ranked):
@@ -367,16 +397,22 @@ def _fit_and_score_candidates(setting: _Setting, joint: str, names: list[str], p
             value, ci, after = _refine(fitter, name, grids[name], train_before)
         else:
             value, ci, after = _best_on_grid(name, grids[name], joint, setting.replayer.robot)
-        held_after = held_fitter.mse_per_sequence(fitter.patch_with(name, value))
-        red_tr = _reduction(train_before, after, n2)
-        red_ho = _reduction(held_before, held_after, n2)
-        gain = red_ho - _reduction(held_before, cur_held, n2)
         if not _is_absent(name, value, joint, setting.replayer.robot):   # "not there" explains nothing
-            cands.append(Candidate(name, joint, value, ci, red_tr, red_ho,
-                                   gain - COMPLEXITY_PENALTY * len(get_effect(name).params)))
+            cands.append(scored(name, value, ci, after))
         if bar is not None:
             bar.update(1)
     cands.sort(key=lambda c: -c.score)
+    if cands and len(moved):
+        best = cands[0]
+        cols = [joint] + [j for j in moved if j != joint]
+        seqs = np.unique(np.concatenate([train] + [setting.sequences(j)[0] for j in cols[1:]])).astype(np.int64)
+        coupled = CoupledFitter(setting.replayer, joint, cols, seqs,
+                                [setting.noise[setting.joint_names.index(j)] for j in cols], patch)
+        r = coupled.fit(best.effect, xtol_frac=COUPLED_XTOL, maxiter=100)   # from its own (coupled) grid
+        if (r.mse_after < coupled.mse(coupled.patch_with(best.effect, best.value))
+                and not _is_absent(best.effect, r.value, joint, setting.replayer.robot)):
+            cands[0] = scored(best.effect, r.value, r.ci95, fitter.mse(fitter.patch_with(best.effect, r.value)))
+            cands.sort(key=lambda c: -c.score)
     return cands
 
 
@@ -504,12 +540,17 @@ def _chain_below(setting: _Setting, affected: list[str]) -> list[str]:
         b = int(children[0])
 
 
-def _refit_jointly(setting: _Setting, selected_per_joint: dict, passes: int, skip=frozenset()) -> None:
+def _refit_jointly(setting: _Setting, selected_per_joint: dict, passes: int, skip=frozenset(),
+                   moves=None) -> None:
     """Refit every selected value with all the other selected effects in place (coordinate descent).
 
     Effects on one joint change how the others move (a finger that no longer flops changes the load on
-    a saturating arm joint), so values fitted joint by joint are refined together. Updates in place.
+    a saturating arm joint), so values fitted joint by joint are refined together. An effect on a joint
+    whose effects explained knock-on errors elsewhere (``moves``: joint -> those joints) is refitted, as
+    it was chosen, against those joints' errors too (a :class:`~adadex.sysid.fit.CoupledFitter`). Updates
+    in place.
     """
+    moves = moves or {}
     for _ in range(passes):
         for joint, chosen in selected_per_joint.items():
             for c in ([] if joint in skip else chosen):
@@ -517,7 +558,14 @@ def _refit_jointly(setting: _Setting, selected_per_joint: dict, passes: int, ski
                     e for e in _patch_of(selected_per_joint, setting.base_patch).effects
                     if not (e.joints == (joint,) and e.effect == c.effect)))
                 train, _ = setting.sequences(joint)
-                r = JointFitter(setting.replayer, joint, train, others).fit(c.effect)
+                if moves.get(joint):
+                    cols = [joint] + list(moves[joint])
+                    seqs = np.unique(np.concatenate([setting.sequences(j)[0] for j in cols])).astype(np.int64)
+                    r = CoupledFitter(setting.replayer, joint, cols, seqs,
+                                      [setting.noise[setting.joint_names.index(j)] for j in cols],
+                                      others).fit(c.effect, xtol_frac=COUPLED_XTOL, maxiter=100)
+                else:
+                    r = JointFitter(setting.replayer, joint, train, others).fit(c.effect)
                 c.value, c.ci95 = r.value, r.ci95
 
 

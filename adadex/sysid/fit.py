@@ -80,21 +80,38 @@ class JointFitter:
         return xs, np.array([self.mse(self.patch_with(effect, float(x))) for x in xs])
 
     def fit(self, effect: str, *, points: int = 9, xtol_frac: float = 1e-3, grid=None,
-            mse_before: float | None = None) -> FitResult:
-        """Grid, then bounded Brent refinement around the best grid point, then the CI."""
+            mse_before: float | None = None, maxiter: int = 30, bracket=None) -> FitResult:
+        """Grid, then bounded Brent refinement around the best grid point (or over ``bracket``, with no
+        grid), then the CI.
+
+        With ``xtol_frac`` below 1e-3 (a sensitive parameter) the Brent result is polished by a
+        compass search (steps x ± h, h halving from 100 ``xtol_frac`` of the bounds down to ``xtol_frac``),
+        which steps out of the shallow local minima Brent can stop in at that scale."""
         eff = get_effect(effect)
         lo, hi = (float(b[0, 0]) for b in eff.bounds([self.joint], self.rep.robot))
         start = self.evaluations
         before = self.mse(self.base_patch) if mse_before is None else mse_before
-        xs, costs = grid if grid is not None else self.grid(effect, points)
-        i = int(np.argmin(costs))
-        a, b = xs[max(i - 1, 0)], xs[min(i + 1, len(xs) - 1)]
-        best_x, best_c = float(xs[i]), float(costs[i])
+
+        def cost(x: float) -> float:
+            return self.mse(self.patch_with(effect, float(x)))
+
+        if bracket is None:
+            xs, costs = grid if grid is not None else self.grid(effect, points)
+            i = int(np.argmin(costs))
+            a, b = xs[max(i - 1, 0)], xs[min(i + 1, len(xs) - 1)]
+            best_x, best_c = float(xs[i]), float(costs[i])
+        else:
+            a, b = (float(v) for v in bracket)
+            best_x = 0.5 * (a + b)
+            best_c = cost(best_x)
         if b > a:
-            res = minimize_scalar(lambda x: self.mse(self.patch_with(effect, float(x))), bounds=(a, b),
-                                  method="bounded", options={"xatol": xtol_frac * (hi - lo), "maxiter": 30})
+            res = minimize_scalar(cost, bounds=(a, b), method="bounded",
+                                  options={"xatol": xtol_frac * (hi - lo), "maxiter": maxiter})
             if res.fun < best_c:
                 best_x, best_c = float(res.x), float(res.fun)
+            if xtol_frac < 1e-3:
+                best_x, best_c = _compass(cost, best_x, best_c, a, b, 100 * xtol_frac * (hi - lo),
+                                          xtol_frac * (hi - lo))
         ci = self._ci95(effect, best_x, lo, hi)
         return FitResult(effect, self.joint, best_x, ci, before, best_c, self.evaluations - start)
 
@@ -112,6 +129,39 @@ class JointFitter:
             return (lo, hi)
         half = 1.96 * np.sqrt(sigma2 / jtj)
         return (float(max(lo, x - half)), float(min(hi, x + half)))
+
+
+class CoupledFitter(JointFitter):
+    """Fits effects on ``joint`` against the error of every joint in ``joints`` (``joint`` and the joints
+    it may move) on ``seqs``, each joint's error in units of its noise floor (``noise``, rad, one per
+    joint): :meth:`mse` is the mean over those joints of MSE / σ². A source whose error shows on other
+    joints (a sagging shoulder shakes the fingers) is fitted to all of it, not to its own joint alone."""
+
+    def __init__(self, replayer, joint: str, joints, seqs, noise, base_patch: ModelPatch | None = None):
+        super().__init__(replayer, joint, seqs, base_patch)
+        names = list(replayer.rec.joint_names)
+        self.cols = [names.index(j) for j in joints]
+        self.scale = 1.0 / np.maximum(np.asarray(noise, dtype=float), 1e-9)
+        self.measured = replayer.rec.joint_pos[self.seqs][..., self.cols]
+
+    def residual(self, patch: ModelPatch) -> np.ndarray:
+        self.evaluations += 1
+        sim = self.rep.simulate(patch, sequences=self.seqs)[..., self.cols]
+        return ((sim - self.measured) * self.scale).ravel()
+
+
+def _compass(cost, x: float, c: float, lo: float, hi: float, h: float, h_min: float) -> tuple[float, float]:
+    """1-D compass search from (x, cost c) within [lo, hi]: try x ± h, move on improvement, else halve h."""
+    while h >= h_min:
+        for y in (x - h, x + h):
+            if lo <= y <= hi:
+                cy = cost(y)
+                if cy < c:
+                    x, c = y, cy
+                    break
+        else:
+            h *= 0.5
+    return x, c
 
 
 def sequences_moving(recording, joint: str) -> np.ndarray:

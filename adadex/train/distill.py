@@ -35,6 +35,7 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,6 +52,7 @@ from adadex.modules.nets import fit_normalizers
 from adadex.modules.tracker import Tracker
 from adadex.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, set_rng_state
 from adadex.train.logs import RunLog
+from adadex.train.threads import torch_threads
 from adadex.train.rollouts import RolloutsError, load_rollouts, rollouts_info
 
 TRACKER = "tracker.pt"
@@ -76,10 +78,13 @@ class DistillConfig:
     #: < 1: learn from the rollouts of only this fraction of the stored references (a seeded draw,
     #: at least one) — the data-scaling study (paper Fig. 6)
     fraction: float = 1.0
+    #: torch threads for the updates (0: all cores; see :mod:`adadex.train.threads` for why 1)
+    threads: int = 1
     wandb: bool = True                     # offline unless WANDB_MODE says otherwise
     progress: bool = True
 
     def __post_init__(self):
+        check_number("DistillConfig.threads", self.threads, integer=True)
         check_number("DistillConfig.fraction", self.fraction, high=1.0, strict_low=True)
         self.hidden = tuple(int(h) for h in self.hidden)
         for k in ("steps", "batch_size", "checkpoint_every", "log_every", "normalizer_samples", "probe_samples"):
@@ -261,4 +266,5 @@ class Distiller:
 
 def distill(cfg: DistillConfig, **kwargs) -> dict:
     """Run :class:`Distiller` on ``cfg``; returns the student's path and counters."""
-    return Distiller(cfg, **kwargs).train()
+    with torch_threads(cfg.threads or os.cpu_count() or 1):
+        return Distiller(cfg, **kwargs).train()

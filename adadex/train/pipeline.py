@@ -66,7 +66,7 @@ class PipelineConfig:
     dataset: str | None = None
     dataset_preset: str = "small"
     dataset_seed: int = 0
-    seeds: tuple[int, ...] = (0, 1, 2)       # training seeds: the whole chain runs once per seed
+    seeds: tuple[int, ...] = (0, 1)          # training seeds: the whole chain runs once per seed
     specialists: int = 4                     # specialists, each on a block of the semantic groups
     worlds: int = 64
     env_threads: int = 2
@@ -74,7 +74,8 @@ class PipelineConfig:
     specialist_frames: int = 250_000
     modulator_frames: int = 250_000
     ppo_frames: int = 500_000                # the baselines (vanilla PPO, IL+RL) see all training references
-    ppo: dict = field(default_factory=dict)  # PPOConfig overrides (frames_per_batch, lr, …)
+    #: PPOConfig overrides (frames_per_batch, lr, …); one torch thread for the updates (adadex.train.threads)
+    ppo: dict = field(default_factory=lambda: {"update_threads": 1})
     policy: dict = field(default_factory=dict)   # PolicyConfig overrides of the trackers trained
     rollout_episodes: int = 4                # randomized teacher episodes per reference
     rollout_criterion: str = "mean_error"    # which teacher episodes are kept (see adadex.train.rollouts)
@@ -184,6 +185,7 @@ class Pipeline:
         from adadex.train.ppo import PPOTrainer
 
         settings = {k: v for k, v in tc.to_dict().items() if k not in ("resume", "wandb", "progress", "out")}
+        settings["ppo"] = {k: v for k, v in settings["ppo"].items() if k != "update_threads"}   # speed, not result
         if teacher is not None:
             settings["teacher"] = teacher[0]
 
@@ -234,7 +236,8 @@ class Pipeline:
                            seed=seed, resume=True, fraction=fraction, wandb=c.wandb, progress=c.progress,
                            checkpoint_every=max(1, c.distill_steps // 5),
                            hidden=tuple(c.policy.get("hidden", PolicyConfig().hidden)))
-        settings = {k: v for k, v in dataclasses.asdict(dc).items() if k not in ("resume", "wandb", "progress", "out")}
+        settings = {k: v for k, v in dataclasses.asdict(dc).items()
+                    if k not in ("resume", "wandb", "progress", "out", "threads")}
         label = f"seed {seed} distill" + (f" ({fraction:g} of the references)" if fraction < 1 else "")
         r = run_stage(out, settings, lambda: {"tracker": str(distill(dc, run_name=label)["tracker"])},
                       label=label, log=self.log)

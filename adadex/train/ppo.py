@@ -20,7 +20,6 @@ Example (a few iterations on a tiny dataset)::
 
 from __future__ import annotations
 
-import contextlib
 import os
 import time
 from pathlib import Path
@@ -53,20 +52,9 @@ from adadex.train.config import TrainConfig
 from adadex.train.envs import ModulatedEnv, TrackingEnvFactory
 from adadex.transforms.policy import make_policy
 from adadex.train.logs import RunLog
+from adadex.train.threads import torch_threads
 
 ERRORS = ("next", *ERRORS_KEY)
-
-
-@contextlib.contextmanager
-def _torch_threads(n: int):
-    """Torch on ``n`` threads inside the block. Collection keeps one (the policy's small batches only
-    spin against MuJoCo's rollout threads); the minibatch updates use the cores."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def training_references(cfg: TrainConfig, dataset: ReferenceDataset, window: int) -> list[int]:
@@ -249,7 +237,7 @@ class PPOTrainer:
                                    frames_per_batch=self.ppo.frames_per_batch, total_frames=remaining)
         bar = tqdm(total=self.ppo.total_frames, initial=self.frames, unit="frame", desc=self.run_name,
                    disable=not self.cfg.progress)
-        with _torch_threads(1):                  # collection: one torch thread beside MuJoCo's
+        with torch_threads(1):                  # collection: one torch thread beside MuJoCo's
             try:
                 t_iter = time.perf_counter()
                 for data in collector:
@@ -259,7 +247,7 @@ class PPOTrainer:
                         fit_normalizers(self.policy, data["observation"])
                         self.fitted = True
                     stats = self.batch_metrics(data)
-                    with _torch_threads(self.ppo.update_threads or os.cpu_count() or 1):
+                    with torch_threads(self.ppo.update_threads or os.cpu_count() or 1):
                         stats.update(self._update(data))
                     collector.update_policy_weights_()
                     n = data.numel()

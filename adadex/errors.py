@@ -87,3 +87,14 @@ def check_array(name: str, value, shape: tuple[int, ...]):
         idx = tuple(int(i) for i in np.argwhere(bad)[0])
         raise ArrayError(f"{name}: non-finite value {value[idx]} at index {idx}")
     return value
+
+
+def from_known_keys(cls, d: dict):
+    """``cls(**d)`` for a dataclass ``cls``, refusing keys it does not have with one :class:`ConfigError`
+    naming them all (a typo in a config file is an error, not a silently ignored setting)."""
+    import dataclasses
+
+    unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
+    if unknown:
+        raise ConfigError(f"{cls.__name__}: unknown keys {unknown}")
+    return cls(**d)

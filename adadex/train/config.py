@@ -15,7 +15,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from adadex.errors import ConfigError, check_number, check_numbers
+from adadex.errors import ConfigError, check_number, check_numbers, from_known_keys
 
 
 @dataclass
@@ -162,8 +162,4 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ConfigError(f"TrainConfig: unknown keys {unknown}")
-        return cls(**d)
+        return from_known_keys(cls, d)

@@ -47,7 +47,7 @@ from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
-from adadex.errors import ConfigError, check_number, check_numbers
+from adadex.errors import ConfigError, check_number, check_numbers, from_known_keys
 from adadex.modules.nets import fit_normalizers
 from adadex.modules.tracker import Tracker
 from adadex.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, set_rng_state
@@ -100,10 +100,7 @@ class DistillConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> DistillConfig:
-        unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
-        if unknown:
-            raise ConfigError(f"DistillConfig: unknown keys {unknown}")
-        return cls(**d)
+        return from_known_keys(cls, d)
 
 
 def reference_subset(buffer, fraction: float, seed: int) -> TensorDictReplayBuffer:

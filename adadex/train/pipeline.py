@@ -47,7 +47,7 @@ import torch
 from adadex.data.reference import ReferenceDataset
 from adadex.envs.randomization import Randomization
 from adadex.envs.tracking import TrackingConfig, episode_references
-from adadex.errors import ConfigError, check_number
+from adadex.errors import ConfigError, check_number, from_known_keys
 from adadex.io import atomic_write_text
 from adadex.train.config import CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, TrainConfig
 
@@ -107,10 +107,7 @@ class PipelineConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> PipelineConfig:
-        unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
-        if unknown:
-            raise ConfigError(f"PipelineConfig: unknown keys {unknown}")
-        return cls(**d)
+        return from_known_keys(cls, d)
 
 
 def _plain(x):

@@ -26,8 +26,10 @@ Coupled joints: the failing joints are fitted worst first (error over noise), an
 effects are chosen the rest are localized again on the model with those effects; a joint that no
 longer fails had only a knock-on error (the joint that moves it was the source) and gets no effect of
 its own (re-localization replays only the still-pending joints' sequences). While failing joints are
-still pending, a joint's best candidate is refitted against their errors too (on all their training
-sequences, each joint in units of its noise floor; Brent to 1e-7 of the bounds and a compass polish):
+still pending, a joint's best candidate is refitted against the errors of those it visibly moves too
+(one replay decides which: the candidate changes their path by at least 10 % of their residual; on
+their training sequences, each joint in units of its noise floor; Brent to 1e-7 of the bounds and a
+compass polish):
 a source is fitted to every error it causes, not only its own joint's, which pins a sensitive value —
 a shoulder torque limit the arm barely holds at, whose 5th-6th digit decides whether the joints it
 shakes match — that its own sequences leave ambiguous. The effects of a source keep that coupled fit
@@ -69,6 +71,8 @@ COMPLEXITY_PENALTY = 0.02
 #: Brent's tolerance (fraction of the bounds) when a candidate is fitted to the joints it may move too:
 #: a knock-on error can hang on the 6th digit of a torque limit (tests/sysid/test_coupled.py).
 COUPLED_XTOL = 1e-7
+#: a pending joint enters a source's coupled fit when the source's effect moves it by this fraction of its residual
+COUPLING_MIN = 0.1
 
 
 class DiagnosisError(AdadexError, ValueError):
@@ -402,10 +406,11 @@ def _fit_and_score_candidates(setting: _Setting, joint: str, names: list[str], p
         if bar is not None:
             bar.update(1)
     cands.sort(key=lambda c: -c.score)
-    if cands and len(moved):
+    coupled = _moved_by(setting, joint, cands[0], train, moved, patch) if cands and len(moved) else []
+    if coupled:
         best = cands[0]
-        cols = [joint] + [j for j in moved if j != joint]
-        seqs = np.unique(np.concatenate([train] + [setting.sequences(j)[0] for j in cols[1:]])).astype(np.int64)
+        cols = [joint] + coupled
+        seqs = np.unique(np.concatenate([train] + [setting.sequences(j)[0] for j in coupled])).astype(np.int64)
         coupled = CoupledFitter(setting.replayer, joint, cols, seqs,
                                 [setting.noise[setting.joint_names.index(j)] for j in cols], patch)
         r = coupled.fit(best.effect, xtol_frac=COUPLED_XTOL, maxiter=100)   # from its own (coupled) grid
@@ -414,6 +419,28 @@ def _fit_and_score_candidates(setting: _Setting, joint: str, names: list[str], p
             cands[0] = scored(best.effect, r.value, r.ci95, fitter.mse(fitter.patch_with(best.effect, r.value)))
             cands.sort(key=lambda c: -c.score)
     return cands
+
+
+def _moved_by(setting: _Setting, joint: str, cand: Candidate, train, moved, patch: ModelPatch) -> list[str]:
+    """The pending joints in ``moved`` that ``cand`` (an effect on ``joint``, at its own fit) visibly moves:
+    on the training sequences of ``joint`` and of those joints, the change the effect makes to a joint's
+    simulated path is at least :data:`COUPLING_MIN` of that joint's residual (RMS). One replay decides
+    which joints a coupled fit has to look at; a joint with an effect of its own that ``cand`` barely
+    touches (22 independent faults) is left out, which keeps the coupled fit from replaying the whole
+    recording for every source."""
+    others = [j for j in moved if j != joint]
+    if not others:
+        return []
+    seqs = np.unique(np.concatenate([train] + [setting.sequences(j)[0] for j in others])).astype(np.int64)
+    names = setting.joint_names
+    cols = [names.index(j) for j in others]
+    rep = setting.replayer
+    before = rep.simulate(patch, sequences=seqs)[..., cols]
+    after = rep.simulate(patch.with_effect(cand.effect, [joint], [[cand.value]]), sequences=seqs)[..., cols]
+    residual = rep.rec.joint_pos[seqs][..., cols] - before
+    change = np.sqrt(np.mean((after - before) ** 2, axis=(0, 1)))
+    rms = np.sqrt(np.mean(residual ** 2, axis=(0, 1)))
+    return [j for j, c, r in zip(others, change, rms) if c >= COUPLING_MIN * r]
 
 
 def _is_absent(name: str, value: float, joint: str, robot) -> bool:

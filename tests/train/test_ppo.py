@@ -210,7 +210,9 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
     fixed, losses = None, {}
     for name, coef in (("il", 100.0), ("plain", 0.0)):
         cfg = _config(tiny_dataset, tmp_path / name, frames=2048)
-        cfg.ppo = PPOConfig(total_frames=2048, frames_per_batch=256, minibatch_size=128, epochs=4, imitation_coef=coef,
+        # 16 epochs: with 4 (64 updates) the states change faster than the policy learns the teacher's
+        # state-dependent residual, and whether the loss on the fixed rollout fell was a coin toss
+        cfg.ppo = PPOConfig(total_frames=2048, frames_per_batch=256, minibatch_size=128, epochs=16, imitation_coef=coef,
                             lr=1e-3, max_grad_norm=100.0)
         torch.manual_seed(0)
         trainer = PPOTrainer(cfg, teacher=teacher if coef else None)

@@ -21,6 +21,10 @@ then, over all seeds, ``table1.json`` (``{split: {condition: {row: {metric: mean
 object), Fig. 6 (data scaling), Fig. 12 (latent smoothness ρ), and how much each modulator uses each
 of its channels (``channel_usage.png`` / ``.json``: mean |action| per entry).
 
+**Seeds side by side.** ``seed_workers=2`` runs each seed's chain in its own process (the table
+and figures are made in the main one). On 2 cores this fills the core that one seed leaves idle while it
+updates, distils or evaluates on one torch thread; the results are the same as one seed after another.
+
 **Resuming.** Every stage writes ``stage.json`` (its settings and result) when it has finished; a
 stage whose ``stage.json`` exists with the same settings is skipped, one with *other* settings is
 refused (use a new ``out``). A killed training stage continues from its ``checkpoint.pt``; rollouts
@@ -37,7 +41,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import multiprocessing
+import os
+import threading
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -67,6 +75,9 @@ class PipelineConfig:
     dataset_preset: str = "small"
     dataset_seed: int = 0
     seeds: tuple[int, ...] = (0, 1)          # training seeds: the whole chain runs once per seed
+    #: seeds trained side by side, each chain in its own process; 2 on 2 cores fills the core that one
+    #: seed's single-threaded updates, distillation and evaluations leave idle
+    seed_workers: int = 1
     specialists: int = 4                     # specialists, each on a block of the semantic groups
     worlds: int = 64
     env_threads: int = 2
@@ -95,7 +106,7 @@ class PipelineConfig:
         self.scaling_fractions = tuple(sorted({float(f) for f in self.scaling_fractions}))
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
             raise ConfigError(f"PipelineConfig.seeds must be distinct training seeds, got {list(self.seeds)}")
-        for k in ("specialists", "worlds", "env_threads", "workers", "specialist_frames", "modulator_frames",
+        for k in ("seed_workers", "specialists", "worlds", "env_threads", "workers", "specialist_frames", "modulator_frames",
                   "ppo_frames", "rollout_episodes", "distill_steps", "distill_batch", "eval_repeats",
                   "smoothness_samples"):
             check_number(f"PipelineConfig.{k}", getattr(self, k), low=1, integer=True)
@@ -323,26 +334,38 @@ class Pipeline:
         return out
 
     # -- all of it ------------------------------------------------------------------------------
+    def chain(self, seed: int) -> tuple[dict, dict, dict]:
+        """One training seed, start to end: (policy paths by row, evaluation summaries by (split,
+        condition, row), Fig. 6 summaries by fraction)."""
+        root = self.out / f"seed_{seed}"
+        teachers = self.specialists(seed, root)
+        rollouts = self.rollouts(seed, root, teachers)
+        tracker = self.distill(seed, root / "generalist", rollouts)
+        paths = {"tracker": tracker, **self.modulators(seed, root, tracker), **self.baselines(seed, root, rollouts)}
+        return paths, self.evaluations(seed, root, paths), self.scaling(seed, root, rollouts, tracker)
+
     def run(self) -> dict:
         from adadex.eval.table1 import aggregate, table_markdown
 
         t0 = time.perf_counter()
         self.out.mkdir(parents=True, exist_ok=True)
         self.ds = self.dataset()
+        seeds = self.cfg.seeds
+        workers = min(self.cfg.seed_workers, len(seeds))
+        if workers > 1:
+            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                     initializer=_die_with_parent, initargs=(os.getpid(),)) as pool:
+                chains = list(pool.map(_seed_chain, [(self.cfg, self.env_config, s) for s in seeds]))
+        else:
+            chains = [self.chain(s) for s in seeds]
         summaries: dict = {}
         scaling: dict = {}
         paths_by_seed = {}
-        for seed in self.cfg.seeds:
-            root = self.out / f"seed_{seed}"
-            teachers = self.specialists(seed, root)
-            rollouts = self.rollouts(seed, root, teachers)
-            tracker = self.distill(seed, root / "generalist", rollouts)
-            paths = {"tracker": tracker, **self.modulators(seed, root, tracker),
-                     **self.baselines(seed, root, rollouts)}
+        for seed, (paths, evaluations, fractions) in zip(seeds, chains):
             paths_by_seed[seed] = paths
-            for key, s in self.evaluations(seed, root, paths).items():
+            for key, s in evaluations.items():
                 summaries.setdefault(key, []).append(s)
-            for f, s in self.scaling(seed, root, rollouts, tracker).items():
+            for f, s in fractions.items():
                 scaling.setdefault(f, []).append(s)
         table = aggregate(summaries)
         atomic_write_text(self.out / "table1.json", json.dumps(table, indent=1))
@@ -406,6 +429,25 @@ class Pipeline:
                           json.dumps({k: {m: v[m] for m in ("mean", "median", "p95", "max", "eps")}
                                       for k, v in rho.items()}, indent=1))
         return {k: str(v) for k, v in out.items()}
+
+
+def _seed_chain(args) -> tuple[dict, dict, dict]:
+    """:meth:`Pipeline.chain` in a worker process (``seed_workers`` > 1); the dataset exists by then."""
+    cfg, env_config, seed = args
+    p = Pipeline(cfg, env_config)
+    p.ds = p.dataset()
+    return p.chain(seed)
+
+
+def _die_with_parent(parent: int) -> None:
+    """A seed worker ends when the pipeline process does (killed with ``kill -9``, say), so that a run
+    resumed later never trains a stage alongside an orphan writing into the same folder."""
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True).start()
 
 
 def run_pipeline(cfg: PipelineConfig, **kwargs) -> dict:

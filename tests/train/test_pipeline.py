@@ -92,7 +92,7 @@ def test_a_second_run_skips_every_stage_and_a_killed_one_resumes(tiny_run, tiny_
     stage = out / "seed_1" / "modulators" / "RT"
     frames = load_checkpoint(stage)["frames"]
     (stage / "stage.json").unlink()          # as if killed after its last checkpoint
-    r = _pipeline(tmp, out, tiny_dataset)
+    r = _pipeline(tmp, out, tiny_dataset, "seed_workers=1")     # the first run had the seeds side by side
     assert r.returncode == 0, r.stderr[-3000:]
     ran = [line for line in r.stdout.splitlines() if line.startswith("[run ]")]
     assert ran == ["[run ] seed 1 modulator R+T"], ran
@@ -155,3 +155,36 @@ def test_reference_subset_keeps_whole_references():
     assert len(reference_subset(buf, 0.01, seed=0)) == 10         # at least one reference
     with pytest.raises(ConfigError, match="fraction"):
         DistillConfig(rollouts="r", out="o", fraction=1.5)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return "\nState:\tZ" not in Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc to find the seed workers")
+def test_seed_workers_end_with_a_killed_pipeline(tiny_dataset, tmp_path):
+    """kill -9 of a pipeline with the seeds side by side leaves no worker training on (a resumed run would
+    otherwise train the same stage alongside an orphan)."""
+    import signal
+    import time
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "WANDB_MODE": "offline"}
+    out = tmp_path / "t1"
+    p = subprocess.Popen([sys.executable, ROOT / "recipes" / "pipeline.py", "preset=tiny", f"out={out}",
+                          f"dataset={tiny_dataset}", "seed_workers=2"], cwd=tmp_path, env=env,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while not all((out / f"seed_{s}" / "specialists").exists() for s in (0, 1)):
+        assert p.poll() is None and time.time() < deadline, "the seed workers never started"
+        time.sleep(0.5)
+    children = [int(c) for c in Path(f"/proc/{p.pid}/task/{p.pid}/children").read_text().split()]
+    assert len(children) >= 2, children
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait()
+    deadline = time.time() + 30
+    while any(_alive(c) for c in children) and time.time() < deadline:
+        time.sleep(0.5)
+    assert not any(_alive(c) for c in children), [c for c in children if _alive(c)]

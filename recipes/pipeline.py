@@ -1,6 +1,6 @@
 """The paper's Table 1 in one command — see pipeline.yaml and adadex.train.pipeline.
 
-    python recipes/pipeline.py preset=small out=runs/table1     # ~1 h on 2 cores (README)
+    python recipes/pipeline.py preset=small out=runs/table1     # 2 seeds; wall time measured in README
     python recipes/pipeline.py preset=tiny out=/tmp/t1          # every stage at toy size, minutes
 
 Runs specialists → teacher rollouts → distillation → modulators (R, R+T, R+O+T, O) → baselines

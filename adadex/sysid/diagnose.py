@@ -71,7 +71,8 @@ COMPLEXITY_PENALTY = 0.02
 #: Brent's tolerance (fraction of the bounds) when a candidate is fitted to the joints it may move too:
 #: a knock-on error can hang on the 6th digit of a torque limit (tests/sysid/test_coupled.py).
 COUPLED_XTOL = 1e-7
-#: a pending joint enters a source's coupled fit when the source's effect moves it by this fraction of its residual
+#: a pending joint enters a source's coupled fit when the source's effect moves it by this fraction
+#: of its residual
 COUPLING_MIN = 0.1
 
 
@@ -406,11 +407,11 @@ def _fit_and_score_candidates(setting: _Setting, joint: str, names: list[str], p
         if bar is not None:
             bar.update(1)
     cands.sort(key=lambda c: -c.score)
-    coupled = _moved_by(setting, joint, cands[0], train, moved, patch) if cands and len(moved) else []
-    if coupled:
+    shaken = _moved_by(setting, joint, cands[0], train, moved, patch) if cands and len(moved) else []
+    if shaken:
         best = cands[0]
-        cols = [joint] + coupled
-        seqs = np.unique(np.concatenate([train] + [setting.sequences(j)[0] for j in coupled])).astype(np.int64)
+        cols = [joint] + shaken
+        seqs = np.unique(np.concatenate([train] + [setting.sequences(j)[0] for j in shaken])).astype(np.int64)
         coupled = CoupledFitter(setting.replayer, joint, cols, seqs,
                                 [setting.noise[setting.joint_names.index(j)] for j in cols], patch)
         r = coupled.fit(best.effect, xtol_frac=COUPLED_XTOL, maxiter=100)   # from its own (coupled) grid

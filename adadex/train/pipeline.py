@@ -106,9 +106,9 @@ class PipelineConfig:
         self.scaling_fractions = tuple(sorted({float(f) for f in self.scaling_fractions}))
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
             raise ConfigError(f"PipelineConfig.seeds must be distinct training seeds, got {list(self.seeds)}")
-        for k in ("seed_workers", "specialists", "worlds", "env_threads", "workers", "specialist_frames", "modulator_frames",
-                  "ppo_frames", "rollout_episodes", "distill_steps", "distill_batch", "eval_repeats",
-                  "smoothness_samples"):
+        for k in ("seed_workers", "specialists", "worlds", "env_threads", "workers", "specialist_frames",
+                  "modulator_frames", "ppo_frames", "rollout_episodes", "distill_steps", "distill_batch",
+                  "eval_repeats", "smoothness_samples"):
             check_number(f"PipelineConfig.{k}", getattr(self, k), low=1, integer=True)
         check_number("PipelineConfig.imitation_coef", self.imitation_coef, strict_low=True)
         for f in self.scaling_fractions:

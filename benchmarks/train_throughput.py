@@ -2,9 +2,14 @@
 
 Measured in one run, on the same dataset and references:
 
-* ``physics``: ``BatchedSim`` alone (2 MuJoCo threads), the same worlds stepping servo targets;
 * ``collection``: TorchRL ``Collector`` on ``TrackingEnv`` with the residual ``Tracker`` sampling
-  actions (what PPO collects with);
+  actions (what PPO collects with); the servo targets its worlds received are recorded;
+* ``physics``: ``BatchedSim`` alone (2 MuJoCo threads), a fresh env's worlds stepping those recorded
+  targets — the physics of the same motion, contacts included, with nothing else. Physics cost
+  depends on the motion: worlds holding their start pose step ~30 % faster than worlds tracking and
+  touching objects, so that figure (``physics_static_fps``, the yardstick of earlier versions of
+  this benchmark) would charge the collection for contacts it did not add. ``physics_in_collection_fps``
+  (frames over the time spent inside ``BatchedSim.step`` during the collection) cross-checks it;
 * ``ppo``: full PPO iterations (collect + GAE + 4 epochs of minibatch updates + weight sync), the
   trainer of ``adadex.train.ppo``;
 * ``multisync_1`` / ``multisync_2``: ``MultiSyncCollector`` with 1 and 2 worker processes, one MuJoCo
@@ -41,33 +46,54 @@ from adadex.io import atomic_write_text
 
 
 
-def _physics_fps(factory, steps: int) -> float:
-    """BatchedSim alone: the env's own sim, stepped with its start targets (no env work)."""
+def _physics_fps(factory, commands: list[np.ndarray] | int) -> float:
+    """BatchedSim alone (no env work): a fresh env's sim stepping ``commands`` (recorded servo
+    targets), or holding its start targets for that many steps."""
     env = factory().base_env
     env.reset()
-    sim, targets = env.sim, env._q_target.copy()
-    sim.step(targets)
+    sim = env.sim
+    if isinstance(commands, int):
+        commands = [env._q_target.copy()] * commands
+    sim.step(commands[0])
     t0 = time.perf_counter()
-    for _ in range(steps):
+    for targets in commands:
         sim.step(targets)
-    fps = steps * env.batch_size[0] / (time.perf_counter() - t0)
+    fps = len(commands) * env.batch_size[0] / (time.perf_counter() - t0)
     env.close()
     return fps
 
 
-def _collector_fps(make, frames_per_batch: int, batches: int) -> tuple[float, float]:
-    """(frames/s over ``batches`` batches after the first, start-up s: first batch minus one batch)."""
+class _PhysicsRecorder:
+    """Wraps one env's ``BatchedSim.step``: keeps the targets it receives and the time spent in it."""
+
+    def __init__(self, sim):
+        self.step, self.commands, self.seconds = sim.step, [], 0.0
+        sim.step = self
+
+    def __call__(self, targets, *args, **kwargs):
+        self.commands.append(np.array(targets, copy=True))
+        t0 = time.perf_counter()
+        out = self.step(targets, *args, **kwargs)
+        self.seconds += time.perf_counter() - t0
+        return out
+
+
+def _collector_fps(make, frames_per_batch: int, batches: int, record: bool = False):
+    """(frames/s over ``batches`` batches after the first, start-up s: first batch minus one batch);
+    ``record``: also the :class:`_PhysicsRecorder` of the (one-process) collector's env."""
     t0 = time.perf_counter()
     col = make()
     it = iter(col)
     next(it)
     first = time.perf_counter() - t0
+    recorder = _PhysicsRecorder(col.env.base_env.sim) if record else None
     t1 = time.perf_counter()
     for _ in range(batches):
         next(it)
     per_batch = (time.perf_counter() - t1) / batches
     col.shutdown()
-    return frames_per_batch / per_batch, max(0.0, first - per_batch)
+    fps, startup = frames_per_batch / per_batch, max(0.0, first - per_batch)
+    return (fps, startup, recorder) if record else (fps, startup)
 
 
 def main(argv=None) -> dict:
@@ -98,10 +124,12 @@ def main(argv=None) -> dict:
         policy = Tracker(hidden=(256, 256, 128), residual=0.05).actor
         res = {"worlds": B, "frames_per_batch": fpb, "batches": batches, "references": len(refs)}
 
-        res["physics_fps"] = _physics_fps(factory, batches * 64)
-        res["collection_fps"], _ = _collector_fps(
+        res["collection_fps"], _, rec = _collector_fps(
             lambda: Collector(factory, policy, frames_per_batch=fpb, total_frames=-1,
-                              auto_register_policy_transforms=False), fpb, batches)
+                              auto_register_policy_transforms=False), fpb, batches, record=True)
+        res["physics_in_collection_fps"] = len(rec.commands) * B / rec.seconds
+        res["physics_fps"] = _physics_fps(factory, rec.commands)
+        res["physics_static_fps"] = _physics_fps(factory, len(rec.commands))
 
         cfg = TrainConfig(dataset=str(dataset), out=str(Path(tmp) / "ppo"), randomize=False, wandb=False,
                           progress=False, eval_max_references=1, checkpoint_every=10 ** 6,
@@ -140,12 +168,15 @@ def main(argv=None) -> dict:
 
     res["collection_over_physics"] = res["collection_fps"] / res["physics_fps"]
     res["ppo_over_physics"] = res["ppo_fps"] / res["physics_fps"]
+    res["collection_over_static_physics"] = res["collection_fps"] / res["physics_static_fps"]
     res["two_workers_over_one"] = res["multisync_2_fps"] / res["multisync_1_fps"]
     if "ray_2_fps" in res:
         res["ray_two_workers_over_one"] = res["ray_2_fps"] / res["ray_1_fps"]
     atomic_write_text(a.out, json.dumps(res, indent=1))
-    print(f"physics {res['physics_fps']:.0f} frames/s | collection {res['collection_fps']:.0f} "
-          f"({res['collection_over_physics']:.2f} × physics, target ≥ 0.8) | PPO {res['ppo_fps']:.0f} "
+    print(f"physics of the collected motion {res['physics_fps']:.0f} frames/s (inside the collection "
+          f"{res['physics_in_collection_fps']:.0f}; worlds holding still {res['physics_static_fps']:.0f})")
+    print(f"collection {res['collection_fps']:.0f} ({res['collection_over_physics']:.2f} × physics, target ≥ 0.8; "
+          f"{res['collection_over_static_physics']:.2f} × the still worlds) | PPO {res['ppo_fps']:.0f} "
           f"({res['ppo_over_physics']:.2f} ×, target ≥ 0.5)")
     print(f"MultiSync 1 worker {res['multisync_1_fps']:.0f}, 2 workers {res['multisync_2_fps']:.0f} frames/s: "
           f"{res['two_workers_over_one']:.2f} × (target ≥ 1.7); start-up "

@@ -37,13 +37,22 @@ class PPOConfig:
     imitation_coef: float = 0.0
     #: torch threads for the minibatch updates (0: all cores); collection always runs torch on one
     update_threads: int = 0
+    #: > 0: adapt the learning rate to keep each minibatch's approximate KL near this value (÷1.5
+    #: above 2×, ×1.5 below ½×, within [lr_min, lr_max]), the schedule of large-batch dexterous PPO;
+    #: 0: a constant ``lr``
+    desired_kl: float = 0.0
+    lr_min: float = 1e-6
+    lr_max: float = 1e-2
 
     def __post_init__(self):
         check_number("PPOConfig.update_threads", self.update_threads, integer=True)
         for k in ("total_frames", "frames_per_batch", "epochs", "minibatch_size"):
             check_number(f"PPOConfig.{k}", getattr(self, k), low=1, integer=True)
         check_numbers("PPOConfig", self, ("lr", "clip_epsilon", "entropy_coef", "critic_coef", "max_grad_norm",
-                                          "imitation_coef"))
+                                          "imitation_coef", "desired_kl", "lr_min", "lr_max"))
+        if not 0 < self.lr_min <= self.lr <= self.lr_max:
+            raise ConfigError(f"PPOConfig: need 0 < lr_min ≤ lr ≤ lr_max, got lr_min={self.lr_min}, lr={self.lr}, "
+                              f"lr_max={self.lr_max}")
         for k in ("gamma", "lmbda"):
             check_number(f"PPOConfig.{k}", getattr(self, k), high=1.0)
 

@@ -163,12 +163,28 @@ class PPOTrainer:
                 total.backward()
                 grad = torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.ppo.max_grad_norm)
                 self.optim.step()
+                if self.ppo.desired_kl > 0 and "kl_approx" in out.keys():
+                    self._adapt_lr(float(out["kl_approx"].detach().mean()))
                 for k in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "kl_approx", "clip_fraction",
                           "ESS"):
                     if k in out.keys():
                         stats.setdefault(k, []).append(float(out[k].detach().mean()))
                 stats.setdefault("grad_norm", []).append(float(grad))
+        stats["lr"] = [self.optim.param_groups[0]["lr"]]
         return {k: float(np.mean(v)) for k, v in stats.items()}
+
+    def _adapt_lr(self, kl: float) -> None:
+        """The KL-adaptive learning rate (``ppo.desired_kl``): ÷1.5 when the minibatch's approximate
+        KL from the collecting policy exceeds twice the target, ×1.5 below half of it. The rate lives
+        in the optimizer's state, so a resumed run continues with it."""
+        c = self.ppo
+        lr = self.optim.param_groups[0]["lr"]
+        if kl > 2.0 * c.desired_kl:
+            lr = max(lr / 1.5, c.lr_min)
+        elif kl < 0.5 * c.desired_kl:
+            lr = min(lr * 1.5, c.lr_max)
+        for g in self.optim.param_groups:
+            g["lr"] = lr
 
     def _imitation(self, batch: TensorDictBase) -> torch.Tensor:
         """Mean squared difference between the policy's deterministic action and the teacher's logged

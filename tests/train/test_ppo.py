@@ -252,3 +252,25 @@ def test_recipes_refuse_bad_input_in_one_line(tiny_dataset, tmp_path, recipe, ar
     lines = [l for l in res.stderr.splitlines() if l.strip()]
     assert len(lines) == 1 and fragment in lines[0] and "Traceback" not in res.stderr, res.stderr[-2000:]
     assert not (out / "checkpoint.pt").exists()
+
+
+@pytest.mark.parametrize("desired_kl, direction", [(1e-9, "down"), (10.0, "up")])
+def test_kl_adaptive_learning_rate_follows_the_measured_kl(tiny_dataset, tmp_path, desired_kl, direction):
+    # any real update's KL is far above 1e-9 and far below 10: the rate must fall, or rise, every minibatch
+    cfg = _config(tiny_dataset, tmp_path / "run", frames=512)
+    cfg.ppo = PPOConfig(total_frames=512, frames_per_batch=256, minibatch_size=128, epochs=2, lr=1e-3,
+                        desired_kl=desired_kl, lr_min=1e-5, lr_max=0.1)
+    train(cfg)
+    lrs = [float(r["lr"]) for r in _rows(tmp_path / "run") if r.get("lr")]
+    assert len(lrs) == 2
+    if direction == "down":
+        assert lrs[0] < 1e-3 and lrs[1] < lrs[0]
+    else:
+        assert lrs[0] > 1e-3 and lrs[1] > lrs[0]
+    # the rate is optimizer state: the checkpoint carries it for a resumed run
+    assert load_checkpoint(tmp_path / "run")["optimizer"]["param_groups"][0]["lr"] == pytest.approx(lrs[-1])
+
+
+def test_bad_learning_rate_bounds_are_refused():
+    with pytest.raises(ConfigError, match="lr_min"):
+        PPOConfig(lr=1e-3, lr_min=1e-2)

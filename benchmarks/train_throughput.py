@@ -6,8 +6,8 @@ Measured in one run, on the same dataset and references:
   actions (what PPO collects with); the servo targets its worlds received are recorded;
 * ``physics``: ``BatchedSim`` alone (2 MuJoCo threads), a fresh env's worlds stepping those recorded
   targets — the physics of the same motion, contacts included, with nothing else. Physics cost
-  depends on the motion: worlds holding their start pose step ~30 % faster than worlds tracking and
-  touching objects, so that figure (``physics_static_fps``, the yardstick of earlier versions of
+  depends on the motion: worlds holding their start pose step 20–30 % faster than worlds tracking
+  and touching objects, so that figure (``physics_static_fps``, the yardstick of earlier versions of
   this benchmark) would charge the collection for contacts it did not add. ``physics_in_collection_fps``
   (frames over the time spent inside ``BatchedSim.step`` during the collection) cross-checks it;
 * ``ppo``: full PPO iterations (collect + GAE + 4 epochs of minibatch updates + weight sync), the

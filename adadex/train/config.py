@@ -87,7 +87,10 @@ class PolicyConfig:
     #: reaches an object Table 3 moved by ~5 cm (0.05 could not: 54.9 vs 58.5 %
     #: completion at 200k frames, replay 55.5 %; benchmarks/specialist_quality.py --residual)
     residual: float = 0.25
-    init_scale: float = 0.15              # pre-tanh exploration scale: ±0.04 rad at residual 0.25
+    #: pre-tanh exploration scale of the correction. 0.5 (±0.12 rad at residual 0.25) explores far
+    #: enough to find a grasp that 0.15 did not: a specialist's completion 67.0 / 68.9 % vs 60.4 / 62.6 %
+    #: (seeds 0 / 1, replay 57.2 %; 1.0 gave 68.2 % on seed 0)
+    init_scale: float = 0.5
 
     def __post_init__(self):
         self.hidden = tuple(int(h) for h in self.hidden)

@@ -52,6 +52,7 @@ def main(argv=None) -> dict:
     p.add_argument("--residual", type=float, default=None,
                    help="the tracker's correction bound (default: PolicyConfig's)")
     p.add_argument("--init-scale", type=float, default=None, help="its exploration scale (default: PolicyConfig's)")
+    p.add_argument("--seed", type=int, default=0, help="training seed of both runs")
     p.add_argument("--out", type=Path, default=RESULTS / "specialist_quality.json")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -85,15 +86,15 @@ def main(argv=None) -> dict:
 
     chosen = {"residual": a.residual, "init_scale": a.init_scale}
     policy = PolicyConfig(**{k: v for k, v in chosen.items() if v is not None})
-    out = {"group": group, "references": len(refs), "repeats": a.repeats, "frames": a.frames,
+    out = {"group": group, "references": len(refs), "repeats": a.repeats, "frames": a.frames, "seed": a.seed,
            "residual": policy.residual, "init_scale": policy.init_scale}
     out["replay"] = score(replay_policy())
     runs = {"specialist": TrainConfig(dataset=str(a.dataset), out=str(a.runs / f"specialist_{group}"), group=group,
-                                      resume=True, progress=False, ppo=PPOConfig(total_frames=a.frames),
+                                      seed=a.seed, resume=True, progress=False, ppo=PPOConfig(total_frames=a.frames),
                                       collector=CollectorConfig(workers=a.workers), policy=policy)}
     if not a.skip_ppo:
-        runs["ppo"] = TrainConfig(dataset=str(a.dataset), out=str(a.runs / "ppo"), resume=True, progress=False,
-                                  ppo=PPOConfig(total_frames=a.frames), collector=CollectorConfig(workers=a.workers),
+        runs["ppo"] = TrainConfig(dataset=str(a.dataset), out=str(a.runs / "ppo"), seed=a.seed, resume=True,
+                                  progress=False, ppo=PPOConfig(total_frames=a.frames), collector=CollectorConfig(workers=a.workers),
                                   policy=policy)
     for name, cfg in runs.items():
         t0 = time.perf_counter()

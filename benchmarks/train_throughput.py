@@ -79,8 +79,8 @@ class _PhysicsRecorder:
 
 
 def _collector_fps(make, frames_per_batch: int, batches: int, record: bool = False):
-    """(frames/s over ``batches`` batches after the first, start-up s: first batch minus one batch);
-    ``record``: also the :class:`_PhysicsRecorder` of the (one-process) collector's env."""
+    """(frames/s over ``batches`` batches after the first, start-up s: first batch minus one batch,
+    the :class:`_PhysicsRecorder` of the one-process collector's env if ``record`` else None)."""
     t0 = time.perf_counter()
     col = make()
     it = iter(col)
@@ -92,8 +92,7 @@ def _collector_fps(make, frames_per_batch: int, batches: int, record: bool = Fal
         next(it)
     per_batch = (time.perf_counter() - t1) / batches
     col.shutdown()
-    fps, startup = frames_per_batch / per_batch, max(0.0, first - per_batch)
-    return (fps, startup, recorder) if record else (fps, startup)
+    return frames_per_batch / per_batch, max(0.0, first - per_batch), recorder
 
 
 def main(argv=None) -> dict:
@@ -144,7 +143,7 @@ def main(argv=None) -> dict:
         one = factory.with_scenes()
         w1 = dataclasses.replace(one, nthread=1)
         for n in (1, 2):
-            res[f"multisync_{n}_fps"], res[f"multisync_{n}_startup_s"] = _collector_fps(
+            res[f"multisync_{n}_fps"], res[f"multisync_{n}_startup_s"], _ = _collector_fps(
                 lambda n=n: MultiSyncCollector(w1.for_workers(n), policy, frames_per_batch=fpb * n, total_frames=-1,
                                                cat_results="stack", num_sub_threads=1,
                                                auto_register_policy_transforms=False), fpb * n, batches)
@@ -156,7 +155,7 @@ def main(argv=None) -> dict:
                 ray = None
             if ray is not None:
                 for n in (1, 2):
-                    res[f"ray_{n}_fps"], res[f"ray_{n}_startup_s"] = _collector_fps(
+                    res[f"ray_{n}_fps"], res[f"ray_{n}_startup_s"], _ = _collector_fps(
                         lambda n=n: RayCollector(w1.for_workers(n), policy, frames_per_batch=fpb * n,
                                                  total_frames=fpb * n * (batches + 2),
                                                  collector_class=Collector, sync=True,

@@ -3,7 +3,8 @@
 Measured in one run, on the same dataset and references:
 
 * ``collection``: TorchRL ``Collector`` on ``TrackingEnv`` with the residual ``Tracker`` sampling
-  actions (what PPO collects with); the servo targets its worlds received are recorded;
+  actions (its ``sampling_policy()``, what PPO collects with); the servo targets its worlds received
+  are recorded;
 * ``physics``: ``BatchedSim`` alone (2 MuJoCo threads), a fresh env's worlds stepping those recorded
   targets — the physics of the same motion, contacts included, with nothing else. Physics cost
   depends on the motion: worlds holding their start pose step 20–30 % faster than worlds tracking
@@ -120,7 +121,8 @@ def main(argv=None) -> dict:
         B, fpb = a.worlds, a.worlds * 64
         batches = max(1, a.frames // fpb)
         factory = TrackingEnvFactory(str(dataset), refs, num_worlds=B, seed=0, nthread=2)
-        policy = Tracker(hidden=(256, 256, 128), residual=0.05).actor
+        pc = PolicyConfig()
+        policy = Tracker(hidden=pc.hidden, residual=pc.residual, init_scale=pc.init_scale).sampling_policy()
         res = {"worlds": B, "frames_per_batch": fpb, "batches": batches, "references": len(refs)}
 
         res["collection_fps"], _, rec = _collector_fps(

@@ -14,7 +14,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import torch
-from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
+from tensordict.nn import (InteractionType, NormalParamExtractor, TensorDictModule, TensorDictModuleBase,
+                           TensorDictSequential)
+from tensordict.nn.probabilistic import interaction_type
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
@@ -91,10 +93,64 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
         module = TensorDictSequential(module, bounds)
         dist_keys.update(low=(namespace, "low"), high=(namespace, "high"))
         dist_kwargs = {}
-    return ProbabilisticActor(
+    actor = ProbabilisticActor(
         module, in_keys=dist_keys, out_keys=[action_key],
         spec=Bounded(low=low, high=high, shape=(dim,)), distribution_class=TanhNormal,
         distribution_kwargs=dist_kwargs, return_log_prob=True)
+    # plain references (a tuple is not registered as a submodule: the state dict is unchanged)
+    actor._sampling_parts = (net, bounds, obs_key, loc, scale, dist_keys, dist_kwargs)
+    return actor
+
+
+class SamplingPolicy(TensorDictModuleBase):
+    """``actor`` (from :func:`make_actor`) as collectors call it: the same TanhNormal, sampled in one call.
+
+    A collector calls its policy once per env step on every world. At B = 64 the ProbabilisticActor's
+    generic path — a TensorDictModule call per piece, each output converted on write, the interaction
+    type dispatched — costs about as much as its network (measured in ``benchmarks/train_throughput.py``).
+    Under ``ExplorationType.RANDOM`` (what collectors set) this module runs the actor's own network
+    and bounds modules on the tensors, builds the same :class:`~torchrl.modules.TanhNormal`, samples
+    it and writes every key the actor writes; any other exploration type runs the actor itself. It
+    holds the actor (its parameters), so a collector's weight updates reach both paths.
+
+    >>> import torch
+    >>> from tensordict import TensorDict
+    >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
+    >>> actor = make_actor("obs", 4, [2], -1.0, 1.0, [8], namespace="p")
+    >>> td = TensorDict({"obs": torch.zeros(3, 4)}, batch_size=[3])
+    >>> with set_exploration_type(ExplorationType.RANDOM):
+    ...     out = SamplingPolicy(actor)(td)
+    >>> out["action"].shape, out["action_log_prob"].shape
+    (torch.Size([3, 2]), torch.Size([3]))
+    """
+
+    def __init__(self, actor: ProbabilisticActor):
+        super().__init__()
+        parts = getattr(actor, "_sampling_parts", None)
+        if parts is None:
+            raise TypeError(f"SamplingPolicy needs an actor built by make_actor, got {type(actor).__name__}")
+        self.actor = actor
+        self.in_keys, self.out_keys = list(actor.in_keys), list(actor.out_keys)
+        self._action_key = actor.out_keys[-2] if len(actor.out_keys) > 1 else "action"
+
+    def forward(self, tensordict):
+        if interaction_type() is not InteractionType.RANDOM:
+            return self.actor(tensordict)
+        net, bounds, obs_key, loc_key, scale_key, dist_keys, kwargs = self.actor._sampling_parts
+        obs = tensordict.get(obs_key)
+        loc, scale = net(obs)
+        tensordict.set(loc_key, loc)
+        tensordict.set(scale_key, scale)
+        if bounds is not None:
+            low, high = bounds.module(*(tensordict.get(k) for k in bounds.in_keys))
+            tensordict.set(dist_keys["low"], low)
+            tensordict.set(dist_keys["high"], high)
+            kwargs = {"low": low, "high": high}
+        dist = TanhNormal(loc, scale, **kwargs)
+        action = dist.rsample()
+        tensordict.set(self._action_key, action)
+        tensordict.set(self.out_keys[-1], dist.log_prob(action))
+        return tensordict
 
 
 def make_critic(obs_key, obs_dim: int, hidden: Sequence[int], *, value_key="state_value") -> ValueOperator:
@@ -114,6 +170,10 @@ class ActorCritic(nn.Module):
     def forward(self, tensordict):
         """The actor's forward pass (the module used as a policy)."""
         return self.actor(tensordict)
+
+    def sampling_policy(self) -> SamplingPolicy:
+        """The actor as collectors call it: :class:`SamplingPolicy` (same distribution, one call)."""
+        return SamplingPolicy(self.actor)
 
     def freeze(self):
         """No gradients, eval mode (e.g. the tracker as the modulator's frozen generalist)."""

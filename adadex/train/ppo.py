@@ -140,7 +140,7 @@ class PPOTrainer:
         """GAE, then ``epochs`` passes of minibatch PPO updates over ``data`` ([N, T])."""
         with torch.no_grad():
             self.gae(data)
-        flat = data.reshape(-1)
+        flat = data.select(*self._minibatch_keys()).reshape(-1)
         if self.buffer is None or self.buffer.storage.max_size != flat.numel():
             self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(flat.numel()),
                                                  sampler=SamplerWithoutReplacement(),
@@ -172,6 +172,17 @@ class PPOTrainer:
                 stats.setdefault("grad_norm", []).append(float(grad))
         stats["lr"] = [self.optim.param_groups[0]["lr"]]
         return {k: float(np.mean(v)) for k, v in stats.items()}
+
+    def _minibatch_keys(self) -> list:
+        """What a minibatch update reads: the actor's and critic's inputs, the action, its log-prob, GAE's
+        outputs (and the imitation term's keys). The buffer holds only these — a collected batch has
+        ~60 entries, and each is copied on every minibatch draw."""
+        k = self.loss.tensor_keys
+        keys = {*self.loss.actor_network.in_keys, *self.loss.critic_network.in_keys, k.action, k.sample_log_prob,
+                k.advantage, k.value_target, k.value}
+        if self.teacher is not None:
+            keys |= {REFERENCE_INDEX, STEP}
+        return sorted(keys, key=str)
 
     def _adapt_lr(self, kl: float) -> None:
         """The KL-adaptive learning rate (``ppo.desired_kl``): ÷1.5 when the minibatch's approximate
@@ -249,7 +260,7 @@ class PPOTrainer:
         remaining = self.ppo.total_frames - self.frames
         # a resumed run draws new references and randomizations: seeds move on with the iteration
         factory = self.env_factory(self.cfg.seed + 7919 * self.iteration)
-        collector = make_collector(factory, self.policy.actor, self.cfg.collector,
+        collector = make_collector(factory, self.policy.sampling_policy(), self.cfg.collector,
                                    frames_per_batch=self.ppo.frames_per_batch, total_frames=remaining)
         bar = tqdm(total=self.ppo.total_frames, initial=self.frames, unit="frame", desc=self.run_name,
                    disable=not self.cfg.progress)

@@ -3,14 +3,19 @@
 Measured in one run, on the same dataset and references:
 
 * ``collection``: TorchRL ``Collector`` on ``TrackingEnv`` with the residual ``Tracker`` sampling
-  actions (its ``sampling_policy()``, what PPO collects with); the servo targets its worlds received
-  are recorded;
-* ``physics``: ``BatchedSim`` alone (2 MuJoCo threads), a fresh env's worlds stepping those recorded
-  targets — the physics of the same motion, contacts included, with nothing else. Physics cost
-  depends on the motion: worlds holding their start pose step 20–30 % faster than worlds tracking
-  and touching objects, so that figure (``physics_static_fps``, the yardstick of earlier versions of
-  this benchmark) would charge the collection for contacts it did not add. ``physics_in_collection_fps``
-  (frames over the time spent inside ``BatchedSim.step`` during the collection) cross-checks it;
+  actions (its ``sampling_policy()``, what PPO collects with); the env's physics events are recorded:
+  every servo target, and every world restarted (new reference, new scene) or put back;
+* ``physics``: ``BatchedSim`` alone (2 MuJoCo threads) replaying that record in a fresh env seeded
+  alike — the same scenes and the same motion, contacts included, with nothing else; the timed
+  steps are those of the timed batches. ``physics_replay_exact`` says whether the replay ended in
+  the recorded state (MuJoCo is deterministic; it should). Physics cost depends on the motion and
+  the scenes: worlds holding their start pose step 20–30 % faster than worlds tracking and touching
+  objects, so that figure (``physics_static_fps``, the yardstick of the first version of this
+  benchmark) would charge the collection for contacts it did not add; replaying the targets on a
+  fresh env's first scenes (the second version) ran the motion against objects it was not made
+  for. ``physics_in_collection_fps`` (frames over the time spent inside ``BatchedSim.step`` during
+  the collection) cross-checks it: it also holds the cost of stepping physics between other work
+  (cold caches, threads waking);
 * ``ppo``: full PPO iterations (collect + GAE + 4 epochs of minibatch updates + weight sync), the
   trainer of ``adadex.train.ppo``;
 * ``multisync_1`` / ``multisync_2``: ``MultiSyncCollector`` with 1 and 2 worker processes, one MuJoCo
@@ -47,53 +52,94 @@ from adadex.io import atomic_write_text
 
 
 
-def _physics_fps(factory, commands: list[np.ndarray] | int) -> float:
-    """BatchedSim alone (no env work): a fresh env's sim stepping ``commands`` (recorded servo
-    targets), or holding its start targets for that many steps."""
+def _physics_fps(factory, recorder: _PhysicsRecorder | None = None, steps: int = 0) -> tuple[float, bool | None]:
+    """BatchedSim alone (no env work) in a fresh env from ``factory``: (frames/s, whether the replay
+    ended in the recorded state). With a ``recorder``, the fresh env replays its events — the
+    restarts (the same draws: the env is seeded alike) and every servo target — so its worlds hold
+    the same scenes and make the same motion; only the steps the recorder timed are timed. Without
+    one, the worlds hold their start targets for ``steps`` steps."""
     env = factory().base_env
-    env.reset()
-    sim = env.sim
-    if isinstance(commands, int):
-        commands = [env._q_target.copy()] * commands
-    sim.step(commands[0])
-    t0 = time.perf_counter()
-    for targets in commands:
-        sim.step(targets)
-    fps = len(commands) * env.batch_size[0] / (time.perf_counter() - t0)
+    if recorder is None:
+        env.reset()
+        targets = env._q_target.copy()
+        env.sim.step(targets)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            env.sim.step(targets)
+        fps = steps * env.batch_size[0] / (time.perf_counter() - t0)
+        env.close()
+        return fps, None
+    seconds, n = 0.0, 0
+    for kind, value, timed in recorder.events:
+        if kind == "start":
+            env._start_worlds(value)
+        elif kind == "put":
+            env._put_at_start(value)
+        elif timed:
+            t0 = time.perf_counter()
+            env.sim.step(value)
+            seconds += time.perf_counter() - t0
+            n += 1
+        else:
+            env.sim.step(value)
+    exact = bool(np.array_equal(env.sim.readout().object_pose, recorder.final_object_pose))
     env.close()
-    return fps
+    return n * env.batch_size[0] / seconds, exact
 
 
 class _PhysicsRecorder:
-    """Wraps one env's ``BatchedSim.step``: keeps the targets it receives and the time spent in it."""
+    """Wraps one ``TrackingEnv``: the servo targets its ``BatchedSim.step`` receives (and the time
+    spent there once ``timing`` is set), and the worlds it restarts or puts back between steps, in
+    order, so :func:`_physics_fps` can replay the same physics."""
 
-    def __init__(self, sim):
-        self.step, self.commands, self.seconds = sim.step, [], 0.0
-        sim.step = self
+    def __init__(self, env):
+        self.env, self.events, self.seconds, self.steps, self.timing = env, [], 0.0, 0, False
+        self.final_object_pose = None
+        self._step, self._start, self._put, self._starting = env.sim.step, env._start_worlds, env._put_at_start, False
+        env.sim.step, env._start_worlds, env._put_at_start = self._record_step, self._record_start, self._record_put
 
-    def __call__(self, targets, *args, **kwargs):
-        self.commands.append(np.array(targets, copy=True))
+    def _record_step(self, targets, *args, **kwargs):
+        self.events.append(("step", np.array(targets, copy=True), self.timing))
         t0 = time.perf_counter()
-        out = self.step(targets, *args, **kwargs)
-        self.seconds += time.perf_counter() - t0
+        out = self._step(targets, *args, **kwargs)
+        if self.timing:
+            self.seconds += time.perf_counter() - t0
+            self.steps += 1
+        self.final_object_pose = out.object_pose.copy()
         return out
 
+    def _record_start(self, worlds):
+        self.events.append(("start", np.array(worlds, copy=True), False))
+        self._starting = True
+        try:
+            return self._start(worlds)
+        finally:
+            self._starting = False
 
-def _collector_fps(make, frames_per_batch: int, batches: int, record: bool = False):
-    """(frames/s over ``batches`` batches after the first, start-up s: first batch minus one batch,
-    the :class:`_PhysicsRecorder` of the one-process collector's env if ``record`` else None)."""
+    def _record_put(self, worlds, *args, **kwargs):
+        if not self._starting:                      # an unstable world put back during a step
+            self.events.append(("put", np.array(worlds, copy=True), False))
+        return self._put(worlds, *args, **kwargs)
+
+
+def _collector_fps(make, frames_per_batch: int, batches: int, recorders: list[_PhysicsRecorder] = ()):
+    """(frames/s over ``batches`` batches after the first, start-up s: first batch minus one batch).
+    ``recorders`` (filled when ``make`` builds its envs) time the physics of the timed batches."""
     t0 = time.perf_counter()
     col = make()
     it = iter(col)
     next(it)
     first = time.perf_counter() - t0
-    recorder = _PhysicsRecorder(col.env.base_env.sim) if record else None
+    for r in recorders:
+        r.timing = True
     t1 = time.perf_counter()
     for _ in range(batches):
         next(it)
     per_batch = (time.perf_counter() - t1) / batches
+    for r in recorders:
+        r.timing = False
     col.shutdown()
-    return frames_per_batch / per_batch, max(0.0, first - per_batch), recorder
+    return frames_per_batch / per_batch, max(0.0, first - per_batch)
 
 
 def main(argv=None) -> dict:
@@ -125,12 +171,20 @@ def main(argv=None) -> dict:
         policy = Tracker(hidden=pc.hidden, residual=pc.residual, init_scale=pc.init_scale).sampling_policy()
         res = {"worlds": B, "frames_per_batch": fpb, "batches": batches, "references": len(refs)}
 
-        res["collection_fps"], _, rec = _collector_fps(
-            lambda: Collector(factory, policy, frames_per_batch=fpb, total_frames=-1,
-                              auto_register_policy_transforms=False), fpb, batches, record=True)
-        res["physics_in_collection_fps"] = len(rec.commands) * B / rec.seconds
-        res["physics_fps"] = _physics_fps(factory, rec.commands)
-        res["physics_static_fps"] = _physics_fps(factory, len(rec.commands))
+        recorders = []
+
+        def recorded_env():
+            env = factory()
+            recorders.append(_PhysicsRecorder(env.base_env))
+            return env
+
+        res["collection_fps"], _ = _collector_fps(
+            lambda: Collector(recorded_env, policy, frames_per_batch=fpb, total_frames=-1,
+                              auto_register_policy_transforms=False), fpb, batches, recorders)
+        rec = recorders[-1]
+        res["physics_in_collection_fps"] = rec.steps * B / rec.seconds
+        res["physics_fps"], res["physics_replay_exact"] = _physics_fps(factory, rec)
+        res["physics_static_fps"], _ = _physics_fps(factory, steps=rec.steps)
 
         cfg = TrainConfig(dataset=str(dataset), out=str(Path(tmp) / "ppo"), randomize=False, wandb=False,
                           progress=False, eval_max_references=1, checkpoint_every=10 ** 6,
@@ -145,7 +199,7 @@ def main(argv=None) -> dict:
         one = factory.with_scenes()
         w1 = dataclasses.replace(one, nthread=1)
         for n in (1, 2):
-            res[f"multisync_{n}_fps"], res[f"multisync_{n}_startup_s"], _ = _collector_fps(
+            res[f"multisync_{n}_fps"], res[f"multisync_{n}_startup_s"] = _collector_fps(
                 lambda n=n: MultiSyncCollector(w1.for_workers(n), policy, frames_per_batch=fpb * n, total_frames=-1,
                                                cat_results="stack", num_sub_threads=1,
                                                auto_register_policy_transforms=False), fpb * n, batches)
@@ -157,7 +211,7 @@ def main(argv=None) -> dict:
                 ray = None
             if ray is not None:
                 for n in (1, 2):
-                    res[f"ray_{n}_fps"], res[f"ray_{n}_startup_s"], _ = _collector_fps(
+                    res[f"ray_{n}_fps"], res[f"ray_{n}_startup_s"] = _collector_fps(
                         lambda n=n: RayCollector(w1.for_workers(n), policy, frames_per_batch=fpb * n,
                                                  total_frames=fpb * n * (batches + 2),
                                                  collector_class=Collector, sync=True,
@@ -174,8 +228,9 @@ def main(argv=None) -> dict:
     if "ray_2_fps" in res:
         res["ray_two_workers_over_one"] = res["ray_2_fps"] / res["ray_1_fps"]
     atomic_write_text(a.out, json.dumps(res, indent=1))
-    print(f"physics of the collected motion {res['physics_fps']:.0f} frames/s (inside the collection "
-          f"{res['physics_in_collection_fps']:.0f}; worlds holding still {res['physics_static_fps']:.0f})")
+    print(f"physics of the collected motion {res['physics_fps']:.0f} frames/s (replayed exactly: "
+          f"{res['physics_replay_exact']}; inside the collection {res['physics_in_collection_fps']:.0f}; "
+          f"worlds holding still {res['physics_static_fps']:.0f})")
     print(f"collection {res['collection_fps']:.0f} ({res['collection_over_physics']:.2f} × physics, target ≥ 0.8; "
           f"{res['collection_over_static_physics']:.2f} × the still worlds) | PPO {res['ppo_fps']:.0f} "
           f"({res['ppo_over_physics']:.2f} ×, target ≥ 0.5)")

@@ -140,6 +140,9 @@ class TrainConfig:
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     #: set: train a modulator around this frozen tracker instead of a tracker
     modulator: ModulatorSettings | None = None
+    #: :class:`~adadex.envs.reward.RewardConfig` fields to change for this run (``{"w_prox": 1.0}``);
+    #: the rest keep their defaults (or those of the ``env_config`` the trainer is given)
+    reward: dict = field(default_factory=dict)
     checkpoint_every: int = 5             # iterations
     eval_every: int = 0                   # iterations (0: only at the end)
     eval_split: tuple[str, str] | None = None   # default: the training references themselves
@@ -168,6 +171,22 @@ class TrainConfig:
             v = getattr(self, name)
             if isinstance(v, dict):
                 setattr(self, name, sub(**v))
+        self.reward = dict(self.reward or {})
+        self._reward_config(None)             # unknown or out-of-range reward settings fail here
+
+    def _reward_config(self, base):
+        from adadex.envs.reward import RewardConfig
+
+        base = RewardConfig() if base is None else base
+        return from_known_keys(RewardConfig, {**dataclasses.asdict(base), **self.reward})
+
+    def env_config(self, base=None):
+        """``base`` (a :class:`~adadex.envs.tracking.TrackingConfig`, default: the defaults) with this
+        run's reward settings."""
+        from adadex.envs.tracking import TrackingConfig
+
+        base = TrackingConfig() if base is None else base
+        return dataclasses.replace(base, reward=self._reward_config(base.reward))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -78,8 +78,9 @@ class PPOTrainer:
     :class:`Tracker` (specialists, the vanilla-PPO baseline), or — with ``cfg.modulator`` — a
     :class:`Modulator` on the modulated env with the generalist frozen inside it (paper Sec. 3.2)."""
 
-    def __init__(self, cfg: TrainConfig, *, env_config: TrackingConfig = TrackingConfig(), run_name: str = "ppo",
+    def __init__(self, cfg: TrainConfig, *, env_config: TrackingConfig | None = None, run_name: str = "ppo",
                  teacher: tuple[torch.Tensor, torch.Tensor] | None = None):
+        env_config = cfg.env_config(env_config)              # with the run's reward settings
         self.cfg, self.env_config, self.run_name = cfg, env_config, run_name
         self.out = Path(cfg.out)
         self.dataset = ReferenceDataset(cfg.dataset)

@@ -242,6 +242,7 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
     ("train_modulator.py", ["tracker=/nonexistent/generalist.pt"], "no tracker checkpoint"),
     ("train_specialist.py", ["group=999"], "semantic group 999"),
     ("train_ppo.py", ["collector.backend=slurm"], "backend must be 'local' or 'ray'"),
+    ("train_ppo.py", ["+reward.w_alvie=1.0"], "RewardConfig: unknown keys ['w_alvie']"),
 ])
 def test_recipes_refuse_bad_input_in_one_line(tiny_dataset, tmp_path, recipe, args, fragment):
     out = tmp_path / "run"
@@ -287,3 +288,21 @@ def test_kl_adaptive_learning_rate_is_logged_and_checkpointed(tiny_dataset, tmp_
 def test_bad_learning_rate_bounds_are_refused():
     with pytest.raises(ConfigError, match="lr_min"):
         PPOConfig(lr=1e-3, lr_min=1e-2)
+
+
+def test_reward_settings_reach_the_envs_a_run_trains_on(tiny_dataset, tmp_path):
+    from adadex.envs.tracking import TrackingConfig
+    from adadex.train.recipe import train_config
+
+    tc = train_config({"dataset": str(tiny_dataset), "out": str(tmp_path / "run"),
+                       "reward": {"w_alive": 0.0, "w_prox": 2.0}})
+    trainer = PPOTrainer(tc)
+    env = trainer.env_factory(0)
+    assert (env.config.reward.w_alive, env.config.reward.w_prox, env.config.reward.w_goal) == (0.0, 2.0, 1.0)
+    # a run given its own env settings keeps them and takes the reward settings on top
+    trainer = PPOTrainer(tc, env_config=TrackingConfig(terminate_object_error=0.0))
+    assert trainer.env_config.terminate_object_error == 0.0 and trainer.env_config.reward.w_prox == 2.0
+    # and a resumed run reads them back from its checkpointed config
+    assert TrainConfig.from_dict(tc.to_dict()).reward == {"w_alive": 0.0, "w_prox": 2.0}
+    with pytest.raises(ConfigError, match="sigma_hand must be"):
+        TrainConfig(dataset="d", out="o", reward={"sigma_hand": 0.0})

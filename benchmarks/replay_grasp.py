@@ -1,0 +1,109 @@
+"""Does kinematic replay carry the object? Where a specialist's object error comes from, per reference.
+
+On one semantic group's references, with nominal physics (no randomization), two open-loop
+controllers through the PD servos:
+
+* ``replay``: the reference joints (:func:`adadex.envs.replay.replay_policy`);
+* ``squeeze``: the same with the finger flexion targets held ``--squeeze`` rad further closed, so the
+  position servos press on whatever the fingers touch (a grip the reference's surface-contact
+  fingers cannot give).
+
+For each reference: the object's largest rise above its start (``lift_mm``), how far it was moved on
+the table before the reference starts lifting it (``pushed_cm``: the approach and closing pushed it
+away), mean T_o and completion. Beside them, :func:`adadex.sim.grasp.scripted_grasp_lift` on the
+group's object (a planned fingertip grasp: can this hand lift this object at all?). Writes
+``benchmarks/results/replay_grasp.json``.
+
+    python benchmarks/replay_grasp.py [--dataset data/small] [--group G] [--squeeze 0.2]
+
+The group defaults to ``benchmarks/specialist_quality.py``'s (the first of the largest).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import Counter
+from pathlib import Path
+
+import torch
+
+from _data import RESULTS
+
+from adadex.io import atomic_write_text
+
+#: the object counts as lifted by the reference once it is this far above its start (m)
+REF_LIFT = 0.01
+
+
+def _per_reference(rollout, per_reference: dict) -> list[dict]:
+    """Lift, pre-lift push, T_o and completion of each world of an ``evaluate`` rollout ([B, T])."""
+    obj = rollout["next", "object", "pose"][..., :3]
+    ref = rollout["next", "reference", "object_pose"][..., 0, :3]
+    start = obj[:, 0]
+    out = []
+    for w, (name, m) in enumerate(per_reference):
+        rising = (ref[w, :, 2] - ref[w, 0, 2]) > REF_LIFT
+        t_lift = int(rising.float().argmax()) if bool(rising.any()) else obj.shape[1] - 1
+        out.append({"reference": name, "lift_mm": 1000 * float((obj[w, :, 2] - start[w, 2]).max()),
+                    "pushed_cm": 100 * float((obj[w, t_lift, :2] - start[w, :2]).norm()),
+                    "reference_lift_step": t_lift, "T_o_cm": 100 * m["T_o"], "completion_pct": 100 * m["completion"]})
+    return out
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--dataset", type=Path, default=Path("data/small"))
+    p.add_argument("--group", type=int, default=None)
+    p.add_argument("--squeeze", type=float, default=0.2, help="rad added to the finger flexion targets")
+    p.add_argument("--out", type=Path, default=RESULTS / "replay_grasp.json")
+    a = p.parse_args(argv)
+    torch.set_num_threads(1)
+
+    from tensordict.nn import TensorDictModule
+
+    from adadex.data.reference import ReferenceDataset
+    from adadex.envs.observation import JOINT_TARGET, REF_JOINT_POS
+    from adadex.envs.replay import replay_policy
+    from adadex.envs.tracking import episode_references
+    from adadex.eval.evaluate import evaluate
+    from adadex.sim.grasp import scripted_grasp_lift
+    from adadex.sim.robot import JOINT_NAMES
+
+    if not (a.dataset / "index.json").exists():
+        raise SystemExit(f"{a.dataset}: no dataset there (adadex data build --preset small --out {a.dataset})")
+    ds = ReferenceDataset(a.dataset)
+    train_refs = episode_references(ds, ("unseen_trajectory", "train"))
+    counts = Counter(ds.entries[i]["group"] for i in train_refs)
+    group = a.group if a.group is not None else min(g for g, n in counts.items() if n == max(counts.values()))
+    refs = [i for i in train_refs if ds.entries[i]["group"] == group]
+    if not refs:
+        raise SystemExit(f"group {group} has no training reference with an episode window in {a.dataset}")
+    obj_name = ds.entries[refs[0]]["object"]
+    print(f"group {group}: {len(refs)} references ({ds.entries[refs[0]]['instruction']!r} on {obj_name}), "
+          f"nominal physics")
+
+    flexion = torch.tensor([float(n.endswith(("_mcp", "_pip", "_dip")) or n in ("th_cmc", "th_axl", "th_ipl"))
+                            for n in JOINT_NAMES])
+    squeeze = a.squeeze * flexion
+    controllers = {"replay": replay_policy(),
+                   "squeeze": TensorDictModule(lambda q_ref, q_target: q_ref[..., 1, :] + squeeze - q_target,
+                                               in_keys=[REF_JOINT_POS, JOINT_TARGET], out_keys=["action"])}
+    out = {"group": group, "object": obj_name, "squeeze_rad": a.squeeze}
+    for name, policy in controllers.items():
+        res = evaluate(policy, ds, references=refs, keep_rollouts=True, progress=False)
+        rows = _per_reference(res["rollouts"][0], list(res["per_reference"].items()))
+        out[name] = {"per_reference": rows, "T_o_cm": res["summary"]["T_o"],
+                     "completion_pct": res["summary"]["completion_pct"]}
+        print(f"{name:8s} T_o {res['summary']['T_o']:.1f} cm, completion {res['summary']['completion_pct']:.1f} % | "
+              + ", ".join(f"lift {r['lift_mm']:.0f} mm pushed {r['pushed_cm']:.1f} cm" for r in rows))
+    g = scripted_grasp_lift(obj_name)
+    out["scripted_grasp"] = {"lift_cm": 100 * g.lift_achieved, "max_slip_cm": 100 * g.max_slip, "unstable": g.unstable}
+    print(f"scripted grasp-and-lift of {obj_name}: lift {100 * g.lift_achieved:.1f} cm, slip {100 * g.max_slip:.1f} cm")
+    atomic_write_text(a.out, json.dumps(out, indent=1))
+    print(f"wrote {a.out}")
+    return out
+
+
+if __name__ == "__main__":
+    main()

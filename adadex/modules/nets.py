@@ -131,7 +131,8 @@ class SamplingPolicy(TensorDictModuleBase):
             raise TypeError(f"SamplingPolicy needs an actor built by make_actor, got {type(actor).__name__}")
         self.actor = actor
         self.in_keys, self.out_keys = list(actor.in_keys), list(actor.out_keys)
-        self._action_key = actor.out_keys[-2] if len(actor.out_keys) > 1 else "action"
+        sampler = actor.module[-1]                  # the ProbabilisticTensorDictModule: its output keys
+        (self._action_key,), self._log_prob_key = sampler.dist_sample_keys, sampler.log_prob_key
 
     def forward(self, tensordict):
         if interaction_type() is not InteractionType.RANDOM:
@@ -149,7 +150,7 @@ class SamplingPolicy(TensorDictModuleBase):
         dist = TanhNormal(loc, scale, **kwargs)
         action = dist.rsample()
         tensordict.set(self._action_key, action)
-        tensordict.set(self.out_keys[-1], dist.log_prob(action))
+        tensordict.set(self._log_prob_key, dist.log_prob(action))
         return tensordict
 
 

@@ -11,10 +11,14 @@ controllers through the PD servos:
 For each reference: the object's largest rise above its start (``lift_mm``), how far it was moved on
 the table before the reference starts lifting it (``pushed_cm``: the approach and closing pushed it
 away), mean T_o and completion. Beside them, :func:`adadex.sim.grasp.scripted_grasp_lift` on the
-group's object (a planned fingertip grasp: can this hand lift this object at all?). Writes
+group's object (a planned fingertip grasp: can this hand lift this object at all?). With
+``--contacts``, each reference is also replayed in one plain MuJoCo world (same start, same servo
+targets and per-step action bound as the env) to list what touches the object while the fingers
+close (:func:`adadex.sim.contacts.body_contact_forces`): which hand links, how hard, how hard the
+table pushes back, and how far the object has moved by the reference's lift. Writes
 ``benchmarks/results/replay_grasp.json``.
 
-    python benchmarks/replay_grasp.py [--dataset data/small] [--group G] [--squeeze 0.2]
+    python benchmarks/replay_grasp.py [--dataset data/small] [--group G] [--squeeze 0.2] [--contacts]
 
 The group defaults to ``benchmarks/specialist_quality.py``'s (the first of the largest).
 """
@@ -51,11 +55,76 @@ def _per_reference(rollout, per_reference: dict) -> list[dict]:
     return out
 
 
+def _closing_contacts(ds, index: int, after: int = 8) -> dict:
+    """Replay reference ``index`` in one MuJoCo world from its episode start to ``after`` steps past
+    the reference's lift; the hand's contact forces on the object while the fingers close (peak per
+    link, N), the table's force before closing and its peak, and the object's travel."""
+    import mujoco
+    import numpy as np
+
+    from adadex.envs.tracking import TrackingConfig
+    from adadex.sim.contacts import body_contact_forces
+    from adadex.sim.robot import NUM_JOINTS, joint_limits
+    from adadex.sim.scene import CONTROL_HZ, OBJECT_BODY, OBJECT_QPOS, build_scene_model
+
+    ref, entry = ds[index], ds.entries[index]
+    start = entry["window_start"]
+    phases = ref.meta.get("phases")
+    if not phases:
+        return {"reference": entry["name"], "skipped": "no grasp phases in its metadata"}
+    grasp, lift = phases["grasp"] - start, phases["manipulate"] - start
+    cfg, lim = TrackingConfig(), joint_limits()
+    m = build_scene_model(ref.object_name)
+    d = mujoco.MjData(m)
+    target = np.clip(ref.hand_joint_pos[start].astype(float), lim[:, 0], lim[:, 1])
+    d.qpos[:NUM_JOINTS] = target
+    d.qpos[OBJECT_QPOS] = ref.object_pose[start] + np.r_[0, 0, cfg.object_lift, 0, 0, 0, 0]
+    d.ctrl[:] = target
+    mujoco.mj_forward(m, d)
+    substeps = int(round(1.0 / (CONTROL_HZ * m.opt.timestep)))
+    obj0 = d.qpos[OBJECT_QPOS][:3].copy()
+    hand_peak, table = {}, {"before": 0.0, "peak": 0.0}
+    moved, touching_after = {}, []
+    for t in range(min(lift + after, ref.num_frames - start - 1)):
+        step = np.clip(ref.hand_joint_pos[start + t + 1] - target, -cfg.max_action, cfg.max_action)
+        target = np.clip(target + step, lim[:, 0], lim[:, 1])
+        d.ctrl[:] = target
+        for _ in range(substeps):
+            mujoco.mj_step(m, d)
+        forces = body_contact_forces(m, d, OBJECT_BODY)
+        if t == grasp - 1:
+            table["before"] = forces.get("table", 0.0)
+        if grasp <= t <= lift:
+            table["peak"] = max(table["peak"], forces.get("table", 0.0))
+            for name, f in forces.items():
+                if name != "table":
+                    hand_peak[name] = max(hand_peak.get(name, 0.0), f)
+        if t in (lift, lift + after - 1):
+            moved["at_lift" if t == lift else "after"] = 100 * float(np.linalg.norm(d.qpos[OBJECT_QPOS][:2] - obj0[:2]))
+        if t == lift + after - 1:
+            touching_after = sorted(n for n in forces if n != "table")
+    return {"reference": entry["name"], "hand_peak_N": dict(sorted(hand_peak.items(), key=lambda kv: -kv[1])),
+            "table_before_N": table["before"], "table_peak_N": table["peak"],
+            "moved_at_lift_cm": moved.get("at_lift"), f"moved_{after}_steps_later_cm": moved.get("after"),
+            "hand_touching_then": touching_after}
+
+
+def _contacts_line(row: dict) -> str:
+    if "skipped" in row:
+        return f"  {row['reference']}: skipped ({row['skipped']})"
+    links = ", ".join(f"{n} {f:.1f} N" for n, f in row["hand_peak_N"].items() if f >= 0.1) or "nothing"
+    later = [v for k, v in row.items() if k.startswith("moved_") and k.endswith("later_cm")][0]
+    return (f"  {row['reference']}: closing, the object is touched by {links}; table {row['table_before_N']:.1f} → "
+            f"{row['table_peak_N']:.1f} N; moved {row['moved_at_lift_cm']:.1f} cm by the lift, {later:.1f} cm "
+            f"after; hand links on it then: {', '.join(row['hand_touching_then']) or 'none'}")
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dataset", type=Path, default=Path("data/small"))
     p.add_argument("--group", type=int, default=None)
     p.add_argument("--squeeze", type=float, default=0.2, help="rad added to the finger flexion targets")
+    p.add_argument("--contacts", action="store_true", help="list the contacts on the object while the fingers close")
     p.add_argument("--out", type=Path, default=RESULTS / "replay_grasp.json")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -100,6 +169,10 @@ def main(argv=None) -> dict:
     g = scripted_grasp_lift(obj_name)
     out["scripted_grasp"] = {"lift_cm": 100 * g.lift_achieved, "max_slip_cm": 100 * g.max_slip, "unstable": g.unstable}
     print(f"scripted grasp-and-lift of {obj_name}: lift {100 * g.lift_achieved:.1f} cm, slip {100 * g.max_slip:.1f} cm")
+    if a.contacts:
+        out["closing_contacts"] = [_closing_contacts(ds, i) for i in refs]
+        for row in out["closing_contacts"]:
+            print(_contacts_line(row))
     atomic_write_text(a.out, json.dumps(out, indent=1))
     print(f"wrote {a.out}")
     return out

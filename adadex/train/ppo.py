@@ -4,8 +4,9 @@ replacement. No PPO maths is written here; this module wires the parts, logs, ch
 evaluates.
 
 One iteration: collect ``frames_per_batch`` frames with the current policy (exploring), compute
-advantages with GAE, run ``epochs`` passes of minibatch updates, push the new weights to the
-collector's workers, log, and every ``checkpoint_every`` iterations write a checkpoint
+advantages with GAE, run ``epochs`` passes of minibatch updates (a minibatch whose loss or gradient
+is non-finite is skipped and counted as ``skipped_minibatches``; an iteration with nothing but such
+minibatches raises :class:`TrainingDiverged`), push the new weights to the collector's workers, log, and every ``checkpoint_every`` iterations write a checkpoint
 (:mod:`adadex.train.checkpoint`). The observation normalizers are fitted once, on the first batch
 (before any update), and then travel inside the modules' state.
 
@@ -39,7 +40,7 @@ from adadex.envs.observation import ERRORS as ERRORS_KEY
 from adadex.envs.observation import REFERENCE_INDEX, REWARD_TERMS, STEP
 from adadex.envs.randomization import Randomization
 from adadex.envs.tracking import TrackingConfig, episode_references
-from adadex.errors import ConfigError
+from adadex.errors import AdadexError, ConfigError
 from adadex.eval.evaluate import evaluate
 from adadex.eval.metrics import ERROR_NAMES, frame_success
 from adadex.modules.nets import fit_normalizers
@@ -53,6 +54,10 @@ from adadex.train.envs import ModulatedEnv, TrackingEnvFactory
 from adadex.transforms.policy import make_policy
 from adadex.train.logs import RunLog
 from adadex.train.threads import torch_threads
+
+
+class TrainingDiverged(AdadexError, RuntimeError):
+    """Every minibatch update of an iteration had a non-finite loss or gradient (none was applied)."""
 
 ERRORS = ("next", *ERRORS_KEY)
 
@@ -151,6 +156,7 @@ class PPOTrainer:
         buffer.extend(flat)
         stats: dict[str, list] = {}
         steps = max(1, flat.numel() // self.ppo.minibatch_size)
+        skipped = 0
         for _ in range(self.ppo.epochs):
             for _ in range(steps):
                 batch = buffer.sample()
@@ -159,11 +165,19 @@ class PPOTrainer:
                 if self.teacher is not None:
                     imitation = self._imitation(batch)
                     total = total + self.ppo.imitation_coef * imitation
-                    stats.setdefault("loss_imitation", []).append(float(imitation.detach()))
                 self.optim.zero_grad()
+                if not bool(torch.isfinite(total)):
+                    skipped += 1
+                    continue
                 total.backward()
                 grad = torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.ppo.max_grad_norm)
+                if not bool(torch.isfinite(grad)):
+                    self.optim.zero_grad()
+                    skipped += 1
+                    continue
                 self.optim.step()
+                if self.teacher is not None:
+                    stats.setdefault("loss_imitation", []).append(float(imitation.detach()))
                 if self.ppo.desired_kl > 0 and "kl_approx" in out.keys():
                     self._adapt_lr(float(out["kl_approx"].detach().mean()))
                 for k in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "kl_approx", "clip_fraction",
@@ -171,7 +185,15 @@ class PPOTrainer:
                     if k in out.keys():
                         stats.setdefault(k, []).append(float(out[k].detach().mean()))
                 stats.setdefault("grad_norm", []).append(float(grad))
+        if skipped == self.ppo.epochs * steps:
+            raise TrainingDiverged(
+                f"{self.run_name}: iteration {self.iteration + 1}: the loss or its gradient was non-finite on every "
+                f"minibatch ({skipped}), so the policy was left as it was; the last checkpoint in {self.out} "
+                f"(every {self.cfg.checkpoint_every} iterations) holds the weights before this. One cause seen: a "
+                f"saturated TanhNormal (pre-tanh means far past its bounds), whose log-probabilities of the same "
+                f"action then differ by tens of nats between collection and update")
         stats["lr"] = [self.optim.param_groups[0]["lr"]]
+        stats["skipped_minibatches"] = [skipped]
         return {k: float(np.mean(v)) for k, v in stats.items()}
 
     def _minibatch_keys(self) -> list:

@@ -306,3 +306,40 @@ def test_reward_settings_reach_the_envs_a_run_trains_on(tiny_dataset, tmp_path):
     assert TrainConfig.from_dict(tc.to_dict()).reward == {"w_alive": 0.0, "w_prox": 2.0}
     with pytest.raises(ConfigError, match="sigma_hand must be"):
         TrainConfig(dataset="d", out="o", reward={"sigma_hand": 0.0})
+
+
+def test_non_finite_minibatches_are_skipped_and_an_all_bad_iteration_raises(tiny_dataset, tmp_path):
+    """A minibatch with a non-finite loss is not applied (one such step once wrote NaN into a
+    specialist's weights after 3.6 M frames); an iteration where every minibatch is non-finite stops
+    the run with the reason, leaving the policy as it was."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from adadex.modules.nets import fit_normalizers
+    from adadex.train.ppo import TrainingDiverged
+
+    trainer = PPOTrainer(_config(tiny_dataset, tmp_path / "run"))       # 2 epochs × 2 minibatches of 128
+    env = trainer.env_factory(3)()
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        data = env.rollout(32, trainer.policy.sampling_policy(), break_when_any_done=False)     # [8, 32]
+    env.close()
+    fit_normalizers(trainer.policy, data["observation"])
+    trainer.fitted = True
+    params = lambda: torch.cat([p.detach().flatten() for p in trainer.loss.parameters()])     # noqa: E731
+
+    one_bad = data.clone()
+    one_bad["action_log_prob"][0, 0] = float("nan")        # one frame: in one minibatch of each epoch
+    before = params().clone()
+    stats = trainer._update(one_bad)
+    after = params()
+    assert stats["skipped_minibatches"] == 2
+    assert torch.isfinite(after).all() and not torch.equal(after, before)
+
+    all_bad = data.clone()
+    all_bad["action_log_prob"][:] = float("nan")
+    with pytest.raises(TrainingDiverged, match=r"non-finite on every minibatch \(4\)"):
+        trainer._update(all_bad)
+    assert torch.equal(params(), after)
+    assert stats["loss_objective"] == stats["loss_objective"]   # the applied minibatches' stats are finite
+
+    stats = trainer._update(data)
+    assert stats["skipped_minibatches"] == 0

@@ -168,7 +168,8 @@ def main(argv=None) -> dict:
         batches = max(1, a.frames // fpb)
         factory = TrackingEnvFactory(str(dataset), refs, num_worlds=B, seed=0, nthread=2)
         pc = PolicyConfig()
-        policy = Tracker(hidden=pc.hidden, residual=pc.residual, init_scale=pc.init_scale).sampling_policy()
+        policy = Tracker(hidden=pc.hidden, residual=pc.residual, init_scale=pc.init_scale,
+                         loc_bound=pc.loc_bound).sampling_policy()
         res = {"worlds": B, "frames_per_batch": fpb, "batches": batches, "references": len(refs)}
 
         recorders = []

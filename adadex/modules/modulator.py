@@ -30,6 +30,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from adadex.envs.observation import OBS_DIM, OBSERVATION
+from adadex.errors import check_number
 from adadex.modules.channels import ModulationLayout
 from adadex.modules.nets import ActorCritic, make_actor, make_critic
 
@@ -41,18 +42,22 @@ class Modulator(ActorCritic):
         channels: ``"R+O+T"``, ``"R+T"``, … (not ``"none"``: no channel, no modulator).
         hidden: widths of the trunk / critic hidden layers.
         init_scale: initial exploration scale (pre-tanh).
+        loc_bound: > 0 bounds the pre-tanh mean to ±loc_bound (see :class:`~adadex.modules.tracker.Tracker`).
     """
 
     kind = "modulator"
 
-    def __init__(self, channels="R+O+T", hidden: Sequence[int] = (512, 256, 128), init_scale: float = 0.5):
+    def __init__(self, channels="R+O+T", hidden: Sequence[int] = (512, 256, 128), init_scale: float = 0.5,
+                 loc_bound: float = 0.0):
         super().__init__()
         self.layout = ModulationLayout(channels)
         if not self.layout.dim:
             raise ValueError("a Modulator needs at least one channel (R, O or T); for 'none' use the tracker alone")
-        self.config = {"channels": self.layout.name, "hidden": list(hidden), "init_scale": float(init_scale)}
+        check_number("Modulator.loc_bound", loc_bound)
+        self.config = {"channels": self.layout.name, "hidden": list(hidden), "init_scale": float(init_scale),
+                       "loc_bound": float(loc_bound)}
         self.actor = make_actor(OBSERVATION, OBS_DIM, self.layout.channel_sizes, -1.0, 1.0, hidden,
-                                namespace="modulator", init_scale=init_scale)
+                                namespace="modulator", init_scale=init_scale, loc_bound=loc_bound)
         self.critic = make_critic(OBSERVATION, OBS_DIM, hidden)
 
     @property

@@ -72,22 +72,26 @@ class Tracker(ActorCritic):
         residual: 0 — the action is ``max_action·tanh(·)`` of the network; > 0 — kinematic replay's
             action plus a learned correction within ±``residual`` rad (see the module docstring);
             the actor then also reads ``("proprio", "joint_target")``.
+        loc_bound: > 0 bounds the Gaussian's pre-tanh mean to ±loc_bound (see
+            :func:`~adadex.modules.nets.make_actor`); 0, the default of checkpoints saved before it
+            existed, leaves it unbounded.
     """
 
     kind = "tracker"
 
     def __init__(self, hidden: Sequence[int] = (512, 256, 128), max_action: float = 0.1, init_scale: float = 1.0,
-                 residual: float = 0.0):
+                 residual: float = 0.0, loc_bound: float = 0.0):
         super().__init__()
         check_number("Tracker.max_action", max_action, strict_low=True)
         check_number("Tracker.residual", residual)
+        check_number("Tracker.loc_bound", loc_bound)
         self.config = {"hidden": list(hidden), "max_action": float(max_action), "init_scale": float(init_scale),
-                       "residual": float(residual)}
+                       "residual": float(residual), "loc_bound": float(loc_bound)}
         bounds = None
         if residual > 0:
             bounds = TensorDictModule(ReplayBounds(residual), in_keys=[OBSERVATION, JOINT_TARGET],
                                       out_keys=[("tracker", "low"), ("tracker", "high")])
         self.actor = make_actor(OBSERVATION, OBS_DIM, [NUM_JOINTS], -max_action, max_action, hidden,
-                                namespace="tracker", init_scale=init_scale, bounds=bounds)
+                                namespace="tracker", init_scale=init_scale, bounds=bounds, loc_bound=loc_bound)
         self.critic = make_critic(OBSERVATION, OBS_DIM, hidden)
 

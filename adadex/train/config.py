@@ -91,10 +91,14 @@ class PolicyConfig:
     #: enough to find a grasp that 0.15 did not: a specialist's completion 67.0 / 68.9 % vs 60.4 / 62.6 %
     #: (seeds 0 / 1, replay 57.2 %; 1.0 gave 68.2 % on seed 0)
     init_scale: float = 0.5
+    #: bound of the pre-tanh mean (TorchRL's tanh_loc; 0: none). Unbounded, a specialist's mean ran
+    #: to 7.8 with scale 0.04 after 3.6 M frames, and one action's log-probability moved from -104
+    #: (collection) to 7 (update): the PPO ratio overflowed and NaN reached the weights
+    loc_bound: float = 5.0
 
     def __post_init__(self):
         self.hidden = tuple(int(h) for h in self.hidden)
-        check_numbers("PolicyConfig", self, ("residual", "init_scale"))
+        check_numbers("PolicyConfig", self, ("residual", "init_scale", "loc_bound"))
 
 
 @dataclass
@@ -108,11 +112,13 @@ class ModulatorSettings:
     channels: str = "R+O+T"
     hidden: tuple[int, ...] = (256, 256, 128)
     init_scale: float = 0.5
+    loc_bound: float = 5.0          # bound of the pre-tanh mean, as PolicyConfig.loc_bound
     modulation: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.hidden = tuple(int(h) for h in self.hidden)
         check_number("ModulatorSettings.init_scale", self.init_scale)
+        check_number("ModulatorSettings.loc_bound", self.loc_bound)
         if not Path(self.tracker).is_file():
             raise ConfigError(f"ModulatorSettings.tracker: no tracker checkpoint at {self.tracker!r} "
                               f"(train or distill one first)")

@@ -128,6 +128,7 @@ def teacher_settings(info: dict) -> dict:
                                 f"them all with one setting")
         out[k] = values[0]
     out["init_scale"] = float(configs[0].get("init_scale", 1.0))
+    out["loc_bound"] = float(configs[0].get("loc_bound", 0.0))
     return out
 
 

@@ -96,10 +96,10 @@ class PPOTrainer:
         if m is None:
             p = cfg.policy
             self.policy = Tracker(hidden=p.hidden, max_action=env_config.max_action, init_scale=p.init_scale,
-                                  residual=p.residual)
+                                  residual=p.residual, loc_bound=p.loc_bound)
             self.transform = None
         else:
-            self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale)
+            self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound)
             self.transform = ModulatedEnv(m.tracker, m.channels, ModulationConfig(**m.modulation))
         self.ppo = cfg.ppo
         self.loss = ClipPPOLoss(self.policy.actor, self.policy.critic, clip_epsilon=self.ppo.clip_epsilon,

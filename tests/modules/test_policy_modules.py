@@ -96,6 +96,24 @@ def test_tracker_checkpoint_round_trip(tmp_path):
     assert torch.equal(tracker.critic(_obs())["state_value"], again.critic(_obs())["state_value"])
 
 
+def test_checkpoints_from_before_loc_bound_load_unbounded(tmp_path):
+    """A tracker saved before ``loc_bound`` existed has no such key: it loads with an unbounded mean,
+    as it was trained, and acts as before; a bounded one keeps its bound."""
+    torch.manual_seed(2)
+    old = Tracker(hidden=(32, 16))
+    blob = {"kind": "tracker", "config": {k: v for k, v in old.config.items() if k != "loc_bound"},
+            "state_dict": old.state_dict()}
+    torch.save(blob, tmp_path / "old.pt")
+    again = Tracker.load(tmp_path / "old.pt")
+    assert again.config["loc_bound"] == 0.0
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        assert torch.equal(old(_obs())["action"], again(_obs())["action"])
+    bounded = Tracker.load(Tracker(hidden=(32, 16), loc_bound=5.0).save(tmp_path / "new.pt"))
+    assert bounded.config["loc_bound"] == 5.0
+    with pytest.raises(ValueError, match="loc_bound"):
+        Tracker(loc_bound=-1.0)
+
+
 def test_bad_checkpoints_are_named(tmp_path):
     with pytest.raises(FileNotFoundError, match="missing.pt"):
         Tracker.load(tmp_path / "missing.pt")

@@ -19,9 +19,11 @@ def _obs(n=256, seed=0):
 
 
 @pytest.mark.parametrize("make", [lambda: Tracker(hidden=(32, 32), residual=0.25, init_scale=0.5),
+                                  lambda: Tracker(hidden=(32, 32), residual=0.25, init_scale=0.5, loc_bound=5.0),
                                   lambda: Tracker(hidden=(32, 32)),
-                                  lambda: Modulator("R+O+T", hidden=(32, 32))],
-                         ids=["residual tracker", "plain tracker", "modulator"])
+                                  lambda: Modulator("R+O+T", hidden=(32, 32)),
+                                  lambda: Modulator("R+O+T", hidden=(32, 32), loc_bound=2.0)],
+                         ids=["residual tracker", "bounded mean", "plain tracker", "modulator", "bounded modulator"])
 def test_samples_what_the_actor_samples_with_the_losss_log_prob(make):
     policy = make()
     fast = policy.sampling_policy()
@@ -72,3 +74,29 @@ def test_weight_updates_reach_the_sampling_path_also_in_a_copy():
 def test_an_actor_not_built_by_make_actor_is_refused():
     with pytest.raises(TypeError, match="make_actor"):
         SamplingPolicy(torch.nn.Linear(2, 2))
+
+
+def _push_mean(policy, shift: float):
+    """Move every head's pre-tanh mean by ``shift`` (the loc half of the last layer's bias)."""
+    net = policy.actor._sampling_parts[0]
+    with torch.no_grad():
+        for h in net.heads:
+            h.bias[: h.out_features // 2] += shift
+
+
+@pytest.mark.parametrize("loc_bound", [0.0, 5.0])
+def test_a_bounded_mean_keeps_log_probs_of_saturated_actions_stable(loc_bound):
+    """The failure loc_bound prevents: a mean far past the bounds with a small scale puts actions on the
+    bound in float32, and a small weight change then moves their log-probability by tens of nats."""
+    policy = Tracker(hidden=(32, 32), residual=0.25, init_scale=0.05, loc_bound=loc_bound)
+    _push_mean(policy, 9.0)
+    fast = policy.sampling_policy()
+    with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+        torch.manual_seed(0)
+        out = fast(_obs())
+        _push_mean(policy, -0.05)                                   # one small update's worth
+        moved = (policy.actor.get_dist(out).log_prob(out["action"]) - out["action_log_prob"]).abs().max()
+    if loc_bound:
+        assert moved < 5.0, moved
+    else:
+        assert moved > 20.0, moved            # the unbounded case this guards against, reproduced

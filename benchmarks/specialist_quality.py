@@ -52,6 +52,8 @@ def main(argv=None) -> dict:
     p.add_argument("--residual", type=float, default=None,
                    help="the tracker's correction bound (default: PolicyConfig's)")
     p.add_argument("--init-scale", type=float, default=None, help="its exploration scale (default: PolicyConfig's)")
+    p.add_argument("--loc-bound", type=float, default=None, help="bound of its pre-tanh mean, 0: none "
+                   "(default: PolicyConfig's)")
     p.add_argument("--seed", type=int, default=0, help="training seed of both runs")
     p.add_argument("--out", type=Path, default=RESULTS / "specialist_quality.json")
     a = p.parse_args(argv)
@@ -84,10 +86,10 @@ def main(argv=None) -> dict:
         print(format_summary(res["summary"]))
         return _summary(res)
 
-    chosen = {"residual": a.residual, "init_scale": a.init_scale}
+    chosen = {"residual": a.residual, "init_scale": a.init_scale, "loc_bound": a.loc_bound}
     policy = PolicyConfig(**{k: v for k, v in chosen.items() if v is not None})
     out = {"group": group, "references": len(refs), "repeats": a.repeats, "frames": a.frames, "seed": a.seed,
-           "residual": policy.residual, "init_scale": policy.init_scale}
+           "residual": policy.residual, "init_scale": policy.init_scale, "loc_bound": policy.loc_bound}
     out["replay"] = score(replay_policy())
     runs = {"specialist": TrainConfig(dataset=str(a.dataset), out=str(a.runs / f"specialist_{group}"), group=group,
                                       seed=a.seed, resume=True, progress=False, ppo=PPOConfig(total_frames=a.frames),

@@ -105,7 +105,7 @@ def _closing_contacts(ds, index: int, after: int = 8) -> dict:
             touching_after = sorted(n for n in forces if n != "table")
     return {"reference": entry["name"], "hand_peak_N": dict(sorted(hand_peak.items(), key=lambda kv: -kv[1])),
             "table_before_N": table["before"], "table_peak_N": table["peak"],
-            "moved_at_lift_cm": moved.get("at_lift"), f"moved_{after}_steps_later_cm": moved.get("after"),
+            "moved_at_lift_cm": moved.get("at_lift"), "steps_after_lift": after, "moved_after_cm": moved.get("after"),
             "hand_touching_then": touching_after}
 
 
@@ -113,10 +113,10 @@ def _contacts_line(row: dict) -> str:
     if "skipped" in row:
         return f"  {row['reference']}: skipped ({row['skipped']})"
     links = ", ".join(f"{n} {f:.1f} N" for n, f in row["hand_peak_N"].items() if f >= 0.1) or "nothing"
-    later = [v for k, v in row.items() if k.startswith("moved_") and k.endswith("later_cm")][0]
     return (f"  {row['reference']}: closing, the object is touched by {links}; table {row['table_before_N']:.1f} → "
-            f"{row['table_peak_N']:.1f} N; moved {row['moved_at_lift_cm']:.1f} cm by the lift, {later:.1f} cm "
-            f"after; hand links on it then: {', '.join(row['hand_touching_then']) or 'none'}")
+            f"{row['table_peak_N']:.1f} N; moved {row['moved_at_lift_cm']:.1f} cm by the lift, "
+            f"{row['moved_after_cm']:.1f} cm {row['steps_after_lift']} steps later; hand links on it then: "
+            f"{', '.join(row['hand_touching_then']) or 'none'}")
 
 
 def main(argv=None) -> dict:

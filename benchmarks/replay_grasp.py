@@ -11,7 +11,10 @@ controllers through the PD servos:
 For each reference: the object's largest rise above its start (``lift_mm``), how far it was moved on
 the table before the reference starts lifting it (``pushed_cm``: the approach and closing pushed it
 away), mean T_o and completion. Beside them, :func:`adadex.sim.grasp.scripted_grasp_lift` on the
-group's object (a planned fingertip grasp: can this hand lift this object at all?). With
+group's object (a planned fingertip grasp: can this hand lift this object at all?), and how deep the
+references' own hand sits inside the object while holding it (kinematically, the deepest link off
+the distal phalanges and each fingertip's median depth; a dataset built with ``adadex data build
+--contact`` keeps the first at zero and the tips at its squeeze). With
 ``--contacts``, each reference is also replayed in one plain MuJoCo world (same start, same servo
 targets and per-step action bound as the env) to list what touches the object while the fingers
 close (:func:`adadex.sim.contacts.body_contact_forces`): which hand links, how hard, how hard the
@@ -30,6 +33,7 @@ import json
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from _data import RESULTS
@@ -60,7 +64,6 @@ def _closing_contacts(ds, index: int, after: int = 8) -> dict:
     the reference's lift; the hand's contact forces on the object while the fingers close (peak per
     link, N), the table's force before closing and its peak, and the object's travel."""
     import mujoco
-    import numpy as np
 
     from adadex.envs.tracking import TrackingConfig
     from adadex.sim.contacts import body_contact_forces
@@ -107,6 +110,23 @@ def _closing_contacts(ds, index: int, after: int = 8) -> dict:
             "table_before_N": table["before"], "table_peak_N": table["peak"],
             "moved_at_lift_cm": moved.get("at_lift"), "steps_after_lift": after, "moved_after_cm": moved.get("after"),
             "hand_touching_then": touching_after}
+
+
+def _hold_overlap(ds, index: int) -> dict:
+    """How deep the reference's own hand sits inside the object during the hold (kinematic, MuJoCo's
+    collision detection): the deepest link off the distal phalanges, and the fingertips' median depths."""
+    from adadex.data.object_contact import TIP_GEOMS, hand_object_overlap
+
+    ref, name = ds[index], ds.entries[index]["name"]
+    phases = ref.meta.get("phases")
+    if not phases:
+        return {"reference": name, "skipped": "no grasp phases in its metadata"}
+    hold = slice(phases["manipulate"], phases["release"])
+    depth = hand_object_overlap(ref.hand_joint_pos[hold], ref.object_pose[hold], ref.object_name)
+    distal = {n for n in depth if n.endswith("_ds_col")} | set(TIP_GEOMS)
+    deepest = max((n for n in depth if n not in distal), key=lambda n: depth[n].max())
+    return {"reference": name, "deepest_link": deepest, "deepest_link_mm": 1000 * float(depth[deepest].max()),
+            "tip_median_mm": {n: 1000 * float(np.median(depth[n])) for n in TIP_GEOMS}}
 
 
 def _contacts_line(row: dict) -> str:
@@ -166,6 +186,11 @@ def main(argv=None) -> dict:
                      "completion_pct": res["summary"]["completion_pct"]}
         print(f"{name:8s} T_o {res['summary']['T_o']:.1f} cm, completion {res['summary']['completion_pct']:.1f} % | "
               + ", ".join(f"lift {r['lift_mm']:.0f} mm pushed {r['pushed_cm']:.1f} cm" for r in rows))
+    out["hold_overlap"] = [_hold_overlap(ds, i) for i in refs]
+    print("the references' hand inside the object while holding it (kinematic): " + "; ".join(
+        f"{r['deepest_link']} {r['deepest_link_mm']:.0f} mm, tips "
+        + "/".join(f"{v:.0f}" for v in r["tip_median_mm"].values()) + " mm" if "skipped" not in r else "skipped"
+        for r in out["hold_overlap"]))
     g = scripted_grasp_lift(obj_name)
     out["scripted_grasp"] = {"lift_cm": 100 * g.lift_achieved, "max_slip_cm": 100 * g.max_slip, "unstable": g.unstable}
     print(f"scripted grasp-and-lift of {obj_name}: lift {100 * g.lift_achieved:.1f} cm, slip {100 * g.max_slip:.1f} cm")

@@ -34,6 +34,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from adadex.data import feasibility
+from adadex.data.object_contact import ObjectContact
 from adadex.data.reference import Reference, is_dataset, save_dataset
 from adadex.data.retarget import Retargeter
 from adadex.data.synth import VERBS, HumanMotion, NoiseConfig, Synthesizer, make_instruction
@@ -122,7 +123,10 @@ def references_from_motions(motions: list[HumanMotion], group_ids: list[int], na
     for idx, T in zip(batches, lengths):
         kp = np.stack([np.pad(motions[i].keypoints, ((0, T - len(motions[i].keypoints)), (0, 0), (0, 0)),
                               mode="edge") for i in idx])
-        res = retargeter.retarget(kp, lengths=[len(motions[i].keypoints) for i in idx], progress=bar.update)
+        obj = np.stack([np.pad(motions[i].object_pose, ((0, T - len(motions[i].object_pose)), (0, 0)), mode="edge")
+                        for i in idx])
+        res = retargeter.retarget(kp, lengths=[len(motions[i].keypoints) for i in idx], progress=bar.update,
+                                  object_pose=obj, object_names=[motions[i].instruction.object_name for i in idx])
         results += [(i, res, j) for j, i in enumerate(idx)]
     bar.close()
     report.seconds["retarget"] = report.seconds.get("retarget", 0.0) + time.perf_counter() - t0
@@ -165,13 +169,16 @@ def make_splits(refs: list[Reference], seed: int, test_fraction: float = 0.2) ->
 
 def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfig = NoiseConfig(),
                   config: feasibility.FeasibilityConfig = feasibility.FeasibilityConfig(),
-                  progress: bool = True, limit: int | None = None, force: bool = False) -> BuildReport:
+                  progress: bool = True, limit: int | None = None, force: bool = False,
+                  contact: ObjectContact | None = None) -> BuildReport:
     """Build ``preset`` into the dataset folder ``out`` (written atomically); returns a :class:`BuildReport`.
 
     An existing dataset at ``out`` is replaced; anything else there is refused unless ``force``
     (see :func:`~adadex.data.reference.save_dataset`), checked before the build starts.
 
-    ``limit`` caps the number of base instructions (for quick looks at a large preset).
+    ``limit`` caps the number of base instructions (for quick looks at a large preset). ``contact``:
+    object-aware retargeting (:mod:`adadex.data.object_contact`); ``None`` (default) retargets
+    keypoints only.
     """
     if isinstance(preset, str):
         if preset not in PRESETS:
@@ -196,7 +203,8 @@ def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfi
             groups.append(g)
             names.append(name)
     report.seconds["synthesize"] = time.perf_counter() - t0
-    refs = references_from_motions(motions, groups, names, Retargeter(), config, report, progress=progress)
+    refs = references_from_motions(motions, groups, names, Retargeter(contact=contact), config, report,
+                                   progress=progress)
     report.accepted = len(refs)
     if not refs:
         raise RuntimeError(f"no reference of preset {preset.name!r} passed the feasibility filter: "
@@ -204,6 +212,7 @@ def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfi
     t0 = time.perf_counter()
     splits = make_splits(refs, seed)
     info = {"preset": preset.name, "seed": seed, "noise": asdict(noise), "feasibility": asdict(config),
+            "object_contact": None if contact is None else asdict(contact),
             "report": report.as_dict()}
     report.path = str(save_dataset(refs, Path(out), splits=splits, info=info, force=force))
     report.seconds["save"] = time.perf_counter() - t0

@@ -1,9 +1,9 @@
 """``adadex data …``: build, inspect and import reference datasets.
 
-    adadex data build  --preset tiny|small|paper --out DIR [--seed N] [--clean] [--limit N] [--force]
+    adadex data build  --preset tiny|small|paper --out DIR [--seed N] [--clean] [--contact] [--limit N] [--force]
     adadex data info   DIR                      counts per verb, object, split; rejection reasons
     adadex data show   DIR --index I --out ref.png [--no-render]
-    adadex data import FILE.npz [FILE.npz …] --object NAME --out DIR [--force]
+    adadex data import FILE.npz [FILE.npz …] --object NAME --out DIR [--contact] [--force]
 
 ``--out DIR`` replaces an existing dataset there, as one unit once the new one is complete; a
 folder of other files or a file at DIR is refused unless ``--force``.
@@ -20,6 +20,7 @@ from pathlib import Path
 
 def _cmd_build(a) -> int:
     from adadex.data.build import PRESETS, build_dataset
+    from adadex.data.object_contact import ObjectContact
     from adadex.data.synth import NoiseConfig
 
     p = PRESETS[a.preset]
@@ -27,7 +28,8 @@ def _cmd_build(a) -> int:
     print(f"building preset {p.name!r}: {n} base instructions × {p.paraphrases} paraphrases on "
           f"{len(p.objects)} objects (seed {a.seed}) → {a.out}")
     report = build_dataset(a.preset, a.out, seed=a.seed, noise=NoiseConfig.clean() if a.clean else NoiseConfig(),
-                           limit=a.limit, progress=not a.quiet, force=a.force)
+                           limit=a.limit, progress=not a.quiet, force=a.force,
+                           contact=ObjectContact() if a.contact else None)
     print(report.summary())
     print(f"wrote {report.path}; see `adadex data info {report.path}`")
     return 0
@@ -76,11 +78,12 @@ def _cmd_import(a) -> int:
     from adadex.data.hoi_import import ImportRejected, import_npz
     from adadex.data.reference import save_dataset
     from adadex.data.reference import is_dataset
+    from adadex.data.object_contact import ObjectContact
     from adadex.data.retarget import Retargeter
     from adadex.io import check_output
 
     check_output(a.out, "dataset", force=a.force, recognize=is_dataset)   # before the slow part
-    rt = Retargeter()
+    rt = Retargeter(contact=ObjectContact() if a.contact else None)
     refs, rejected = [], []
     for i, f in enumerate(a.files):
         try:
@@ -110,6 +113,9 @@ def add_parser(sub) -> None:
     b.add_argument("--force", action="store_true", help="replace --out even if it is not a dataset")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--clean", action="store_true", help="no synthesis noise (for debugging)")
+    b.add_argument("--contact", action="store_true",
+                   help="object-aware retargeting: hand kept out of the object, fingertips pressed on it "
+                        "(adadex.data.object_contact; about 2.5x slower)")
     b.add_argument("--limit", type=int, default=None, help="use only the first N base instructions")
     b.add_argument("--quiet", action="store_true", help="no progress bars")
     b.set_defaults(func=_cmd_build)
@@ -130,6 +136,7 @@ def add_parser(sub) -> None:
     m.add_argument("--instruction", default=None)
     m.add_argument("--out", required=True, help="dataset folder to write (an existing dataset is replaced atomically)")
     m.add_argument("--force", action="store_true", help="replace --out even if it is not a dataset")
+    m.add_argument("--contact", action="store_true", help="object-aware retargeting (see `data build --contact`)")
     m.set_defaults(func=_cmd_import)
 
 

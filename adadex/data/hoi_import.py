@@ -13,7 +13,9 @@ File layout (``.npz``)::
 
 The world frame is the robot's: base at the origin, table top at z = 0, the robot reaching along +x.
 Keypoints are scaled about the wrist to the robot's hand size (``scale="auto"``) during
-retargeting; the result goes through the same feasibility filter as synthesized data.
+retargeting (with ``retargeter=Retargeter(contact=ObjectContact())`` also aware of the object:
+:mod:`adadex.data.object_contact`); the result goes through the same feasibility filter as
+synthesized data.
 
 Example::
 
@@ -123,7 +125,7 @@ def import_npz(path, *, object_name: str | None = None, instruction: str | None 
     if abs(fps - CONTROL_HZ) > 1e-6:
         kp, obj = resample(kp, obj, fps)
     rt = retargeter or Retargeter()
-    res = rt.retarget(kp, scale=scale)
+    res = rt.retarget(kp, scale=scale, object_pose=obj, object_names=object_name)
     ref = Reference.from_joint_positions(
         res.joint_pos, obj, object_name=object_name, instruction=instruction, group_id=group_id, fps=CONTROL_HZ,
         human_keypoints=kp, retarget_residual=res.residual, name=path.stem,

@@ -15,6 +15,7 @@ from adadex.data.retarget import (
     Retargeter,
     hand_length,
 )
+from adadex.data.object_contact import ObjectContact, hand_collision_spheres
 from adadex.sim.kinematics import RobotKinematics
 from adadex.sim.robot import HOME_QPOS, JOINT_NAMES, NUM_JOINTS, joint_limits
 
@@ -95,11 +96,12 @@ def test_round_trip_thumb_hyperextended():
 
 
 def test_points_jacobian_matches_finite_differences():
-    rt = retargeter()
+    rt = Retargeter(contact=ObjectContact())   # its points include the hand's collision spheres
     rng = np.random.default_rng(1)
     q = torch.as_tensor(rng.uniform(LIMITS[:, 0], LIMITS[:, 1], (4, NUM_JOINTS)))
     pts, jac = rt._points_jacobian(q)
-    K = len(_MATCHED) + len(TABLE_CLEARANCE_POINTS)   # matched keypoints, then table-clearance points
+    # matched keypoints, then table-clearance points, then the hand's collision spheres
+    K = len(_MATCHED) + len(TABLE_CLEARANCE_POINTS) + len(hand_collision_spheres())
     assert pts.shape == (4, K, 3) and jac.shape == (4, K, 3, NUM_JOINTS)
     eps = 1e-5
     fd = torch.empty_like(jac)
@@ -109,7 +111,7 @@ def test_points_jacobian_matches_finite_differences():
         fd[..., j] = (rt._points_jacobian(q + dq)[0] - rt._points_jacobian(q - dq)[0]) / (2 * eps)
     diff = (jac - fd).abs()
     n, k, a, j = np.unravel_index(int(diff.argmax()), diff.shape)
-    assert diff.max() < 1e-7, (f"configuration {n}, point {ROBOT_POINTS[_MATCHED[k]]}, axis {a}, joint "
+    assert diff.max() < 1e-7, (f"configuration {n}, point {k}, axis {a}, joint "
                                f"{JOINT_NAMES[j]}: analytic {jac[n, k, a, j]:.8f} vs numeric {fd[n, k, a, j]:.8f}")
 
 
@@ -267,6 +269,6 @@ def test_table_clearance_keeps_the_arm_above_the_table():
     for r in (rt, free):
         res = r.retarget(kp)
         pts, _ = r._points_jacobian(torch.as_tensor(res.joint_pos))
-        lowest.append(float(pts[:, len(_MATCHED):, 2].min()))
+        lowest.append(float(pts[:, len(_MATCHED):len(_MATCHED) + len(TABLE_CLEARANCE_POINTS), 2].min()))
     assert lowest[1] < -0.03                 # without the term the palm goes through the table
     assert lowest[0] > -0.01                 # with it, the clearance points stay (nearly) above

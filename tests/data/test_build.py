@@ -5,7 +5,6 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from adadex.data import feasibility
 from adadex.data.build import PRESETS, build_dataset, make_splits, plan_instructions
@@ -19,13 +18,7 @@ from adadex.sim.robot import HOME_QPOS, JOINT_NAMES
 SEED = 4   # = conftest.TINY_SEED: the session dataset is built with it
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Batched retargeting of a few sequences gains nothing from threads; a busy second one slows it a lot."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")   # tests/data/conftest.py
 
 
 @pytest.fixture(scope="module")

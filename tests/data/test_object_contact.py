@@ -22,12 +22,7 @@ from adadex.data.synth import NoiseConfig, Synthesizer, make_instruction
 from adadex.sim.robot import NUM_JOINTS, joint_limits, robot_mjcf_path
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")   # tests/data/conftest.py
 
 
 def test_hull_signed_distance_of_a_cube():

@@ -22,13 +22,7 @@ from adadex.sim.robot import HOME_QPOS, JOINT_NAMES, NUM_JOINTS, joint_limits
 LIMITS = joint_limits()
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """Small batched solves gain nothing from threads and a busy second thread slows them a lot."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")   # tests/data/conftest.py
 
 
 @lru_cache(maxsize=1)

@@ -51,7 +51,8 @@ def main(argv=None) -> dict:
     channels = MODULATOR_ROWS[a.row]
     m = settings["modulator"]
     torch.manual_seed(a.seed)
-    fresh = Modulator(channels, hidden=tuple(m["hidden"]), init_scale=m["init_scale"], loc_bound=m.get("loc_bound", 0.0))
+    fresh = Modulator(channels, hidden=tuple(m["hidden"]), init_scale=m["init_scale"],
+                      loc_bound=m.get("loc_bound", 0.0))
     paths = {"tracker": str(root / "generalist" / "tracker.pt")}
     result = {"benchmark": "modulator_usage", "run": str(a.run), "row": a.row, "seed": a.seed,
               "references": len(refs), "condition": "unseen_trajectory, randomized"}

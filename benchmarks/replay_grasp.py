@@ -115,7 +115,7 @@ def _closing_contacts(ds, index: int, after: int = 8) -> dict:
 def _hold_overlap(ds, index: int) -> dict:
     """How deep the reference's own hand sits inside the object during the hold (kinematic, MuJoCo's
     collision detection): the deepest link off the distal phalanges, and the fingertips' median depths."""
-    from adadex.data.object_contact import TIP_GEOMS, hand_object_overlap
+    from adadex.data.object_contact import PAD_GEOMS, TIP_GEOMS, hand_object_overlap
 
     ref, name = ds[index], ds.entries[index]["name"]
     phases = ref.meta.get("phases")
@@ -123,8 +123,7 @@ def _hold_overlap(ds, index: int) -> dict:
         return {"reference": name, "skipped": "no grasp phases in its metadata"}
     hold = slice(phases["manipulate"], phases["release"])
     depth = hand_object_overlap(ref.hand_joint_pos[hold], ref.object_pose[hold], ref.object_name)
-    distal = {n for n in depth if n.endswith("_ds_col")} | set(TIP_GEOMS)
-    deepest = max((n for n in depth if n not in distal), key=lambda n: depth[n].max())
+    deepest = max((n for n in depth if n not in TIP_GEOMS + PAD_GEOMS), key=lambda n: depth[n].max())
     return {"reference": name, "deepest_link": deepest, "deepest_link_mm": 1000 * float(depth[deepest].max()),
             "tip_median_mm": {n: 1000 * float(np.median(depth[n])) for n in TIP_GEOMS}}
 

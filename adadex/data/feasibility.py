@@ -32,7 +32,7 @@ import numpy as np
 
 from adadex.data.reference import Reference, WindowTooShortError
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
-from adadex.sim.scene import OBJECT_BODY, OBJECT_QPOS, build_scene_model
+from adadex.sim.scene import OBJECT_BODY, OBJECT_QPOS, build_scene_model, descends
 
 _ARM, _HAND, _WORLD = 4, 8, 16
 
@@ -72,7 +72,7 @@ class KinematicReplay:
         self._sites = [self.model.site(s).id for s in TRACKED_SITES]
         self._robot_geom = np.isin(self.model.geom_contype, (_ARM, _HAND))
         fingers = [self.model.body(f"{p}_bs").id for p in ("if", "mf", "rf", "th")]
-        self._finger_geom = np.array([any(_descends(self.model, b, f) for f in fingers)
+        self._finger_geom = np.array([any(descends(self.model, b, f) for f in fingers)
                                       for b in self.model.geom_bodyid])
 
     def link_poses(self, ref: Reference) -> np.ndarray:
@@ -112,14 +112,6 @@ class KinematicReplay:
         self.data.qpos[OBJECT_QPOS] = ref.object_pose[t]
 
 
-def _descends(model: mujoco.MjModel, body: int, ancestor: int) -> bool:
-    while body > 0:
-        if body == ancestor:
-            return True
-        body = model.body_parentid[body]
-    return False
-
-
 def _geom_name(model: mujoco.MjModel, g: int) -> str:
     return model.geom(g).name or f"geom {g} of body {model.body(model.geom_bodyid[g]).name}"
 
@@ -135,9 +127,9 @@ def _replay_model(object_name: str) -> mujoco.MjModel:
         b = model.geom_bodyid[g]
         if b == obj:
             model.geom_contype[g] = model.geom_conaffinity[g] = 0
-        elif _descends(model, b, palm):
+        elif descends(model, b, palm):
             model.geom_contype[g], model.geom_conaffinity[g] = _HAND, _ARM | _WORLD
-        elif _descends(model, b, base):
+        elif descends(model, b, base):
             # The hand's mount on link6 is a parent–child pair, which MuJoCo filters.
             model.geom_contype[g], model.geom_conaffinity[g] = _ARM, _WORLD
         else:

@@ -43,10 +43,13 @@ from scipy.spatial import ConvexHull
 
 from adadex.errors import check_numbers
 from adadex.sim.objects import get_object
-from adadex.sim.robot import robot_mjcf_path
+from adadex.sim.robot import NUM_JOINTS, robot_mjcf_path
+from adadex.sim.scene import OBJECT_BODY, OBJECT_QPOS, build_scene_model, descends
 
 #: Fingertip spheres in the order of the human tips they follow (thumb, index, middle, ring).
 TIP_GEOMS = ("th_tip_col", "if_tip_col", "mf_tip_col", "rf_tip_col")
+#: The distal phalanges' capsules (the pads the tip spheres end), in the same order.
+PAD_GEOMS = ("th_ds_col", "if_ds_col", "mf_ds_col", "rf_ds_col")
 
 
 @dataclass(frozen=True)
@@ -118,13 +121,9 @@ def hand_collision_spheres() -> tuple[HandSphere, ...]:
 
     model = mujoco.MjModel.from_xml_path(str(robot_mjcf_path()))
     chain_frames = set(RobotKinematics().chain.get_frame_names())
-    palm = model.body("palm").id
     tips, out = {}, []
-    for g in range(model.ngeom):
-        body = int(model.geom_bodyid[g])
-        if not _descends(model, body, palm) or model.geom_contype[g] == 0:
-            continue
-        frame, pose = _in_chain_frame(model, body, chain_frames)
+    for g in _hand_geoms(model):
+        frame, pose = _in_chain_frame(model, int(model.geom_bodyid[g]), chain_frames)
         local = _geom_spheres(model, g)
         for centre, radius in local:
             p = pose[:3, :3] @ centre + pose[:3, 3]
@@ -154,9 +153,6 @@ def hand_object_overlap(joint_pos: np.ndarray, object_pose: np.ndarray, object_n
     ``joint_pos`` (T, 22) and ``object_pose`` (T, 7) are a reference's (``ref.hand_joint_pos``,
     ``ref.object_pose``).
     """
-    from adadex.sim.robot import NUM_JOINTS
-    from adadex.sim.scene import OBJECT_BODY, OBJECT_QPOS, build_scene_model
-
     q, pose = np.asarray(joint_pos, float), np.asarray(object_pose, float)
     if q.ndim != 2 or q.shape[1] != NUM_JOINTS or pose.shape != (len(q), 7):
         raise ValueError(f"expected joint_pos (T, {NUM_JOINTS}) and object_pose (T, 7), got {q.shape} and {pose.shape}")
@@ -164,8 +160,7 @@ def hand_object_overlap(joint_pos: np.ndarray, object_pose: np.ndarray, object_n
     model.geom_margin[:] = margin
     data = mujoco.MjData(model)
     obj = model.body(OBJECT_BODY).id
-    palm = model.body("palm").id
-    hand = [g for g in range(model.ngeom) if _descends(model, int(model.geom_bodyid[g]), palm) and model.geom_contype[g]]
+    hand = _hand_geoms(model)
     depth = np.full((len(hand), len(q)), -margin)
     row = {g: k for k, g in enumerate(hand)}
     for t in range(len(q)):
@@ -180,12 +175,10 @@ def hand_object_overlap(joint_pos: np.ndarray, object_pose: np.ndarray, object_n
     return {model.geom(g).name: depth[k] for k, g in enumerate(hand)}
 
 
-def _descends(model, body: int, ancestor: int) -> bool:
-    while body > 0:
-        if body == ancestor:
-            return True
-        body = int(model.body_parentid[body])
-    return False
+def _hand_geoms(model) -> list[int]:
+    """The colliding geoms of the hand (the palm body and everything below it)."""
+    palm = model.body("palm").id
+    return [g for g in range(model.ngeom) if model.geom_contype[g] and descends(model, int(model.geom_bodyid[g]), palm)]
 
 
 def _in_chain_frame(model, body: int, chain_frames: set) -> tuple[str, np.ndarray]:

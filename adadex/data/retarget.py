@@ -344,9 +344,9 @@ class Retargeter:
         B, T = target.shape[:2]
         out_q = torch.empty(B, T, NUM_JOINTS, dtype=torch.float64)
         out_err = torch.empty(B, T, len(_MATCHED), dtype=torch.float64)
+        iters = self.iters if obj is None else max(self.iters, self.contact.iters)
         for t in range(T):
-            iters = self.first_iters if t == 0 else self.iters if obj is None else max(self.iters, self.contact.iters)
-            q, err = self._solve_frame(target[:, t], q, iters, _frame(obj, t))
+            q, err = self._solve_frame(target[:, t], q, self.first_iters if t == 0 else iters, _frame(obj, t))
             out_q[:, t], out_err[:, t] = q, err
             if progress is not None:
                 progress(B)
@@ -378,7 +378,8 @@ class Retargeter:
         starts = self._starts(q0)
         B, K = len(q0), len(starts)
         qs = torch.cat(starts)
-        qs, errs = self._solve_frame(target.repeat(K, 1, 1), qs, self.first_iters, _rows(obj, torch.arange(B).repeat(K)))
+        qs, errs = self._solve_frame(target.repeat(K, 1, 1), qs, self.first_iters,
+                                     _rows(obj, torch.arange(B).repeat(K)))
         w = self._w[None]
         # Among equally good fits prefer forearm and wrist rolls near the middle of their range.
         cost = ((w * errs) ** 2).sum(-1) + 2e-4 * (qs[:, 3] ** 2 + qs[:, 5] ** 2)
@@ -396,7 +397,7 @@ class Retargeter:
         K = len(_MATCHED)
         q = q_prev.clone()
         r, J, pts = self._residuals(q, target, obj)
-        cost = (r ** 2).sum(1) + reg * ((q - q_prev) ** 2).sum(1)
+        cost = None if obj is None else (r ** 2).sum(1)
         lam = torch.full((len(q), 1, 1), self.damping if obj is None else max(self.damping, self.contact.damping),
                          dtype=torch.float64)
         for _ in range(iters):

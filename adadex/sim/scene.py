@@ -135,3 +135,12 @@ def home_state(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
     """``(qpos, ctrl)`` of the ``home`` keyframe of a scene model."""
     key = model.key("home")
     return key.qpos.copy(), key.ctrl.copy()
+
+
+def descends(model: mujoco.MjModel, body: int, ancestor: int) -> bool:
+    """Whether ``body`` is ``ancestor`` or below it in ``model``'s body tree."""
+    while body > 0:
+        if body == ancestor:
+            return True
+        body = int(model.body_parentid[body])
+    return False

@@ -7,8 +7,9 @@ One iteration: collect ``frames_per_batch`` frames with the current policy (expl
 advantages with GAE, run ``epochs`` passes of minibatch updates (a minibatch whose loss or gradient
 is non-finite is skipped and counted as ``skipped_minibatches``; an iteration with nothing but such
 minibatches raises :class:`TrainingDiverged`), push the new weights to the collector's workers, log,
-and every ``checkpoint_every`` iterations write a checkpoint (:mod:`adadex.train.checkpoint`). The observation normalizers are fitted once, on the first batch
-(before any update), and then travel inside the modules' state.
+and every ``checkpoint_every`` iterations write a checkpoint (:mod:`adadex.train.checkpoint`). The
+observation normalizers are fitted once, on the first batch (before any update), and then travel
+inside the modules' state.
 
 Example (a few iterations on a tiny dataset)::
 

@@ -9,7 +9,7 @@ import pytest
 from adadex.data import feasibility
 from adadex.data.build import PRESETS, build_dataset, make_splits, plan_instructions
 from adadex.data.feasibility import REASONS, KinematicReplay, Rejection, check
-from adadex.data.object_contact import TIP_GEOMS, ObjectContact, hand_object_overlap
+from adadex.data.object_contact import PAD_GEOMS, TIP_GEOMS, ObjectContact, hand_object_overlap
 from adadex.data.reference import WINDOW_FRAMES, Reference, ReferenceDataset
 from adadex.data.synth import VERBS
 from adadex.sim.objects import get_object, held_out_objects
@@ -87,7 +87,7 @@ def test_object_aware_build_records_its_settings_and_keeps_the_hand_out(tiny, tm
             ref = data[i if name == "aware" else blind[e["name"]]]
             hold = slice(ref.meta["phases"]["manipulate"], ref.meta["phases"]["release"])
             depth = hand_object_overlap(ref.hand_joint_pos[hold], ref.object_pose[hold], ref.object_name)
-            off_tips = [d.max() for n, d in depth.items() if n not in TIP_GEOMS and not n.endswith("_ds_col")]
+            off_tips = [d.max() for n, d in depth.items() if n not in TIP_GEOMS + PAD_GEOMS]
             deepest.setdefault(name, []).append(max(off_tips))
     # a soft penalty against noisy human keypoints: a few mm remain on some frames (keypoints alone: 2–3 cm)
     assert len(deepest["aware"]) >= 2 and len(deepest["blind"]) >= 2, deepest

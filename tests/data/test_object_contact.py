@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from adadex.data.object_contact import (
+    PAD_GEOMS,
     TIP_GEOMS,
     ObjectContact,
     hand_collision_spheres,
@@ -98,9 +99,8 @@ def _hold_penetrations(q: np.ndarray) -> tuple[float, float, np.ndarray]:
     m = _grasp_motion()
     hold = slice(m.phases["manipulate"], m.phases["release"])
     depth = hand_object_overlap(q[hold], m.object_pose[hold], "cube_050")
-    pads = [f"{f}_ds_col" for f in ("th", "if", "mf", "rf")]
-    worst = max(d.max() for n, d in depth.items() if n not in TIP_GEOMS and n not in pads)
-    return worst, max(depth[n].max() for n in pads), np.array([np.median(depth[n]) for n in TIP_GEOMS])
+    worst = max(d.max() for n, d in depth.items() if n not in TIP_GEOMS + PAD_GEOMS)
+    return worst, max(depth[n].max() for n in PAD_GEOMS), np.array([np.median(depth[n]) for n in TIP_GEOMS])
 
 
 def test_retargeting_with_the_object_keeps_the_hand_out_and_the_fingertips_on_it():

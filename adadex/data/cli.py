@@ -115,7 +115,7 @@ def add_parser(sub) -> None:
     b.add_argument("--clean", action="store_true", help="no synthesis noise (for debugging)")
     b.add_argument("--contact", action="store_true",
                    help="object-aware retargeting: hand kept out of the object, fingertips pressed on it "
-                        "(adadex.data.object_contact; builds `small` in 48 min instead of 3)")
+                        "(adadex.data.object_contact; many times slower to build: see the README)")
     b.add_argument("--limit", type=int, default=None, help="use only the first N base instructions")
     b.add_argument("--quiet", action="store_true", help="no progress bars")
     b.set_defaults(func=_cmd_build)

@@ -23,7 +23,11 @@ Measured in one run, on the same dataset and references:
   local Ray cluster (skipped without the ``ray`` extra);
 * worker start-up: seconds from creating a multi-worker collector to its first batch, minus one
   batch's collection time (imports + env construction in the workers; the compiled scenes are
-  shipped from the main process).
+  shipped from the main process). Workers start as the trainer starts them
+  (``CollectorConfig.start_method``, ``--start-method``): with ``forkserver``, the default, the fork
+  server is started just before the 1-worker collector, whose start-up therefore holds the server's
+  imports; the 2-worker collector after it forks both workers from the running server. With
+  ``spawn`` every worker imports torch, TorchRL and MuJoCo itself.
 
 Targets: collection ≥ 0.8 × physics; PPO overall ≥ 0.5 × physics; 2 workers ≥ 1.7 × 1 worker.
 Writes ``benchmarks/results/train_throughput.json`` with ``collection_over_physics``,
@@ -149,6 +153,8 @@ def main(argv=None) -> dict:
     p.add_argument("--frames", type=int, default=16384, help="frames per measurement")
     p.add_argument("--out", type=Path, default=RESULTS / "train_throughput.json")
     p.add_argument("--no-ray", action="store_true")
+    p.add_argument("--start-method", choices=("forkserver", "spawn"), default="forkserver",
+                   help="how local MultiSync workers start (CollectorConfig.start_method)")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
 
@@ -157,6 +163,7 @@ def main(argv=None) -> dict:
     from adadex.data.reference import ReferenceDataset
     from adadex.envs.tracking import episode_references
     from adadex.modules.tracker import Tracker
+    from adadex.train.collectors import start_worker_server
     from adadex.train.config import CollectorConfig, PolicyConfig, PPOConfig, TrainConfig
     from adadex.train.envs import TrackingEnvFactory
     from adadex.train.ppo import PPOTrainer
@@ -199,6 +206,8 @@ def main(argv=None) -> dict:
 
         one = factory.with_scenes()
         w1 = dataclasses.replace(one, nthread=1)
+        res["start_method"] = a.start_method
+        start_worker_server(a.start_method)
         for n in (1, 2):
             res[f"multisync_{n}_fps"], res[f"multisync_{n}_startup_s"] = _collector_fps(
                 lambda n=n: MultiSyncCollector(w1.for_workers(n), policy, frames_per_batch=fpb * n, total_frames=-1,
@@ -237,7 +246,7 @@ def main(argv=None) -> dict:
           f"({res['ppo_over_physics']:.2f} ×, target ≥ 0.5)")
     print(f"MultiSync 1 worker {res['multisync_1_fps']:.0f}, 2 workers {res['multisync_2_fps']:.0f} frames/s: "
           f"{res['two_workers_over_one']:.2f} × (target ≥ 1.7); start-up "
-          f"{res['multisync_1_startup_s']:.1f} / {res['multisync_2_startup_s']:.1f} s")
+          f"{res['multisync_1_startup_s']:.1f} / {res['multisync_2_startup_s']:.1f} s ({a.start_method})")
     if "ray_2_fps" in res:
         print(f"Ray 1 worker {res['ray_1_fps']:.0f}, 2 workers {res['ray_2_fps']:.0f} frames/s: "
               f"{res['ray_two_workers_over_one']:.2f} ×; start-up {res['ray_1_startup_s']:.1f} / "

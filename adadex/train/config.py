@@ -68,6 +68,10 @@ class CollectorConfig:
     worlds: int = 64                      # B, worlds per worker's env
     env_threads: int = 2                  # MuJoCo rollout threads per env
     ray_address: str | None = None
+    #: how local worker processes start (``multiprocessing``): ``forkserver`` forks each from a server
+    #: process that imported torch, TorchRL and MuJoCo once, so only the first pays the imports;
+    #: ``spawn`` (TorchRL's default) starts each as a new interpreter that imports them again
+    start_method: str = "forkserver"
 
     def __post_init__(self):
         check_number("CollectorConfig.workers", self.workers, low=1, integer=True)
@@ -75,6 +79,8 @@ class CollectorConfig:
         check_number("CollectorConfig.env_threads", self.env_threads, low=1, integer=True)
         if self.backend not in ("local", "ray"):
             raise ConfigError(f"CollectorConfig.backend must be 'local' or 'ray', got {self.backend!r}")
+        if self.start_method not in ("forkserver", "spawn"):
+            raise ConfigError(f"CollectorConfig.start_method must be 'forkserver' or 'spawn', got {self.start_method!r}")
 
 
 @dataclass

@@ -49,7 +49,7 @@ from adadex.modules.channels import ModulationConfig
 from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
 from adadex.train.checkpoint import load_checkpoint, save_checkpoint, set_rng_state
-from adadex.train.collectors import make_collector
+from adadex.train.collectors import make_collector, start_worker_server
 from adadex.train.config import TrainConfig
 from adadex.train.envs import ModulatedEnv, TrackingEnvFactory
 from adadex.transforms.policy import make_policy
@@ -90,6 +90,8 @@ class PPOTrainer:
         env_config = cfg.env_config(env_config)              # with the run's reward settings
         self.cfg, self.env_config, self.run_name = cfg, env_config, run_name
         self.out = Path(cfg.out)
+        if cfg.collector.backend == "local" and cfg.collector.workers > 1:
+            start_worker_server(cfg.collector.start_method)        # it imports while this sets up
         self.dataset = ReferenceDataset(cfg.dataset)
         self.references = training_references(cfg, self.dataset, env_config.window)
         torch.manual_seed(cfg.seed)

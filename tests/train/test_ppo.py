@@ -71,6 +71,27 @@ def test_two_worker_multisync_collector(tiny_dataset, tmp_path):
     assert Tracker.load(res["tracker"])
 
 
+@pytest.mark.parametrize("method, preloaded", [("forkserver", True), ("spawn", False)])
+def test_local_workers_start_with_the_heavy_imports_done(tmp_path, method, preloaded):
+    """With the fork server (the default), a new worker process already holds torch, TorchRL, MuJoCo
+    and the env module when it starts; with spawn it imports them itself."""
+    import multiprocessing
+
+    from adadex.train.collectors import WORKER_PRELOAD, start_worker_server
+
+    start_worker_server(method)
+    out = tmp_path / "preloaded.txt"
+    code = (f"import sys, pathlib; pathlib.Path({str(out)!r}).write_text("
+            f"str(all(m in sys.modules for m in {WORKER_PRELOAD!r})))")
+    proc = multiprocessing.get_context().Process(target=exec, args=(code,))   # the start method TorchRL uses
+    proc.start()
+    proc.join(120)
+    assert multiprocessing.get_start_method() == method
+    assert proc.exitcode == 0 and out.read_text() == str(preloaded)
+    with pytest.raises(ConfigError, match="start method must be 'forkserver' or 'spawn'"):
+        start_worker_server("fork")
+
+
 def test_two_worker_ray_collector(tiny_dataset, tmp_path):
     pytest.importorskip("ray", reason="the ray extra is not installed (pip install -e '.[ray]')")
     import ray

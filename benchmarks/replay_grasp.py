@@ -10,7 +10,12 @@ controllers through the PD servos:
 
 For each reference: the object's largest rise above its start (``lift_mm``), how far it was moved on
 the table before the reference starts lifting it (``pushed_cm``: the approach and closing pushed it
-away), mean T_o and completion. Beside them, :func:`adadex.sim.grasp.scripted_grasp_lift` on the
+away), mean T_o and completion, and how far the servos lag the reference before the lift
+(``arm_lag_rad``: the largest arm-joint error; ``palm_lag_cm``: the palm's distance from where the
+reference joints put it). Per reference, kinematically, the order in which the fingertips reach
+the object while the hand closes (``touch_frames``: frames after the grasp phase starts at which
+each fingertip is first within 2 mm of the object at its start pose): a digit that touches alone
+for a few frames pushes the object across the table before the others arrive. Beside them, :func:`adadex.sim.grasp.scripted_grasp_lift` on the
 group's object (a planned fingertip grasp: can this hand lift this object at all?), and how deep the
 references' own hand sits inside the object while holding it (kinematically, the deepest link off
 the distal phalanges and each fingertip's median depth; a dataset built with ``adadex data build
@@ -46,8 +51,11 @@ REF_LIFT = 0.01
 
 def _per_reference(rollout, per_reference: dict) -> list[dict]:
     """Lift, pre-lift push, T_o and completion of each world of an ``evaluate`` rollout ([B, T])."""
-    obj = rollout["next", "object", "pose"][..., :3]
-    ref = rollout["next", "reference", "object_pose"][..., 0, :3]
+    nxt = rollout["next"]
+    obj = nxt["object", "pose"][..., :3]
+    ref = nxt["reference", "object_pose"][..., 0, :3]
+    arm_err = (nxt["proprio", "joint_pos"] - nxt["reference", "hand_joint_pos"][..., 0, :])[..., :6].abs().amax(-1)
+    palm_err = (nxt["proprio", "link_pose"][..., 0, :3] - nxt["reference", "hand_link_pose"][..., 0, 0, :3]).norm(dim=-1)
     start = obj[:, 0]
     out = []
     for w, (name, m) in enumerate(per_reference):
@@ -55,8 +63,28 @@ def _per_reference(rollout, per_reference: dict) -> list[dict]:
         t_lift = int(rising.float().argmax()) if bool(rising.any()) else obj.shape[1] - 1
         out.append({"reference": name, "lift_mm": 1000 * float((obj[w, :, 2] - start[w, 2]).max()),
                     "pushed_cm": 100 * float((obj[w, t_lift, :2] - start[w, :2]).norm()),
-                    "reference_lift_step": t_lift, "T_o_cm": 100 * m["T_o"], "completion_pct": 100 * m["completion"]})
+                    "reference_lift_step": t_lift, "T_o_cm": 100 * m["T_o"], "completion_pct": 100 * m["completion"],
+                    "arm_lag_rad": float(arm_err[w, :t_lift + 1].max()),
+                    "palm_lag_cm": 100 * float(palm_err[w, :t_lift + 1].max())})
     return out
+
+
+def _touch_frames(ds, index: int, touch: float = 0.002) -> dict:
+    """Frames after the grasp phase starts at which each fingertip first comes within ``touch`` m of
+    the object, posed at its episode start (where the object is until the hand moves it), up to
+    the reference's lift; ``None``: not before the lift."""
+    from adadex.data.object_contact import TIP_GEOMS, hand_object_overlap
+
+    ref, entry = ds[index], ds.entries[index]
+    phases = ref.meta.get("phases")
+    if not phases:
+        return {"reference": entry["name"], "skipped": "no grasp phases in its metadata"}
+    frames = slice(phases["grasp"], phases["manipulate"] + 1)
+    q = ref.hand_joint_pos[frames]
+    pose = np.repeat(ref.object_pose[entry["window_start"]][None], len(q), axis=0)
+    depth = hand_object_overlap(q, pose, ref.object_name)
+    first = {n: int(np.argmax(depth[n] > -touch)) if bool((depth[n] > -touch).any()) else None for n in TIP_GEOMS}
+    return {"reference": entry["name"], "touch_frames": first}
 
 
 def _closing_contacts(ds, index: int, after: int = 8) -> dict:
@@ -185,11 +213,17 @@ def main(argv=None) -> dict:
                      "completion_pct": res["summary"]["completion_pct"]}
         print(f"{name:8s} T_o {res['summary']['T_o']:.1f} cm, completion {res['summary']['completion_pct']:.1f} % | "
               + ", ".join(f"lift {r['lift_mm']:.0f} mm pushed {r['pushed_cm']:.1f} cm" for r in rows))
+        print(f"{'':8s} servo lag before the lift: arm joints ≤ " + ", ".join(f"{r['arm_lag_rad']:.3f}" for r in rows)
+              + " rad; palm ≤ " + ", ".join(f"{r['palm_lag_cm']:.1f}" for r in rows) + " cm")
     out["hold_overlap"] = [_hold_overlap(ds, i) for i in refs]
     print("the references' hand inside the object while holding it (kinematic): " + "; ".join(
         f"{r['deepest_link']} {r['deepest_link_mm']:.0f} mm, tips "
         + "/".join(f"{v:.0f}" for v in r["tip_median_mm"].values()) + " mm" if "skipped" not in r else "skipped"
         for r in out["hold_overlap"]))
+    out["touch_frames"] = [_touch_frames(ds, i) for i in refs]
+    print("fingertips reaching the object, frames after the grasp phase starts (thumb/index/middle/ring): " + "; ".join(
+        "/".join("-" if v is None else str(v) for v in r["touch_frames"].values()) if "skipped" not in r else "skipped"
+        for r in out["touch_frames"]))
     g = scripted_grasp_lift(obj_name)
     out["scripted_grasp"] = {"lift_cm": 100 * g.lift_achieved, "max_slip_cm": 100 * g.max_slip, "unstable": g.unstable}
     print(f"scripted grasp-and-lift of {obj_name}: lift {100 * g.lift_achieved:.1f} cm, slip {100 * g.max_slip:.1f} cm")

@@ -23,7 +23,7 @@ from multiprocessing import forkserver
 from torchrl.collectors import Collector, MultiSyncCollector
 
 from adadex.errors import ConfigError
-from adadex.train.config import CollectorConfig
+from adadex.train.config import START_METHODS, CollectorConfig
 from adadex.train.envs import TrackingEnvFactory
 
 
@@ -43,8 +43,8 @@ def start_worker_server(method: str = "forkserver") -> None:
     handed their env factory by pickle, as with ``spawn``. The start method is process-wide: call
     this before creating a multi-process collector, as :func:`make_collector` does.
     """
-    if method not in ("forkserver", "spawn"):
-        raise ConfigError(f"worker start method must be 'forkserver' or 'spawn', got {method!r}")
+    if method not in START_METHODS:
+        raise ConfigError(f"worker start method must be one of {START_METHODS}, got {method!r}")
     if method == "forkserver" and method not in multiprocessing.get_all_start_methods():
         method = "spawn"                                          # a platform without fork (Windows)
     if multiprocessing.get_start_method(allow_none=True) != method:

@@ -57,6 +57,10 @@ class PPOConfig:
             check_number(f"PPOConfig.{k}", getattr(self, k), high=1.0)
 
 
+#: how local collector workers can start (:func:`adadex.train.collectors.start_worker_server`)
+START_METHODS = ("forkserver", "spawn")
+
+
 @dataclass
 class CollectorConfig:
     """Where the env steps run. ``local``: ``workers`` = 1 steps the envs in this process (TorchRL
@@ -79,8 +83,8 @@ class CollectorConfig:
         check_number("CollectorConfig.env_threads", self.env_threads, low=1, integer=True)
         if self.backend not in ("local", "ray"):
             raise ConfigError(f"CollectorConfig.backend must be 'local' or 'ray', got {self.backend!r}")
-        if self.start_method not in ("forkserver", "spawn"):
-            raise ConfigError(f"CollectorConfig.start_method must be 'forkserver' or 'spawn', got {self.start_method!r}")
+        if self.start_method not in START_METHODS:
+            raise ConfigError(f"CollectorConfig.start_method must be one of {START_METHODS}, got {self.start_method!r}")
 
 
 @dataclass

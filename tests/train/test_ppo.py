@@ -88,8 +88,10 @@ def test_local_workers_start_with_the_heavy_imports_done(tmp_path, method, prelo
     proc.join(120)
     assert multiprocessing.get_start_method() == method
     assert proc.exitcode == 0 and out.read_text() == str(preloaded)
-    with pytest.raises(ConfigError, match="start method must be 'forkserver' or 'spawn'"):
+    with pytest.raises(ConfigError, match=r"start method must be one of \('forkserver', 'spawn'\), got 'fork'"):
         start_worker_server("fork")
+    with pytest.raises(ConfigError, match="CollectorConfig.start_method must be one of"):
+        CollectorConfig(start_method="fork")
 
 
 def test_two_worker_ray_collector(tiny_dataset, tmp_path):

@@ -226,7 +226,8 @@ def main(argv=None) -> dict:
         for r in out["touch_frames"]))
     g = scripted_grasp_lift(obj_name)
     out["scripted_grasp"] = {"lift_cm": 100 * g.lift_achieved, "max_slip_cm": 100 * g.max_slip, "unstable": g.unstable}
-    print(f"scripted grasp-and-lift of {obj_name}: lift {100 * g.lift_achieved:.1f} cm, slip {100 * g.max_slip:.1f} cm")
+    print(f"scripted grasp-and-lift of {obj_name}: " + ("unstable (the object was flung)" if g.unstable else
+          f"lift {100 * g.lift_achieved:.1f} cm, slip {100 * g.max_slip:.1f} cm"))
     if a.contacts:
         out["closing_contacts"] = [_closing_contacts(ds, i) for i in refs]
         for row in out["closing_contacts"]:

@@ -70,7 +70,7 @@ from adadex.envs.randomization import ModelRandomizer, Randomization
 from adadex.envs.reward import TERM_NAMES, RewardConfig, tracking_reward
 from adadex.errors import ConfigError, check_array, check_number, check_numbers
 from adadex.geometry import Rotation, quat, rotation
-from adadex.sim.batched import BatchedSim
+from adadex.sim.batched import MAX_OBJECT_SPEED, BatchedSim
 from adadex.sim.effects import ModelBase
 from adadex.sim.objects import get_object
 from adadex.sim.patch import EffectInstance, ModelPatch, patched_scene
@@ -87,7 +87,7 @@ class TrackingConfig:
     terminate_object_error: float = 0.25  # end the episode when the object is this far off (0: never)
     terminate_palm_error: float = 0.25    # … or the palm (0: never)
     object_lift: float = 0.002           # start the object this much above its reference pose (no overlap)
-    max_object_speed: float = 4.0        # m/s; faster means the contact solver blew up: treated as unstable
+    max_object_speed: float = MAX_OBJECT_SPEED  # m/s; faster means the contact solver blew up: unstable
     reward: RewardConfig = field(default_factory=RewardConfig)
 
     def __post_init__(self):

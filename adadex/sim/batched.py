@@ -43,6 +43,11 @@ from mujoco import rollout as mj_rollout
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 from adadex.sim.scene import CONTROL_HZ
 
+#: m/s. No tabletop motion moves an object this fast: a faster one means the contact solver pumped
+#: energy in (a deep squeeze resolved at once) and the world is treated as unstable by the tracking
+#: env (``TrackingConfig.max_object_speed``) and the scripted grasp.
+MAX_OBJECT_SPEED = 4.0
+
 FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
 CTRL_SPEC = int(mujoco.mjtState.mjSTATE_CTRL)
 

@@ -26,7 +26,7 @@ close (:func:`adadex.sim.contacts.body_contact_forces`): which hand links, how h
 table pushes back, and how far the object has moved by the reference's lift. Writes
 ``benchmarks/results/replay_grasp.json``.
 
-    python benchmarks/replay_grasp.py [--dataset data/small] [--group G] [--squeeze 0.2] [--contacts]
+    python benchmarks/replay_grasp.py [--dataset data/small] [--group G] [--squeeze 0.2] [--contacts [--trace]]
 
 The group defaults to ``benchmarks/specialist_quality.py``'s (the first of the largest).
 """
@@ -90,7 +90,9 @@ def _touch_frames(ds, index: int, touch: float = 0.002) -> dict:
 def _closing_contacts(ds, index: int, after: int = 8) -> dict:
     """Replay reference ``index`` in one MuJoCo world from its episode start to ``after`` steps past
     the reference's lift; the hand's contact forces on the object while the fingers close (peak per
-    link, N), the table's force before closing and its peak, and the object's travel."""
+    link, N), the table's force before closing and its peak, and the object's travel; ``trace``: per
+    control step from the grasp phase on, the object's displacement from its start (cm) and every
+    force on it above 0.05 N (what showed the closing hand pressing objects down and out)."""
     import mujoco
 
     from adadex.envs.tracking import TrackingConfig
@@ -115,7 +117,7 @@ def _closing_contacts(ds, index: int, after: int = 8) -> dict:
     substeps = int(round(1.0 / (CONTROL_HZ * m.opt.timestep)))
     obj0 = d.qpos[OBJECT_QPOS][:3].copy()
     hand_peak, table = {}, {"before": 0.0, "peak": 0.0}
-    moved, touching_after = {}, []
+    moved, touching_after, trace = {}, [], []
     for t in range(min(lift + after, ref.num_frames - start - 1)):
         step = np.clip(ref.hand_joint_pos[start + t + 1] - target, -cfg.max_action, cfg.max_action)
         target = np.clip(target + step, lim[:, 0], lim[:, 1])
@@ -123,6 +125,10 @@ def _closing_contacts(ds, index: int, after: int = 8) -> dict:
         for _ in range(substeps):
             mujoco.mj_step(m, d)
         forces = body_contact_forces(m, d, OBJECT_BODY)
+        if t >= grasp - 1:
+            trace.append({"step": t + 1, "object_cm": [round(100 * float(x), 2) for x in d.qpos[OBJECT_QPOS][:3] - obj0],
+                          "forces_N": {k: round(float(v), 2) for k, v in sorted(forces.items(), key=lambda kv: -kv[1])
+                                       if v > 0.05}})
         if t == grasp - 1:
             table["before"] = forces.get("table", 0.0)
         if grasp <= t <= lift:
@@ -137,7 +143,7 @@ def _closing_contacts(ds, index: int, after: int = 8) -> dict:
     return {"reference": entry["name"], "hand_peak_N": dict(sorted(hand_peak.items(), key=lambda kv: -kv[1])),
             "table_before_N": table["before"], "table_peak_N": table["peak"],
             "moved_at_lift_cm": moved.get("at_lift"), "steps_after_lift": after, "moved_after_cm": moved.get("after"),
-            "hand_touching_then": touching_after}
+            "hand_touching_then": touching_after, "grasp_step": grasp, "lift_step": lift, "trace": trace}
 
 
 def _hold_overlap(ds, index: int) -> dict:
@@ -172,6 +178,8 @@ def main(argv=None) -> dict:
     p.add_argument("--group", type=int, default=None)
     p.add_argument("--squeeze", type=float, default=0.2, help="rad added to the finger flexion targets")
     p.add_argument("--contacts", action="store_true", help="list the contacts on the object while the fingers close")
+    p.add_argument("--trace", action="store_true",
+                   help="with --contacts: print each reference's object motion and forces step by step from the grasp")
     p.add_argument("--out", type=Path, default=RESULTS / "replay_grasp.json")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -232,6 +240,11 @@ def main(argv=None) -> dict:
         out["closing_contacts"] = [_closing_contacts(ds, i) for i in refs]
         for row in out["closing_contacts"]:
             print(_contacts_line(row))
+            if a.trace and "trace" in row:
+                for r in row["trace"]:
+                    mark = " (grasp)" if r["step"] == row["grasp_step"] else " (lift)" if r["step"] == row["lift_step"] else ""
+                    print(f"    step {r['step']:3d}{mark}: object moved ({', '.join(f'{x:5.1f}' for x in r['object_cm'])}) cm; "
+                          + (", ".join(f"{k} {v:.1f} N" for k, v in r["forces_N"].items()) or "nothing touches it"))
     atomic_write_text(a.out, json.dumps(out, indent=1))
     print(f"wrote {a.out}")
     return out

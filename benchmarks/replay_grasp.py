@@ -15,16 +15,17 @@ away), mean T_o and completion, and how far the servos lag the reference before 
 reference joints put it). Per reference, kinematically, the order in which the fingertips reach
 the object while the hand closes (``touch_frames``: frames after the grasp phase starts at which
 each fingertip is first within 2 mm of the object at its start pose): a digit that touches alone
-for a few frames pushes the object across the table before the others arrive. Beside them, :func:`adadex.sim.grasp.scripted_grasp_lift` on the
-group's object (a planned fingertip grasp: can this hand lift this object at all?), and how deep the
-references' own hand sits inside the object while holding it (kinematically, the deepest link off
-the distal phalanges and each fingertip's median depth; a dataset built with ``adadex data build
---contact`` keeps the first at zero and the tips at its squeeze). With
-``--contacts``, each reference is also replayed in one plain MuJoCo world (same start, same servo
-targets and per-step action bound as the env) to list what touches the object while the fingers
-close (:func:`adadex.sim.contacts.body_contact_forces`): which hand links, how hard, how hard the
-table pushes back, and how far the object has moved by the reference's lift. Writes
-``benchmarks/results/replay_grasp.json``.
+for a few frames pushes the object across the table before the others arrive. Beside them,
+:func:`adadex.sim.grasp.scripted_grasp_lift` on the group's object (a planned fingertip grasp: can
+this hand lift this object at all?), and how deep the references' own hand sits inside the object
+while holding it (kinematically, the deepest link off the distal phalanges and each fingertip's
+median depth; a dataset built with ``adadex data build --contact`` keeps the first at zero and the
+tips at its squeeze). With ``--contacts``, each reference is also replayed in one plain MuJoCo world
+(same start, same servo targets and per-step action bound as the env) to list what touches the
+object while the fingers close (:func:`adadex.sim.contacts.body_contact_forces`): which hand links,
+how hard, how hard the table pushes back, and how far the object has moved by the reference's lift;
+``--trace`` (implies ``--contacts``) prints, step by step from the grasp, where the object is and
+every force on it. Writes ``benchmarks/results/replay_grasp.json``.
 
     python benchmarks/replay_grasp.py [--dataset data/small] [--group G] [--squeeze 0.2] [--contacts [--trace]]
 
@@ -179,7 +180,7 @@ def main(argv=None) -> dict:
     p.add_argument("--squeeze", type=float, default=0.2, help="rad added to the finger flexion targets")
     p.add_argument("--contacts", action="store_true", help="list the contacts on the object while the fingers close")
     p.add_argument("--trace", action="store_true",
-                   help="with --contacts: print each reference's object motion and forces step by step from the grasp")
+                   help="--contacts, and each reference's object motion and forces step by step from the grasp")
     p.add_argument("--out", type=Path, default=RESULTS / "replay_grasp.json")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -236,7 +237,7 @@ def main(argv=None) -> dict:
     out["scripted_grasp"] = {"lift_cm": 100 * g.lift_achieved, "max_slip_cm": 100 * g.max_slip, "unstable": g.unstable}
     print(f"scripted grasp-and-lift of {obj_name}: " + ("unstable (the object was flung)" if g.unstable else
           f"lift {100 * g.lift_achieved:.1f} cm, slip {100 * g.max_slip:.1f} cm"))
-    if a.contacts:
+    if a.contacts or a.trace:
         out["closing_contacts"] = [_closing_contacts(ds, i) for i in refs]
         for row in out["closing_contacts"]:
             print(_contacts_line(row))

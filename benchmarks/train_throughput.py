@@ -53,6 +53,7 @@ import torch
 from _data import RESULTS, dataset_or_tiny
 
 from adadex.io import atomic_write_text
+from adadex.train.config import START_METHODS
 
 
 
@@ -153,7 +154,7 @@ def main(argv=None) -> dict:
     p.add_argument("--frames", type=int, default=16384, help="frames per measurement")
     p.add_argument("--out", type=Path, default=RESULTS / "train_throughput.json")
     p.add_argument("--no-ray", action="store_true")
-    p.add_argument("--start-method", choices=("forkserver", "spawn"), default="forkserver",
+    p.add_argument("--start-method", choices=START_METHODS, default="forkserver",
                    help="how local MultiSync workers start (CollectorConfig.start_method)")
     a = p.parse_args(argv)
     torch.set_num_threads(1)

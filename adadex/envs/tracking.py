@@ -70,7 +70,7 @@ from adadex.envs.randomization import ModelRandomizer, Randomization
 from adadex.envs.reward import TERM_NAMES, RewardConfig, tracking_reward
 from adadex.errors import ConfigError, check_array, check_number, check_numbers
 from adadex.geometry import Rotation, quat, rotation
-from adadex.sim.batched import MAX_OBJECT_SPEED, BatchedSim
+from adadex.sim.batched import MAX_OBJECT_SPEED, BatchedSim, flung
 from adadex.sim.effects import ModelBase
 from adadex.sim.objects import get_object
 from adadex.sim.patch import EffectInstance, ModelPatch, patched_scene
@@ -385,8 +385,7 @@ class TrackingEnv(EnvBase):
         readout = self.sim.step(self._servo_command())
         self._t += 1
         # MuJoCo flags diverging worlds; an object flung faster than any tabletop motion is one too.
-        speed = readout.object_vel[:, :3]
-        unstable = readout.unstable | ((speed * speed).sum(axis=1) > cfg.max_object_speed ** 2)
+        unstable = readout.unstable | flung(readout.object_vel, cfg.max_object_speed)
         if unstable.any():
             worlds = np.flatnonzero(unstable)
             self.unstable_count += len(worlds)

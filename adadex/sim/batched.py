@@ -48,6 +48,12 @@ from adadex.sim.scene import CONTROL_HZ
 #: env (``TrackingConfig.max_object_speed``) and the scripted grasp.
 MAX_OBJECT_SPEED = 4.0
 
+
+def flung(object_vel: np.ndarray, limit: float = MAX_OBJECT_SPEED) -> np.ndarray:
+    """(B,) whether each world's object moves faster than ``limit`` (m/s), from ``SimReadout.object_vel``."""
+    lin = np.asarray(object_vel)[..., :3]
+    return (lin * lin).sum(axis=-1) > limit * limit
+
 FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
 CTRL_SPEC = int(mujoco.mjtState.mjSTATE_CTRL)
 

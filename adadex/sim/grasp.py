@@ -23,7 +23,7 @@ import mujoco
 import numpy as np
 from scipy.optimize import least_squares
 
-from adadex.sim.batched import MAX_OBJECT_SPEED, BatchedSim
+from adadex.sim.batched import BatchedSim, flung
 from adadex.sim.ik import IKError, solve_arm_ik
 from adadex.sim.robot import FINGER_RADIUS, HOME_QPOS, NUM_JOINTS, TRACKED_SITES
 from adadex.sim.scene import CONTROL_HZ, OBJECT_HOME_XY, build_scene_model
@@ -156,7 +156,7 @@ def scripted_grasp_lift(object_name: str = "cube_050", *, lift: float = 0.10, ho
         for k in range(n):
             a = (k + 1) / n
             out = sim.step(((1 - a) * start + a * end)[None, :])
-            unstable |= bool(out.unstable[0]) or bool(np.linalg.norm(out.object_vel[0, :3]) > MAX_OBJECT_SPEED)
+            unstable |= bool(out.unstable[0] or flung(out.object_vel)[0])
             mujoco.mju_quat2Mat(palm_rot, out.link_pose[0, _TIP["palm"], 3:])
             rel = out.object_pose[0, :3] - out.link_pose[0, _TIP["palm"], :3]
             in_palm.append(palm_rot.reshape(3, 3).T @ rel)

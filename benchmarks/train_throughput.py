@@ -20,7 +20,8 @@ Measured in one run, on the same dataset and references:
   trainer of ``adadex.train.ppo``;
 * ``multisync_1`` / ``multisync_2``: ``MultiSyncCollector`` with 1 and 2 worker processes, one MuJoCo
   and one torch thread each; ``ray_1`` / ``ray_2``: the same with TorchRL's ``RayCollector`` on a
-  local Ray cluster (skipped without the ``ray`` extra);
+  local Ray cluster, made by ``make_collector`` as the trainer makes them: the first starts the
+  cluster, the second joins it (skipped without the ``ray`` extra);
 * worker start-up: seconds from creating a multi-worker collector to its first batch, minus one
   batch's collection time (imports + env construction in the workers; the compiled scenes are
   shipped from the main process). Workers start as the trainer starts them
@@ -164,7 +165,7 @@ def main(argv=None) -> dict:
     from adadex.data.reference import ReferenceDataset
     from adadex.envs.tracking import episode_references
     from adadex.modules.tracker import Tracker
-    from adadex.train.collectors import start_worker_server
+    from adadex.train.collectors import make_collector, start_worker_server
     from adadex.train.config import CollectorConfig, PolicyConfig, PPOConfig, TrainConfig
     from adadex.train.envs import TrackingEnvFactory
     from adadex.train.ppo import PPOTrainer
@@ -217,18 +218,13 @@ def main(argv=None) -> dict:
         if not a.no_ray:
             try:
                 import ray
-                from torchrl.collectors.distributed import RayCollector
             except ImportError:
                 ray = None
-            if ray is not None:
+            if ray is not None:              # as the trainer makes them: the second joins the first's cluster
                 for n in (1, 2):
                     res[f"ray_{n}_fps"], res[f"ray_{n}_startup_s"] = _collector_fps(
-                        lambda n=n: RayCollector(w1.for_workers(n), policy, frames_per_batch=fpb * n,
-                                                 total_frames=fpb * n * (batches + 2),
-                                                 collector_class=Collector, sync=True,
-                                                 collector_kwargs={"auto_register_policy_transforms": False},
-                                                 ray_init_config={"num_cpus": 2, "include_dashboard": False},
-                                                 remote_configs={"num_cpus": 1, "num_gpus": 0, "memory": 2 * 1024 ** 3}),
+                        lambda n=n: make_collector(w1, policy, CollectorConfig(workers=n, backend="ray", worlds=B),
+                                                   frames_per_batch=fpb * n, total_frames=fpb * n * (batches + 2)),
                         fpb * n, batches)
                 ray.shutdown()
 

@@ -72,10 +72,9 @@ from adadex.errors import ConfigError, check_array, check_number, check_numbers
 from adadex.geometry import Rotation, quat, rotation
 from adadex.sim.batched import MAX_OBJECT_SPEED, BatchedSim, flung
 from adadex.sim.effects import ModelBase
-from adadex.sim.objects import get_object
 from adadex.sim.patch import EffectInstance, ModelPatch, patched_scene
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES, joint_limits
-from adadex.sim.scene import CONTROL_HZ, OBJECT_QPOS
+from adadex.sim.scene import CONTROL_HZ, OBJECT_QPOS, resting_height
 
 
 @dataclass(frozen=True)
@@ -345,8 +344,8 @@ class TrackingEnv(EnvBase):
         obj = self._ref_obj[b].astype(np.float64)
         obj[:, 2] += self.config.object_lift
         for j, w in enumerate(worlds):   # a resized object still rests on the table
-            half = get_object(self.dataset.entries[int(self._ref_index[w])]["object"]).half_height
-            obj[j, 2] += (self._scale[w] - 1.0) * half
+            scale = self._scale[w]
+            obj[j, 2] += (scale - 1.0) / scale * resting_height(self.sim.models[w])
         if perturb and self.randomize is not None:
             cfg = self.randomize
             obj[:, :2] += self._rng.normal(0, cfg.object_xy_std, (len(worlds), 2))

@@ -41,16 +41,27 @@ import difflib
 import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
-import trimesh
 
 from adadex.errors import AdadexError
+
+if TYPE_CHECKING:
+    import trimesh
 
 _SECTIONS = 32
 _TUBE_SECTIONS = 16
 _OVERLAP = 5e-5
+
+
+def _trimesh():
+    """trimesh, imported when a mesh is first built: collector workers step scenes compiled elsewhere and
+    never need it, and importing it was 0.8 s of each worker's start."""
+    import trimesh
+
+    return trimesh
 
 
 # --------------------------------------------------------------------------------------------
@@ -58,7 +69,7 @@ _OVERLAP = 5e-5
 
 
 def _hull(points) -> trimesh.Trimesh:
-    return trimesh.convex.convex_hull(np.asarray(points, dtype=np.float64))
+    return _trimesh().convex.convex_hull(np.asarray(points, dtype=np.float64))
 
 
 def _ring(radius: float, z: float, sections: int = _SECTIONS, phase: float = 0.0) -> np.ndarray:
@@ -78,7 +89,7 @@ def _cylinder(radius: float, z0: float, z1: float, sections: int = _SECTIONS) ->
 
 
 def _box(extents, center=(0.0, 0.0, 0.0)) -> trimesh.Trimesh:
-    b = trimesh.creation.box(extents=extents)
+    b = _trimesh().creation.box(extents=extents)
     b.apply_translation(center)
     return b
 
@@ -89,7 +100,7 @@ def _box_between(lo, hi) -> trimesh.Trimesh:
 
 
 def _rotated(mesh: trimesh.Trimesh, angle: float, axis) -> trimesh.Trimesh:
-    mesh.apply_transform(trimesh.transformations.rotation_matrix(angle, axis))
+    mesh.apply_transform(_trimesh().transformations.rotation_matrix(angle, axis))
     return mesh
 
 
@@ -141,7 +152,7 @@ def _bottle_parts(radius: float, body_h: float, shoulder_h: float, neck_r: float
 
 def _sphere_parts(radii) -> list[trimesh.Trimesh]:
     """A ball, or an ellipsoid with semi-axes ``radii`` resting on its shortest axis."""
-    s = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    s = _trimesh().creation.icosphere(subdivisions=3, radius=1.0)
     s.apply_scale(np.broadcast_to(np.asarray(radii, float), (3,)))
     return [s]
 
@@ -265,7 +276,7 @@ def _spherical_bowl(radius: float, bottom_r: float, rings: int = 7) -> tuple[tup
 def _capsule_parts(radius: float, length: float, sections: int = 16) -> list[trimesh.Trimesh]:
     """A capsule lying along x on one of its flat facets (on an edge it would roll off);
     ``length`` is the distance between the hemisphere centres."""
-    c = trimesh.creation.capsule(height=length, radius=radius, count=[sections, sections])
+    c = _trimesh().creation.capsule(height=length, radius=radius, count=[sections, sections])
     _rotated(c, np.pi / 2, (0, 1, 0))
     return [_rotated(c, np.pi / sections, (1, 0, 0))]
 
@@ -308,7 +319,7 @@ class ObjectInfo:
 
     def point_cloud(self, n: int = 1024, seed: int = 0) -> np.ndarray:
         """``(n, 3)`` float32 points sampled uniformly on the surface, deterministic per seed."""
-        pts, _ = trimesh.sample.sample_surface(_mesh(self), n, seed=seed)
+        pts, _ = _trimesh().sample.sample_surface(_mesh(self), n, seed=seed)
         return np.asarray(pts, dtype=np.float32)
 
 
@@ -327,7 +338,7 @@ def _mesh(info: ObjectInfo) -> trimesh.Trimesh:
     parts = _parts(info)
     if len(parts) == 1:
         return parts[0].copy()
-    return trimesh.boolean.union(list(parts), engine="manifold")
+    return _trimesh().boolean.union(list(parts), engine="manifold")
 
 
 _P = functools.partial

@@ -48,6 +48,8 @@ FLOOR_Z = -0.75         # where objects rest by default, in front of the robot
 OBJECT_BODY = "object"
 OBJECT_QPOS = slice(NUM_JOINTS, NUM_JOINTS + 7)
 OBJECT_QVEL = slice(NUM_JOINTS, NUM_JOINTS + 6)
+#: gap between the table and an object resting in the ``home`` keyframe (m)
+REST_GAP = 1e-3
 
 # Contacts: elliptic cones with a high impratio make friction "hard" so grasps do not creep; the
 # solref time constant is 2·dt, the stiffest MuJoCo allows at a given step.
@@ -113,14 +115,14 @@ def build_scene_spec(object_name: str | None = "box_00", *,
     if object_name is not None:
         info = objects.get_object(object_name)
         body = spec.worldbody.add_body(name=OBJECT_BODY,
-                                       pos=[object_xy[0], object_xy[1], object_scale * info.half_height + 1e-3])
+                                       pos=[object_xy[0], object_xy[1], object_scale * info.half_height + REST_GAP])
         body.add_freejoint(name="object_free")
         objects.add_object_geoms(spec, body, object_name,
                                  pad_to=objects.MAX_OBJECT_PARTS if uniform_layout else None, scale=object_scale)
     apply_physics_options(spec, options)
     key_qpos = list(HOME_QPOS)
     if object_name is not None:
-        key_qpos += [object_xy[0], object_xy[1], object_scale * objects.get_object(object_name).half_height + 1e-3,
+        key_qpos += [object_xy[0], object_xy[1], object_scale * info.half_height + REST_GAP,
                      1.0, 0.0, 0.0, 0.0]
     spec.add_key(name="home", qpos=key_qpos, ctrl=list(HOME_QPOS))
     return spec
@@ -135,6 +137,12 @@ def home_state(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
     """``(qpos, ctrl)`` of the ``home`` keyframe of a scene model."""
     key = model.key("home")
     return key.qpos.copy(), key.ctrl.copy()
+
+
+def resting_height(model: mujoco.MjModel) -> float:
+    """Height of the object's origin above the table top when it rests upright in ``model`` (at the
+    size it was compiled with), read from the ``home`` keyframe: no mesh is built for it."""
+    return float(model.key("home").qpos[OBJECT_QPOS][2]) - REST_GAP
 
 
 def descends(model: mujoco.MjModel, body: int, ancestor: int) -> bool:

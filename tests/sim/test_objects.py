@@ -193,3 +193,14 @@ def test_unknown_name_suggests_close_matches():
 
 def test_build_is_cached():
     assert objects._mesh(get_object("mug_00")) is objects._mesh(get_object("mug_00"))
+
+
+@pytest.mark.parametrize("scale", [0.8, 1.0, 1.2])
+def test_resting_height_is_read_from_the_compiled_scene(scale):
+    """The tracking env puts a resized object on the table from the compiled scene alone (collector
+    workers get compiled scenes and build no mesh): the height it reads is the object's scaled
+    half height."""
+    from adadex.sim.scene import build_scene_model, resting_height
+
+    model = build_scene_model("mug_04", object_scale=scale)
+    assert resting_height(model) == pytest.approx(scale * get_object("mug_04").half_height, abs=1e-12)

@@ -94,16 +94,48 @@ def test_local_workers_start_with_the_heavy_imports_done(tmp_path, method, prelo
         CollectorConfig(start_method="fork")
 
 
-def test_two_worker_ray_collector(tiny_dataset, tmp_path):
-    pytest.importorskip("ray", reason="the ray extra is not installed (pip install -e '.[ray]')")
-    import ray
+@pytest.fixture(scope="module")
+def ray_cluster():
+    """Ray, shut down after this module's Ray tests (the collectors keep the cluster between them)."""
+    ray = pytest.importorskip("ray", reason="the ray extra is not installed (pip install -e '.[ray]')")
+    yield ray
+    ray.shutdown()
 
-    try:
-        res = train(_config(tiny_dataset, tmp_path / "ray", workers=2, backend="ray", frames=1024))
-    finally:
-        ray.shutdown()
+
+def test_two_worker_ray_collector(tiny_dataset, tmp_path, ray_cluster):
+    res = train(_config(tiny_dataset, tmp_path / "ray", workers=2, backend="ray", frames=1024))
     assert res["frames"] == 1024 and res["iterations"] == 2
     assert Tracker.load(res["tracker"])
+    # The local cluster outlives the run's collector (TorchRL shuts down a cluster it started itself),
+    # so the next collector in this process joins it instead of starting one again.
+    assert ray_cluster.is_initialized() and ray_cluster.cluster_resources()["CPU"] == 2
+
+
+def test_a_ray_cluster_too_small_for_the_workers_is_refused(ray_cluster, tiny_dataset):
+    from adadex.train.collectors import connect_ray
+
+    connect_ray(CollectorConfig(workers=2, backend="ray"))
+    with pytest.raises(ConfigError, match=r"collector.workers=3 needs 3 CPUs, but the Ray cluster .* has 2"):
+        connect_ray(CollectorConfig(workers=3, backend="ray"))
+
+
+def test_a_worker_env_starts_from_shipped_scenes_without_building_meshes(tiny_dataset, tmp_path):
+    """A factory carrying its compiled scenes builds, resets (randomized sizes included) and steps its
+    env in a fresh process without building any object mesh: trimesh is never imported there (it was
+    0.8 s of each worker's start)."""
+    import pickle
+
+    from adadex.envs.randomization import Randomization
+
+    factory = TrackingEnvFactory(str(tiny_dataset), (1, 2, 5), num_worlds=6, seed=0, nthread=1,
+                                 randomize=Randomization()).with_scenes()
+    (tmp_path / "factory.pkl").write_bytes(pickle.dumps(factory))
+    code = ("import pickle, sys; env = pickle.loads(open(sys.argv[1], 'rb').read())(); "
+            "env.rollout(3, break_when_any_done=False); print('trimesh' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", code, str(tmp_path / "factory.pkl")], capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.split() == ["False"]
 
 
 def _first_references(factory: TrackingEnvFactory) -> list[str]:
@@ -166,11 +198,11 @@ def _residual_mean(batch) -> float:
 
 
 @pytest.mark.parametrize("backend", ["local", "ray"])
-def test_updated_weights_reach_the_workers(tiny_dataset, backend):
+def test_updated_weights_reach_the_workers(tiny_dataset, backend, request):
     """After update_policy_weights_(), the workers act with the new weights: the learned correction
     pushed to +residual everywhere (tanh(20 ± noise) = 1) shows up in the next batch's actions."""
     if backend == "ray":
-        pytest.importorskip("ray", reason="the ray extra is not installed")
+        request.getfixturevalue("ray_cluster")
     from adadex.train.collectors import make_collector
 
     tracker = Tracker(hidden=(16,), residual=0.05)
@@ -187,10 +219,6 @@ def test_updated_weights_reach_the_workers(tiny_dataset, backend):
         after = _residual_mean(next(it))
     finally:
         col.shutdown()
-        if backend == "ray":
-            import ray
-
-            ray.shutdown()
     assert abs(before) < 0.01 and after == pytest.approx(0.05, abs=2e-3), (before, after)
 
 

@@ -28,6 +28,11 @@ how hard, how hard the table pushes back, and how far the object has moved by th
 every force on it. Writes ``benchmarks/results/replay_grasp.json``.
 
     python benchmarks/replay_grasp.py [--dataset data/small] [--group G] [--squeeze 0.2] [--contacts [--trace]]
+    python benchmarks/replay_grasp.py [--dataset data/small] --all-groups
+
+``--all-groups`` instead replays every training reference and grasps every object, and prints one line
+per group: how many of its references replay carries (the object rises at least half as high as the
+reference's) and whether the scripted grasp lifts its object; writes ``replay_grasp_groups.json``.
 
 The group defaults to ``benchmarks/specialist_quality.py``'s (the first of the largest).
 """
@@ -63,6 +68,7 @@ def _per_reference(rollout, per_reference: dict) -> list[dict]:
         rising = (ref[w, :, 2] - ref[w, 0, 2]) > REF_LIFT
         t_lift = int(rising.float().argmax()) if bool(rising.any()) else obj.shape[1] - 1
         out.append({"reference": name, "lift_mm": 1000 * float((obj[w, :, 2] - start[w, 2]).max()),
+                    "reference_rise_mm": 1000 * float((ref[w, :, 2] - ref[w, 0, 2]).max()),
                     "pushed_cm": 100 * float((obj[w, t_lift, :2] - start[w, :2]).norm()),
                     "reference_lift_step": t_lift, "T_o_cm": 100 * m["T_o"], "completion_pct": 100 * m["completion"],
                     "arm_lag_rad": float(arm_err[w, :t_lift + 1].max()),
@@ -173,6 +179,56 @@ def _contacts_line(row: dict) -> str:
             f"{', '.join(row['hand_touching_then']) or 'none'}")
 
 
+def _all_groups(ds, refs: list[int], out_path: Path) -> dict:
+    """Kinematic replay of every reference (nominal physics) and the scripted grasp of every object:
+    per semantic group, how many references the replay carries (the object rises at least half as
+    high as the reference's; only references whose object rises more than ``REF_LIFT``) and whether
+    this hand can lift the group's object at all."""
+    from adadex.envs.replay import replay_policy
+    from adadex.eval.evaluate import evaluate
+    from adadex.sim.grasp import scripted_grasp_lift
+    from adadex.sim.ik import IKError
+
+    res = evaluate(replay_policy(), ds, references=refs, keep_rollouts=True, progress=True)
+    items = list(res["per_reference"].items())
+    rows = [r for k, roll in enumerate(res["rollouts"])
+            for r in _per_reference(roll, items[64 * k: 64 * (k + 1)])]
+    by_group: dict[int, list] = {}
+    for i, r in zip(refs, rows):
+        by_group.setdefault(int(ds.entries[i]["group"]), []).append((i, r))
+    groups, grasps = [], {}
+    for g, members in sorted(by_group.items()):
+        name = ds.entries[members[0][0]]["object"]
+        if name not in grasps:
+            try:
+                sg = scripted_grasp_lift(name)
+                grasps[name] = {"lift_cm": 100 * sg.lift_achieved, "unstable": sg.unstable}
+            except IKError as e:                 # the script's arm motion is out of reach for this object
+                grasps[name] = {"lift_cm": None, "unstable": False, "error": str(e)}
+        rising = [r for _, r in members if r["reference_rise_mm"] > 1000 * REF_LIFT]
+        groups.append({"group": g, "object": name, "instruction": ds.entries[members[0][0]]["instruction"],
+                       "references": len(members), "rising": len(rising),
+                       "carried": sum(r["lift_mm"] >= 0.5 * r["reference_rise_mm"] for r in rising),
+                       "lift_mm": [round(r["lift_mm"], 1) for _, r in members],
+                       "T_o_cm": float(np.mean([r["T_o_cm"] for _, r in members])),
+                       "scripted_grasp": grasps[name]})
+        gr = grasps[name]
+        print(f"group {g:3d} {name:13s} {groups[-1]['instruction'][:44]:44s} replay carries "
+              f"{groups[-1]['carried']}/{len(rising)} rising (lifts " + ", ".join(f"{v:.0f}" for v in groups[-1]["lift_mm"])
+              + " mm); scripted grasp " + ("flings it" if gr["unstable"] else "has no plan" if gr["lift_cm"] is None
+                                            else f"lifts {gr['lift_cm']:.1f} cm"))
+    liftable = [n for n, gr in grasps.items() if not gr["unstable"] and (gr["lift_cm"] or 0.0) >= 5.0]
+    out = {"references": len(refs), "rising": sum(g["rising"] for g in groups),
+           "carried": sum(g["carried"] for g in groups), "objects": len(grasps),
+           "objects_the_scripted_grasp_lifts": sorted(liftable), "groups": groups}
+    print(f"replay carries {out['carried']} of the {out['rising']} references whose object rises "
+          f"({len(refs)} references, {len(groups)} groups); the scripted grasp lifts {len(liftable)} of "
+          f"{len(grasps)} objects ≥ 5 cm")
+    atomic_write_text(out_path, json.dumps(out, indent=1))
+    print(f"wrote {out_path}")
+    return out
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dataset", type=Path, default=Path("data/small"))
@@ -181,8 +237,12 @@ def main(argv=None) -> dict:
     p.add_argument("--contacts", action="store_true", help="list the contacts on the object while the fingers close")
     p.add_argument("--trace", action="store_true",
                    help="--contacts, and each reference's object motion and forces step by step from the grasp")
-    p.add_argument("--out", type=Path, default=RESULTS / "replay_grasp.json")
+    p.add_argument("--all-groups", action="store_true",
+                   help="instead: replay every training reference and grasp every object, one line per group")
+    p.add_argument("--out", type=Path, default=None,
+                   help="default: results/replay_grasp.json (replay_grasp_groups.json with --all-groups)")
     a = p.parse_args(argv)
+    a.out = a.out or RESULTS / ("replay_grasp_groups.json" if a.all_groups else "replay_grasp.json")
     torch.set_num_threads(1)
 
     from tensordict.nn import TensorDictModule
@@ -199,6 +259,8 @@ def main(argv=None) -> dict:
         raise SystemExit(f"{a.dataset}: no dataset there (adadex data build --preset small --out {a.dataset})")
     ds = ReferenceDataset(a.dataset)
     train_refs = episode_references(ds, ("unseen_trajectory", "train"))
+    if a.all_groups:
+        return _all_groups(ds, train_refs, a.out)
     counts = Counter(ds.entries[i]["group"] for i in train_refs)
     group = a.group if a.group is not None else min(g for g, n in counts.items() if n == max(counts.values()))
     refs = [i for i in train_refs if ds.entries[i]["group"] == group]

@@ -41,7 +41,7 @@ from adadex.data.human_hand import ANGLE_LIMITS, NUM_ANGLES, TIP_INDEX, HumanHan
 from adadex.errors import check_numbers
 from adadex.geometry import Rotation, compose, inverse, quat, rotation, slerp_poses
 from adadex.sim.objects import get_object
-from adadex.sim.scene import CONTROL_HZ, OBJECT_HOME_XY
+from adadex.sim.scene import CONTROL_HZ, OBJECT_HOME_XY, REST_GAP
 
 VERBS = ("lift", "place", "move", "rotate", "pour", "push", "flip", "shake", "reorient", "handover")
 
@@ -274,7 +274,7 @@ class Synthesizer:
                                      for f in ("index", "middle", "ring", "little", "thumb")})
         # Initial object pose on the table.
         yaw0 = Rotation.from_euler("z", p["yaw0"])
-        o0 = _pose([OBJECT_HOME_XY[0] + p["x0"], OBJECT_HOME_XY[1] + p["y0"], info.half_height + 1e-3], yaw0)
+        o0 = _pose([OBJECT_HOME_XY[0] + p["x0"], OBJECT_HOME_XY[1] + p["y0"], info.half_height + REST_GAP], yaw0)
         grasp = self._grasp(instr, o0, hand, rng)
         pieces, kinds = self._object_keyframes(instr, o0, grasp)
 

@@ -293,6 +293,7 @@ class PPOTrainer:
                    disable=not self.cfg.progress)
         with torch_threads(1):                  # collection: one torch thread beside MuJoCo's
             try:
+                collector.update_policy_weights_()   # sets up the weight sync before the first batch (Ray warns otherwise)
                 t_iter = time.perf_counter()
                 for data in collector:
                     t_collected = time.perf_counter()

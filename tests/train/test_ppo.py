@@ -102,9 +102,10 @@ def ray_cluster():
     ray.shutdown()
 
 
-def test_two_worker_ray_collector(tiny_dataset, tmp_path, ray_cluster):
+def test_two_worker_ray_collector(tiny_dataset, tmp_path, ray_cluster, recwarn):
     res = train(_config(tiny_dataset, tmp_path / "ray", workers=2, backend="ray", frames=1024))
     assert res["frames"] == 1024 and res["iterations"] == 2
+    assert not [w for w in recwarn if "weight synchronization" in str(w.message)]   # set up before the first batch
     assert Tracker.load(res["tracker"])
     # The local cluster outlives the run's collector (TorchRL shuts down a cluster it started itself),
     # so the next collector in this process joins it instead of starting one again.

@@ -97,6 +97,18 @@ def connect_ray(cfg: CollectorConfig) -> None:
                           f"local one, or set collector.ray_address to a larger cluster")
 
 
+class RayWorkerCollector(Collector):
+    """TorchRL's :class:`~torchrl.collectors.Collector` as a Ray actor, with a one-line ``repr``.
+
+    Ray names an actor's log lines after its ``repr``, which the worker writes to its log when the
+    actor starts; the ``Collector``'s spans the env, the whole policy and a tensordict, and every
+    line past the first reached the driver's console as a log line of its own (about 80 per worker).
+    """
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(frames_per_batch={getattr(self, 'frames_per_batch', '?')})"
+
+
 def _ray_collector(factory, policy, cfg: CollectorConfig, frames_per_batch: int, total: int):
     try:
         import ray  # noqa: F401
@@ -105,6 +117,6 @@ def _ray_collector(factory, policy, cfg: CollectorConfig, frames_per_batch: int,
         raise ConfigError("collector.backend=ray needs Ray: pip install -e '.[ray]'") from e
     connect_ray(cfg)
     return RayCollector(factory.for_workers(cfg.workers), policy, frames_per_batch=frames_per_batch,
-                        total_frames=total, collector_class=Collector, sync=True,
+                        total_frames=total, collector_class=RayWorkerCollector, sync=True,
                         collector_kwargs={"auto_register_policy_transforms": False},
                         remote_configs={"num_cpus": 1, "num_gpus": 0, "memory": 2 * 1024 ** 3})

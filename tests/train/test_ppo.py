@@ -139,6 +139,23 @@ def test_a_worker_env_starts_from_shipped_scenes_without_building_meshes(tiny_da
     assert run.stdout.split() == ["False"]
 
 
+def test_ray_workers_are_named_on_one_line(tiny_dataset):
+    """Ray prints every line of an actor's repr past the first as a log line of its own; TorchRL's
+    Collector repr spans the env and the whole policy, the Ray workers' is one line."""
+    from torchrl.collectors import Collector
+
+    from adadex.train.collectors import RayWorkerCollector
+
+    factory = TrackingEnvFactory(str(tiny_dataset), (1, 2, 5), num_worlds=4, seed=0, nthread=1)
+    policy = Tracker(hidden=(16,)).actor
+    for cls, lines in ((Collector, "many"), (RayWorkerCollector, "one")):
+        col = cls(factory, policy, frames_per_batch=8, total_frames=8, auto_register_policy_transforms=False)
+        try:
+            assert (len(repr(col).splitlines()) == 1) == (lines == "one"), repr(col)[:300]
+        finally:
+            col.shutdown()
+
+
 def _first_references(factory: TrackingEnvFactory) -> list[str]:
     env = factory()
     try:
@@ -210,6 +227,8 @@ def test_updated_weights_reach_the_workers(tiny_dataset, backend, request):
     factory = TrackingEnvFactory(str(tiny_dataset), (1, 2, 5), num_worlds=4, seed=0, nthread=1)
     col = make_collector(factory, tracker.actor, CollectorConfig(workers=2, backend=backend, worlds=4),
                          frames_per_batch=64, total_frames=64 * 4)
+    if backend == "ray":
+        assert all("RayWorkerCollector" in repr(actor) for actor in col.remote_collectors)
     try:
         it = iter(col)
         before = _residual_mean(next(it))

@@ -7,6 +7,9 @@ rotations, rotation matrices). scipy uses x-y-z-w (scalar-last) quaternions, so 
 through :func:`rotation` and :func:`quat`. Quaternions leaving this module are canonical (w ≥ 0), since
 q and −q are the same rotation; input quaternions are normalized, as scipy does.
 
+:func:`first_hits` casts rays at a triangle mesh (where a grasp's digits meet an object: the
+synthesizer's human grasps, the scripted robot pinch).
+
 Example
 -------
 >>> import numpy as np
@@ -27,7 +30,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from adadex.quat import quat_canonical, quat_conj, quat_mul, quat_normalize, quat_rotate
 
-__all__ = ["Rotation", "rotation", "quat", "compose", "inverse", "slerp_poses"]
+__all__ = ["Rotation", "rotation", "quat", "compose", "inverse", "slerp_poses", "first_hits"]
 
 
 def rotation(q_wxyz: np.ndarray) -> Rotation:
@@ -64,3 +67,26 @@ def slerp_poses(p0: np.ndarray, p1: np.ndarray, s: np.ndarray) -> np.ndarray:
     rot = Slerp([0.0, 1.0], key)(np.clip(s, 0.0, 1.0))
     pos = p0[:3] + s[:, None] * (p1[:3] - p0[:3])
     return np.concatenate([pos, quat(rot)], axis=-1)
+
+
+def first_hits(triangles: np.ndarray, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance to and index of the first triangle each ray hits (inf, -1 on a miss).
+
+    Möller–Trumbore over all (ray, triangle) pairs; the meshes here have a few thousand faces and
+    a grasp casts four rays, so brute force beats building a spatial index (trimesh's needs rtree).
+    """
+    v0, e1, e2 = triangles[:, 0], triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
+    p = np.cross(dirs[:, None], e2[None])                       # (R, F, 3)
+    det = np.einsum("rfk,fk->rf", p, e1)
+    ok = np.abs(det) > 1e-12
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = origins[:, None] - v0[None]
+    u = np.einsum("rfk,rfk->rf", s, p) * inv
+    qv = np.cross(s, e1[None])
+    v = np.einsum("rk,rfk->rf", dirs, qv) * inv
+    t = np.einsum("fk,rfk->rf", e2, qv) * inv
+    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+    t = np.where(hit, t, np.inf)
+    idx = np.argmin(t, axis=1)
+    dist = t[np.arange(len(t)), idx]
+    return dist, np.where(np.isfinite(dist), idx, -1)

@@ -253,6 +253,7 @@ def main(argv=None) -> dict:
     from adadex.envs.tracking import episode_references
     from adadex.eval.evaluate import evaluate
     from adadex.sim.grasp import scripted_grasp_lift
+    from adadex.sim.ik import IKError
     from adadex.sim.robot import JOINT_NAMES
 
     if not (a.dataset / "index.json").exists():
@@ -295,10 +296,15 @@ def main(argv=None) -> dict:
     print("fingertips reaching the object, frames after the grasp phase starts (thumb/index/middle/ring): " + "; ".join(
         "/".join("-" if v is None else str(v) for v in r["touch_frames"].values()) if "skipped" not in r else "skipped"
         for r in out["touch_frames"]))
-    g = scripted_grasp_lift(obj_name)
-    out["scripted_grasp"] = {"lift_cm": 100 * g.lift_achieved, "max_slip_cm": 100 * g.max_slip, "unstable": g.unstable}
-    print(f"scripted grasp-and-lift of {obj_name}: " + ("unstable (the object was flung)" if g.unstable else
-          f"lift {100 * g.lift_achieved:.1f} cm, slip {100 * g.max_slip:.1f} cm"))
+    try:
+        g = scripted_grasp_lift(obj_name)
+        out["scripted_grasp"] = {"lift_cm": 100 * g.lift_achieved, "max_slip_cm": 100 * g.max_slip,
+                                 "unstable": g.unstable}
+        print(f"scripted grasp-and-lift of {obj_name}: " + ("unstable (the object was flung)" if g.unstable else
+              f"lift {100 * g.lift_achieved:.1f} cm, slip {100 * g.max_slip:.1f} cm"))
+    except IKError as e:
+        out["scripted_grasp"] = {"lift_cm": None, "error": str(e)}
+        print(f"scripted grasp-and-lift of {obj_name}: no plan ({e})")
     if a.contacts or a.trace:
         out["closing_contacts"] = [_closing_contacts(ds, i) for i in refs]
         for row in out["closing_contacts"]:

@@ -39,7 +39,7 @@ from scipy.spatial.transform import Slerp
 
 from adadex.data.human_hand import ANGLE_LIMITS, NUM_ANGLES, TIP_INDEX, HumanHand
 from adadex.errors import check_numbers
-from adadex.geometry import Rotation, compose, inverse, quat, rotation, slerp_poses
+from adadex.geometry import Rotation, compose, first_hits, inverse, quat, rotation, slerp_poses
 from adadex.sim.objects import get_object
 from adadex.sim.scene import CONTROL_HZ, OBJECT_HOME_XY, REST_GAP
 
@@ -191,29 +191,6 @@ def _hull_vertices(object_name: str) -> np.ndarray:
 def rest_height(object_name: str, rot: Rotation) -> float:
     """Height of the object's origin above the table when it rests with orientation ``rot``."""
     return float(-rot.apply(_hull_vertices(object_name))[:, 2].min()) + 1e-3
-
-
-def first_hits(triangles: np.ndarray, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distance to and index of the first triangle each ray hits (inf, -1 on a miss).
-
-    Möller–Trumbore over all (ray, triangle) pairs; the meshes here have a few thousand faces and
-    a grasp casts four rays, so brute force beats building a spatial index (trimesh's needs rtree).
-    """
-    v0, e1, e2 = triangles[:, 0], triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
-    p = np.cross(dirs[:, None], e2[None])                       # (R, F, 3)
-    det = np.einsum("rfk,fk->rf", p, e1)
-    ok = np.abs(det) > 1e-12
-    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    s = origins[:, None] - v0[None]
-    u = np.einsum("rfk,rfk->rf", s, p) * inv
-    qv = np.cross(s, e1[None])
-    v = np.einsum("rk,rfk->rf", dirs, qv) * inv
-    t = np.einsum("fk,rfk->rf", e2, qv) * inv
-    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
-    t = np.where(hit, t, np.inf)
-    idx = np.argmin(t, axis=1)
-    dist = t[np.arange(len(t)), idx]
-    return dist, np.where(np.isfinite(dist), idx, -1)
 
 
 def _pose(pos, rot: Rotation) -> np.ndarray:

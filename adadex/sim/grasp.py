@@ -23,6 +23,7 @@ import mujoco
 import numpy as np
 from scipy.optimize import least_squares
 
+from adadex.geometry import first_hits
 from adadex.sim.batched import BatchedSim, flung
 from adadex.sim.ik import IKError, solve_arm_ik
 from adadex.sim.robot import FINGER_RADIUS, HOME_QPOS, NUM_JOINTS, TRACKED_SITES
@@ -47,27 +48,56 @@ class GraspResult:
     unstable: bool
 
 
+#: sideways offset of the index and middle fingertips from the pinch line (m)
+FINGER_SPREAD = 0.022
+
+
+def pinch_surface(triangles: np.ndarray, approach=(1.0, 0.0, 0.0), spread: float = FINGER_SPREAD) -> dict:
+    """Where each digit of the pinch meets an object, in the frame of its ``triangles`` (F, 3, 3):
+    the thumb along the line through the origin from the −``approach`` side, index and middle
+    ``spread`` to either side of it from the +``approach`` side. A finger whose line misses (an object
+    narrower than the spread) rests beside the middle line's point. Raises ``IKError`` when the
+    pinch line misses the object."""
+    u = np.asarray(approach, float) / np.linalg.norm(approach)
+    v = np.cross([0.0, 0.0, 1.0], u)
+    lines = {"thumb_tip": (-u, u), "index_tip": (u + spread * v, -u), "middle_tip": (u - spread * v, -u),
+             "centre": (u, -u)}
+    dist, _ = first_hits(np.asarray(triangles, float), np.array([o for o, _ in lines.values()]),
+                         np.array([d for _, d in lines.values()]))
+    if not np.isfinite(dist[[0, 3]]).all():
+        raise IKError("the pinch line through the object's origin misses it")
+    hit = {k: o + t * d for (k, (o, d)), t in zip(lines.items(), dist) if np.isfinite(t)}
+    for k, side in (("index_tip", 1.0), ("middle_tip", -1.0)):
+        if k not in hit:
+            hit[k] = hit["centre"] + side * spread * v
+    del hit["centre"]
+    return hit
+
+
 def fingertip_grasp(model: mujoco.MjModel, center: np.ndarray, half_width: float, *,
                     approach: np.ndarray = np.array([1.0, 0.0, 0.0]), clearance: float = 0.0,
                     q_init: np.ndarray | None = None, min_wrist_height: float = 0.2,
-                    hand_only: bool = False) -> tuple[np.ndarray, float]:
+                    hand_only: bool = False, surface: dict | None = None) -> tuple[np.ndarray, float]:
     """Joint positions placing the thumb tip on one side of an object and index + middle tips on the other.
 
     The contact normal is ``approach`` (horizontal; the thumb is on the −approach side); the wrist
     stays above ``min_wrist_height`` so the arm clears the table. Fingertip
-    sphere centres are put at ``half_width + FINGER_RADIUS + clearance`` from ``center``
-    (negative clearance = inside the object, for squeezing). With ``hand_only`` the arm keeps its
-    joints from ``q_init`` and only the fingers move. Returns ``(qpos[22], residual_m)``.
+    sphere centres are put at ``half_width + FINGER_RADIUS + clearance`` from ``center``, or, given
+    ``surface`` (each digit's surface point in the world, :func:`pinch_surface`), ``FINGER_RADIUS +
+    clearance`` out from it along the pinch axis (negative clearance = inside the object, for
+    squeezing). With ``hand_only`` the arm keeps its joints from ``q_init`` and only the fingers
+    move. Returns ``(qpos[22], residual_m)``.
     """
     u = np.asarray(approach, float)
     u = u / np.linalg.norm(u)
     v = np.cross([0.0, 0.0, 1.0], u)
-    reach = half_width + FINGER_RADIUS + clearance
-    targets = {
-        "thumb_tip": center - reach * u,
-        "index_tip": center + reach * u + 0.022 * v,
-        "middle_tip": center + reach * u - 0.022 * v,
-    }
+    if surface is None:
+        surface = {"thumb_tip": center - half_width * u,
+                   "index_tip": center + half_width * u + FINGER_SPREAD * v,
+                   "middle_tip": center + half_width * u - FINGER_SPREAD * v}
+    out = FINGER_RADIUS + clearance
+    targets = {"thumb_tip": surface["thumb_tip"] - out * u, "index_tip": surface["index_tip"] + out * u,
+               "middle_tip": surface["middle_tip"] + out * u}
     data = mujoco.MjData(model)
     lo, hi = model.jnt_range[:NUM_JOINTS, 0], model.jnt_range[:NUM_JOINTS, 1]
     q0 = np.clip(np.array(HOME_QPOS if q_init is None else q_init, float), lo, hi)
@@ -121,12 +151,16 @@ def scripted_grasp_lift(object_name: str = "cube_050", *, lift: float = 0.10, ho
 
     info = objects.get_object(object_name)
     model = model if model is not None else build_scene_model(object_name)
-    half_w = float(info.mesh().extents[0]) / 2
+    mesh = info.mesh()
+    half_w = float(mesh.extents[0]) / 2
     obj0 = np.array([OBJECT_HOME_XY[0], OBJECT_HOME_XY[1], info.half_height])
     center = obj0.copy()
+    # Each digit on the surface it meets (a mug's body beside its handle), not on the bounding box.
+    surface = {k: p + obj0 for k, p in pinch_surface(mesh.triangles).items()}
 
     def solve(c, clearance, seed, hand_only=False):
-        q, err = fingertip_grasp(model, c, half_w, clearance=clearance, q_init=seed, hand_only=hand_only)
+        q, err = fingertip_grasp(model, c, half_w, clearance=clearance, q_init=seed, hand_only=hand_only,
+                                 surface=surface)
         if err > 5e-3 and not hand_only:  # open/closed postures need not be met exactly
             raise IKError(f"fingertip grasp of {object_name} at {c.round(3).tolist()} not reachable "
                           f"(residual {1000 * err:.1f} mm)")

@@ -17,11 +17,10 @@ from adadex.data.synth import (
     Instruction,
     NoiseConfig,
     Synthesizer,
-    first_hits,
     make_instruction,
     rest_height,
 )
-from adadex.geometry import Rotation, rotation
+from adadex.geometry import Rotation, first_hits, rotation
 from adadex.sim.objects import UnknownObjectError, get_object
 from adadex.sim.scene import CONTROL_HZ
 

@@ -1,7 +1,9 @@
 """A scripted grasp-and-lift: proof that the robot and contact model can manipulate.
 
 The grasp is planned as fingertip placement: thumb on one side of the object, index and middle
-fingertips on the opposite side, palm facing down. :func:`fingertip_grasp` solves for all 22 joints
+fingertips on the opposite side, each where its line across the object meets the surface
+(:func:`pinch_surface`: a mug's body, not its bounding box, which holds the handle), palm facing
+down. :func:`fingertip_grasp` solves for all 22 joints
 by bounded least squares on MuJoCo forward kinematics. The script then opens the hand above the
 object, descends, closes to a posture whose fingertips lie ``squeeze`` metres *inside* the object
 (the position servos then press with a force set by their gains and effort limits), lifts and

@@ -16,8 +16,9 @@ reference joints put it). Per reference, kinematically, the order in which the f
 the object while the hand closes (``touch_frames``: frames after the grasp phase starts at which
 each fingertip is first within 2 mm of the object at its start pose): a digit that touches alone
 for a few frames pushes the object across the table before the others arrive. Beside them,
-:func:`adadex.sim.grasp.scripted_grasp_lift` on the group's object (a planned fingertip grasp: can
-this hand lift this object at all?), and how deep the references' own hand sits inside the object
+:func:`adadex.sim.grasp.scripted_grasp_lift` on the group's object, squeezed along x and, if that
+does not lift it, across (a planned fingertip grasp: can this hand lift this object at all?), and
+how deep the references' own hand sits inside the object
 while holding it (kinematically, the deepest link off the distal phalanges and each fingertip's
 median depth; a dataset built with ``adadex data build --contact`` keeps the first at zero and the
 tips at its squeeze). With ``--contacts``, each reference is also replayed in one plain MuJoCo world
@@ -179,6 +180,39 @@ def _contacts_line(row: dict) -> str:
             f"{', '.join(row['hand_touching_then']) or 'none'}")
 
 
+#: the scripted grasp counts as lifting the object once it holds it this high (m)
+SCRIPTED_LIFT = 0.05
+
+
+def _scripted(object_name: str) -> dict:
+    """The scripted pinch of ``object_name`` along x (away from the robot) and, unless that lifts it
+    ``SCRIPTED_LIFT`` high, across (y): the better of the two (a lift first, then no fling)."""
+    from adadex.sim.grasp import scripted_grasp_lift
+    from adadex.sim.ik import IKError
+
+    tries = []
+    for axis in ("x", "y"):
+        try:
+            g = scripted_grasp_lift(object_name, axis=axis)
+            tries.append({"axis": axis, "lift_cm": 100 * g.lift_achieved, "max_slip_cm": 100 * g.max_slip,
+                          "unstable": g.unstable})
+        except IKError as e:                  # the script's arm motion is out of reach for this object
+            tries.append({"axis": axis, "lift_cm": None, "unstable": False, "error": str(e)})
+        if not tries[-1]["unstable"] and (tries[-1]["lift_cm"] or 0.0) >= 100 * SCRIPTED_LIFT:
+            break
+    return max(tries, key=lambda t: (not t["unstable"] and (t["lift_cm"] or 0.0) >= 100 * SCRIPTED_LIFT,
+                                     t["lift_cm"] is not None and not t["unstable"], t["lift_cm"] or -1e9))
+
+
+def _scripted_text(g: dict) -> str:
+    if g["unstable"]:
+        return "flings it"
+    if g["lift_cm"] is None:
+        return "has no plan"
+    return f"lifts {g['lift_cm']:.1f} cm" + (f", slip {g['max_slip_cm']:.1f} cm" if "max_slip_cm" in g else "") + \
+        f" (squeezing along {g['axis']})"
+
+
 def _all_groups(ds, refs: list[int], out_path: Path) -> dict:
     """Kinematic replay of every reference (nominal physics) and the scripted grasp of every object:
     per semantic group, how many references the replay carries (the object rises at least half as
@@ -186,9 +220,6 @@ def _all_groups(ds, refs: list[int], out_path: Path) -> dict:
     this hand can lift the group's object at all."""
     from adadex.envs.replay import replay_policy
     from adadex.eval.evaluate import evaluate
-    from adadex.sim.grasp import scripted_grasp_lift
-    from adadex.sim.ik import IKError
-
     res = evaluate(replay_policy(), ds, references=refs, keep_rollouts=True, progress=True)
     items = list(res["per_reference"].items())
     rows = [r for k, roll in enumerate(res["rollouts"])
@@ -200,11 +231,7 @@ def _all_groups(ds, refs: list[int], out_path: Path) -> dict:
     for g, members in sorted(by_group.items()):
         name = ds.entries[members[0][0]]["object"]
         if name not in grasps:
-            try:
-                sg = scripted_grasp_lift(name)
-                grasps[name] = {"lift_cm": 100 * sg.lift_achieved, "unstable": sg.unstable}
-            except IKError as e:                 # the script's arm motion is out of reach for this object
-                grasps[name] = {"lift_cm": None, "unstable": False, "error": str(e)}
+            grasps[name] = _scripted(name)
         rising = [r for _, r in members if r["reference_rise_mm"] > 1000 * REF_LIFT]
         groups.append({"group": g, "object": name, "instruction": ds.entries[members[0][0]]["instruction"],
                        "references": len(members), "rising": len(rising),
@@ -215,15 +242,14 @@ def _all_groups(ds, refs: list[int], out_path: Path) -> dict:
         gr = grasps[name]
         print(f"group {g:3d} {name:13s} {groups[-1]['instruction'][:44]:44s} replay carries "
               f"{groups[-1]['carried']}/{len(rising)} rising (lifts " + ", ".join(f"{v:.0f}" for v in groups[-1]["lift_mm"])
-              + " mm); scripted grasp " + ("flings it" if gr["unstable"] else "has no plan" if gr["lift_cm"] is None
-                                            else f"lifts {gr['lift_cm']:.1f} cm"))
-    liftable = [n for n, gr in grasps.items() if not gr["unstable"] and (gr["lift_cm"] or 0.0) >= 5.0]
+              + " mm); scripted grasp " + _scripted_text(gr))
+    liftable = [n for n, gr in grasps.items() if not gr["unstable"] and (gr["lift_cm"] or 0.0) >= 100 * SCRIPTED_LIFT]
     out = {"references": len(refs), "rising": sum(g["rising"] for g in groups),
            "carried": sum(g["carried"] for g in groups), "objects": len(grasps),
            "objects_the_scripted_grasp_lifts": sorted(liftable), "groups": groups}
     print(f"replay carries {out['carried']} of the {out['rising']} references whose object rises "
           f"({len(refs)} references, {len(groups)} groups); the scripted grasp lifts {len(liftable)} of "
-          f"{len(grasps)} objects ≥ 5 cm")
+          f"{len(grasps)} objects ≥ {100 * SCRIPTED_LIFT:.0f} cm (along x or across)")
     atomic_write_text(out_path, json.dumps(out, indent=1))
     print(f"wrote {out_path}")
     return out
@@ -252,8 +278,6 @@ def main(argv=None) -> dict:
     from adadex.envs.replay import replay_policy
     from adadex.envs.tracking import episode_references
     from adadex.eval.evaluate import evaluate
-    from adadex.sim.grasp import scripted_grasp_lift
-    from adadex.sim.ik import IKError
     from adadex.sim.robot import JOINT_NAMES
 
     if not (a.dataset / "index.json").exists():
@@ -296,15 +320,8 @@ def main(argv=None) -> dict:
     print("fingertips reaching the object, frames after the grasp phase starts (thumb/index/middle/ring): " + "; ".join(
         "/".join("-" if v is None else str(v) for v in r["touch_frames"].values()) if "skipped" not in r else "skipped"
         for r in out["touch_frames"]))
-    try:
-        g = scripted_grasp_lift(obj_name)
-        out["scripted_grasp"] = {"lift_cm": 100 * g.lift_achieved, "max_slip_cm": 100 * g.max_slip,
-                                 "unstable": g.unstable}
-        print(f"scripted grasp-and-lift of {obj_name}: " + ("unstable (the object was flung)" if g.unstable else
-              f"lift {100 * g.lift_achieved:.1f} cm, slip {100 * g.max_slip:.1f} cm"))
-    except IKError as e:
-        out["scripted_grasp"] = {"lift_cm": None, "error": str(e)}
-        print(f"scripted grasp-and-lift of {obj_name}: no plan ({e})")
+    out["scripted_grasp"] = _scripted(obj_name)
+    print(f"scripted grasp-and-lift of {obj_name}: " + _scripted_text(out["scripted_grasp"]))
     if a.contacts or a.trace:
         out["closing_contacts"] = [_closing_contacts(ds, i) for i in refs]
         for row in out["closing_contacts"]:

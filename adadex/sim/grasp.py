@@ -146,23 +146,31 @@ def _translate_palm(model: mujoco.MjModel, q: np.ndarray, shift) -> np.ndarray:
     return out
 
 
+#: the horizontal axes a scripted pinch can squeeze along (the object in its canonical pose)
+PINCH_AXES = {"x": np.array([1.0, 0.0, 0.0]), "y": np.array([0.0, 1.0, 0.0])}
+
+
 def scripted_grasp_lift(object_name: str = "cube_050", *, lift: float = 0.10, hold_s: float = 3.0,
-                        squeeze: float = 0.012, nthread: int = 0, model=None) -> GraspResult:
-    """Run the scripted grasp on ``object_name`` resting at the default spot; see module docstring."""
+                        squeeze: float = 0.012, nthread: int = 0, model=None, axis: str = "x") -> GraspResult:
+    """Run the scripted grasp on ``object_name`` resting at the default spot, squeezing along ``axis``
+    (``"x"``: away from the robot, or ``"y"``: across); see module docstring."""
     from adadex.sim import objects
 
+    if axis not in PINCH_AXES:
+        raise ValueError(f"axis must be one of {sorted(PINCH_AXES)}, got {axis!r}")
+    u = PINCH_AXES[axis]
     info = objects.get_object(object_name)
     model = model if model is not None else build_scene_model(object_name)
     mesh = info.mesh()
-    half_w = float(mesh.extents[0]) / 2
+    half_w = float(mesh.extents @ u) / 2
     obj0 = np.array([OBJECT_HOME_XY[0], OBJECT_HOME_XY[1], info.half_height])
     center = obj0.copy()
     # Each digit on the surface it meets (a mug's body beside its handle), not on the bounding box.
-    surface = {k: p + obj0 for k, p in pinch_surface(mesh.triangles).items()}
+    surface = {k: p + obj0 for k, p in pinch_surface(mesh.triangles, approach=u).items()}
 
     def solve(c, clearance, seed, hand_only=False):
-        q, err = fingertip_grasp(model, c, half_w, clearance=clearance, q_init=seed, hand_only=hand_only,
-                                 surface=surface)
+        q, err = fingertip_grasp(model, c, half_w, approach=u, clearance=clearance, q_init=seed,
+                                 hand_only=hand_only, surface=surface)
         if err > 5e-3 and not hand_only:  # open/closed postures need not be met exactly
             raise IKError(f"fingertip grasp of {object_name} at {c.round(3).tolist()} not reachable "
                           f"(residual {1000 * err:.1f} mm)")

@@ -108,3 +108,14 @@ def test_scripted_grasp_lifts_and_holds_a_5cm_cube():
     assert not result.unstable
     assert result.lift_achieved > 0.09, f"cube lifted only {100 * result.lift_achieved:.1f} cm"
     assert result.max_slip < 0.02, f"cube drifted {1000 * result.max_slip:.1f} mm in the palm"
+
+
+def test_the_scripted_pinch_squeezes_along_either_horizontal_axis():
+    """A capsule lying along x cannot be pinched along x (the fingers would span 12 cm); squeezed across,
+    it is lifted."""
+    along = scripted_grasp_lift("capsule_01", axis="x")
+    across = scripted_grasp_lift("capsule_01", axis="y")
+    assert along.lift_achieved < 0.02 and not across.unstable
+    assert across.lift_achieved > 0.08, f"capsule lifted only {100 * across.lift_achieved:.1f} cm"
+    with pytest.raises(ValueError, match=r"axis must be one of \['x', 'y'\], got 'z'"):
+        scripted_grasp_lift("capsule_01", axis="z")

@@ -76,27 +76,21 @@ def pinch_surface(triangles: np.ndarray, approach=(1.0, 0.0, 0.0), spread: float
     return hit
 
 
-def fingertip_grasp(model: mujoco.MjModel, center: np.ndarray, half_width: float, *,
+def fingertip_grasp(model: mujoco.MjModel, surface: dict, *,
                     approach: np.ndarray = np.array([1.0, 0.0, 0.0]), clearance: float = 0.0,
                     q_init: np.ndarray | None = None, min_wrist_height: float = 0.2,
-                    hand_only: bool = False, surface: dict | None = None) -> tuple[np.ndarray, float]:
+                    hand_only: bool = False) -> tuple[np.ndarray, float]:
     """Joint positions placing the thumb tip on one side of an object and index + middle tips on the other.
 
     The contact normal is ``approach`` (horizontal; the thumb is on the −approach side); the wrist
-    stays above ``min_wrist_height`` so the arm clears the table. Fingertip
-    sphere centres are put at ``half_width + FINGER_RADIUS + clearance`` from ``center``, or, given
-    ``surface`` (each digit's surface point in the world, :func:`pinch_surface`), ``FINGER_RADIUS +
-    clearance`` out from it along the pinch axis (negative clearance = inside the object, for
-    squeezing). With ``hand_only`` the arm keeps its joints from ``q_init`` and only the fingers
-    move. Returns ``(qpos[22], residual_m)``.
+    stays above ``min_wrist_height`` so the arm clears the table. ``surface`` holds each digit's
+    surface point in the world (:func:`pinch_surface`, shifted to where the object is); fingertip
+    sphere centres are put ``FINGER_RADIUS + clearance`` out from them along the pinch axis
+    (negative clearance = inside the object, for squeezing). With ``hand_only`` the arm keeps its
+    joints from ``q_init`` and only the fingers move. Returns ``(qpos[22], residual_m)``.
     """
     u = np.asarray(approach, float)
     u = u / np.linalg.norm(u)
-    v = np.cross([0.0, 0.0, 1.0], u)
-    if surface is None:
-        surface = {"thumb_tip": center - half_width * u,
-                   "index_tip": center + half_width * u + FINGER_SPREAD * v,
-                   "middle_tip": center + half_width * u - FINGER_SPREAD * v}
     out = FINGER_RADIUS + clearance
     targets = {"thumb_tip": surface["thumb_tip"] - out * u, "index_tip": surface["index_tip"] + out * u,
                "middle_tip": surface["middle_tip"] + out * u}
@@ -161,24 +155,20 @@ def scripted_grasp_lift(object_name: str = "cube_050", *, lift: float = 0.10, ho
     u = PINCH_AXES[axis]
     info = objects.get_object(object_name)
     model = model if model is not None else build_scene_model(object_name)
-    mesh = info.mesh()
-    half_w = float(mesh.extents @ u) / 2
     obj0 = np.array([OBJECT_HOME_XY[0], OBJECT_HOME_XY[1], info.half_height])
-    center = obj0.copy()
     # Each digit on the surface it meets (a mug's body beside its handle), not on the bounding box.
-    surface = {k: p + obj0 for k, p in pinch_surface(mesh.triangles, approach=u).items()}
+    surface = {k: p + obj0 for k, p in pinch_surface(info.mesh().triangles, approach=u).items()}
 
-    def solve(c, clearance, seed, hand_only=False):
-        q, err = fingertip_grasp(model, c, half_w, approach=u, clearance=clearance, q_init=seed,
-                                 hand_only=hand_only, surface=surface)
+    def solve(clearance, seed, hand_only=False):
+        q, err = fingertip_grasp(model, surface, approach=u, clearance=clearance, q_init=seed, hand_only=hand_only)
         if err > 5e-3 and not hand_only:  # open/closed postures need not be met exactly
-            raise IKError(f"fingertip grasp of {object_name} at {c.round(3).tolist()} not reachable "
-                          f"(residual {1000 * err:.1f} mm)")
+            raise IKError(f"fingertip grasp of {object_name} along {axis} at {obj0.round(3).tolist()} not "
+                          f"reachable (residual {1000 * err:.1f} mm)")
         return q
 
-    q_touch = solve(center, 0.0, None)
-    q_open = solve(center, 0.03, q_touch, hand_only=True)
-    q_closed = solve(center, -squeeze, q_touch, hand_only=True)
+    q_touch = solve(0.0, None)
+    q_open = solve(0.03, q_touch, hand_only=True)
+    q_closed = solve(-squeeze, q_touch, hand_only=True)
     # Above and lifted: the same hand posture, the palm translated straight up (arm IK only).
     q_above = _translate_palm(model, q_open, [0, 0, 0.10])
     q_lift = _translate_palm(model, q_closed, [0, 0, lift])

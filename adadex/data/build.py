@@ -35,6 +35,7 @@ from tqdm.auto import tqdm
 
 from adadex.data import feasibility
 from adadex.data.object_contact import ObjectContact
+from adadex.data.planned_grasp import PlannedGraspError, plan_hold
 from adadex.data.reference import Reference, is_dataset, save_dataset
 from adadex.data.retarget import Retargeter
 from adadex.data.synth import VERBS, HumanMotion, NoiseConfig, Synthesizer, make_instruction
@@ -109,8 +110,9 @@ def plan_instructions(preset: Preset, seed: int):
 
 def references_from_motions(motions: list[HumanMotion], group_ids: list[int], names: list[str],
                             retargeter: Retargeter, config: feasibility.FeasibilityConfig, report: BuildReport,
-                            batch: int = 64, progress: bool = True):
-    """Retarget motions in batches and keep the feasible references (rejections go to ``report``)."""
+                            batch: int = 64, progress: bool = True, planned_grasp: bool = False):
+    """Retarget motions in batches and keep the feasible references (rejections go to ``report``).
+    With ``planned_grasp`` the hold is a pinch planned for this hand (:mod:`adadex.data.planned_grasp`)."""
     out = []
     frames = sum(len(m.keypoints) for m in motions)
     order = sorted(range(len(motions)), key=lambda i: len(motions[i].keypoints))
@@ -136,11 +138,22 @@ def references_from_motions(motions: list[HumanMotion], group_ids: list[int], na
     for i, res, j in tqdm(sorted(results, key=lambda r: r[0]), desc="check", disable=not progress, leave=False):
         m = motions[i]
         T = len(m.keypoints)
+        q, meta = res.joint_pos[j, :T], dict(m.meta)
+        if planned_grasp:
+            try:
+                meta["planned_grasp"] = {}
+                q = plan_hold(q, m.object_pose, m.instruction.object_name, m.phases, fps=m.fps,
+                              info=meta["planned_grasp"])
+            except PlannedGraspError as e:
+                report.rejected["no_planned_grasp"] += 1
+                report.rejections.append({"name": names[i], "reason": "no_planned_grasp", "frame": None,
+                                          "detail": str(e)})
+                continue
         ref = Reference.from_joint_positions(
-            res.joint_pos[j, :T], m.object_pose, object_name=m.instruction.object_name,
+            q, m.object_pose, object_name=m.instruction.object_name,
             instruction=m.instruction.text, group_id=group_ids[i], fps=m.fps, human_keypoints=m.keypoints,
             retarget_residual=res.residual[j, :T], name=names[i],
-            meta=dict(m.meta, retarget_scale=float(res.scale[j]),
+            meta=dict(meta, retarget_scale=float(res.scale[j]),
                       retarget_tip_error_max=float(res.tip_error[j, :T].max()),
                       retarget_palm_error_max=float(res.palm_error[j, :T].max())))
         rej = feasibility.check(ref, retarget_palm_error=res.palm_error[j, :T],
@@ -170,7 +183,7 @@ def make_splits(refs: list[Reference], seed: int, test_fraction: float = 0.2) ->
 def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfig = NoiseConfig(),
                   config: feasibility.FeasibilityConfig = feasibility.FeasibilityConfig(),
                   progress: bool = True, limit: int | None = None, force: bool = False,
-                  contact: ObjectContact | None = None) -> BuildReport:
+                  contact: ObjectContact | None = None, planned_grasp: bool = False) -> BuildReport:
     """Build ``preset`` into the dataset folder ``out`` (written atomically); returns a :class:`BuildReport`.
 
     An existing dataset at ``out`` is replaced; anything else there is refused unless ``force``
@@ -178,7 +191,8 @@ def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfi
 
     ``limit`` caps the number of base instructions (for quick looks at a large preset). ``contact``:
     object-aware retargeting (:mod:`adadex.data.object_contact`); ``None`` (default) retargets
-    keypoints only.
+    keypoints only. ``planned_grasp``: the hand holds the object with a pinch planned for it
+    (:mod:`adadex.data.planned_grasp`) instead of the retargeted human grasp.
     """
     if isinstance(preset, str):
         if preset not in PRESETS:
@@ -204,7 +218,7 @@ def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfi
             names.append(name)
     report.seconds["synthesize"] = time.perf_counter() - t0
     refs = references_from_motions(motions, groups, names, Retargeter(contact=contact), config, report,
-                                   progress=progress)
+                                   progress=progress, planned_grasp=planned_grasp)
     report.accepted = len(refs)
     if not refs:
         raise RuntimeError(f"no reference of preset {preset.name!r} passed the feasibility filter: "
@@ -212,7 +226,7 @@ def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfi
     t0 = time.perf_counter()
     splits = make_splits(refs, seed)
     info = {"preset": preset.name, "seed": seed, "noise": asdict(noise), "feasibility": asdict(config),
-            "object_contact": None if contact is None else asdict(contact),
+            "object_contact": None if contact is None else asdict(contact), "planned_grasp": planned_grasp,
             "report": report.as_dict()}
     report.path = str(save_dataset(refs, Path(out), splits=splits, info=info, force=force))
     report.seconds["save"] = time.perf_counter() - t0

@@ -1,6 +1,6 @@
 """``adadex data …``: build, inspect and import reference datasets.
 
-    adadex data build  --preset tiny|small|paper --out DIR [--seed N] [--clean] [--contact] [--limit N] [--force]
+    adadex data build  --preset tiny|small|paper --out DIR [--seed N] [--clean] [--contact] [--planned-grasp] [--limit N] [--force]
     adadex data info   DIR                      counts per verb, object, split; rejection reasons
     adadex data show   DIR --index I --out ref.png [--no-render]
     adadex data import FILE.npz [FILE.npz …] --object NAME --out DIR [--contact] [--force]
@@ -29,7 +29,7 @@ def _cmd_build(a) -> int:
           f"{len(p.objects)} objects (seed {a.seed}) → {a.out}")
     report = build_dataset(a.preset, a.out, seed=a.seed, noise=NoiseConfig.clean() if a.clean else NoiseConfig(),
                            limit=a.limit, progress=not a.quiet, force=a.force,
-                           contact=ObjectContact() if a.contact else None)
+                           contact=ObjectContact() if a.contact else None, planned_grasp=a.planned_grasp)
     print(report.summary())
     print(f"wrote {report.path}; see `adadex data info {report.path}`")
     return 0
@@ -116,6 +116,9 @@ def add_parser(sub) -> None:
     b.add_argument("--contact", action="store_true",
                    help="object-aware retargeting: hand kept out of the object, fingertips pressed on it "
                         "(adadex.data.object_contact; many times slower to build: see the README)")
+    b.add_argument("--planned-grasp", action="store_true",
+                   help="hold the object with a pinch planned for this hand instead of the human's retargeted "
+                        "grasp (adadex.data.planned_grasp)")
     b.add_argument("--limit", type=int, default=None, help="use only the first N base instructions")
     b.add_argument("--quiet", action="store_true", help="no progress bars")
     b.set_defaults(func=_cmd_build)

@@ -60,7 +60,7 @@ class Rejection:
         return asdict(self)
 
 
-REASONS = ("no_grasp", "two_hands", "unreachable", "hand_arm_collision", "table_collision", "window_too_short")
+REASONS = ("no_grasp", "no_planned_grasp", "two_hands", "unreachable", "hand_arm_collision", "table_collision", "window_too_short")
 
 
 class KinematicReplay:

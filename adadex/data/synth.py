@@ -325,8 +325,11 @@ class Synthesizer:
         if nz.jitter > 0 or nz.jitter_rot > 0:
             obj[:, :3] += rng.normal(0, nz.jitter, (n_frames, 3))
             obj[:, 3:] = quat(Rotation.from_rotvec(rng.normal(0, nz.jitter_rot, (n_frames, 3))) * rotation(obj[:, 3:]))
-        phases = {"approach": int(round(a0 * self.fps)), "grasp": int(round(t_grasp * self.fps)),
-                  "manipulate": int(round(t_manip0 * self.fps)), "release": int(round((t_manip1 + shift) * self.fps)),
+        # reach: the hand leaves its pre-grasp pose; placed: the object stops (the hand's release is
+        # shifted from it by the contact-timing error)
+        phases = {"approach": int(round(a0 * self.fps)), "reach": int(round(a1 * self.fps)),
+                  "grasp": int(round(t_grasp * self.fps)), "manipulate": int(round(t_manip0 * self.fps)),
+                  "placed": int(round(t_manip1 * self.fps)), "release": int(round((t_manip1 + shift) * self.fps)),
                   "retreat": int(round(r0 * self.fps))}
         meta = {"verb": instr.verb, "params": instr.params, "paraphrase": instr.paraphrase, "style": instr.style,
                 "grasp": grasp.kind, "grasp_residual": grasp.residual, "contact_timing_offset": shift,

@@ -128,7 +128,9 @@ def fingertip_grasp(model: mujoco.MjModel, surface: dict, *,
     return q, float(err)
 
 
-def _translate_palm(model: mujoco.MjModel, q: np.ndarray, shift) -> np.ndarray:
+def translate_palm(model: mujoco.MjModel, q: np.ndarray, shift) -> np.ndarray:
+    """Joint positions ``q`` with the palm moved by ``shift`` (m, world frame) and its orientation and
+    the hand's joints kept (arm IK). Raises ``IKError`` if the arm cannot get there."""
     data = mujoco.MjData(model)
     data.qpos[:NUM_JOINTS] = q
     mujoco.mj_kinematics(model, data)
@@ -142,36 +144,62 @@ def _translate_palm(model: mujoco.MjModel, q: np.ndarray, shift) -> np.ndarray:
 
 #: the horizontal axes a scripted pinch can squeeze along (the object in its canonical pose)
 PINCH_AXES = {"x": np.array([1.0, 0.0, 0.0]), "y": np.array([0.0, 1.0, 0.0])}
+#: how far the fingertips open away from the surface before closing (m)
+OPEN_CLEARANCE = 0.03
+#: how far inside the object the closed fingertips are commanded (m): the servos then press
+SQUEEZE = 0.012
+
+
+@dataclass
+class Pinch:
+    """A pinch planned on an object at a pose: the three postures of the hand (22 joints each)."""
+
+    touch: np.ndarray      # fingertips on the surface
+    open: np.ndarray       # the same arm, fingertips ``OPEN_CLEARANCE`` out
+    closed: np.ndarray     # the same arm, fingertips ``squeeze`` inside (what the servos are sent)
+    approach: np.ndarray   # (3,) world pinch axis; the thumb is on its negative side
+    residual: float        # fingertip distance from the touch targets, m
+
+
+def plan_pinch(model: mujoco.MjModel, triangles: np.ndarray, object_pose, approach, *, squeeze: float = SQUEEZE,
+               q_init: np.ndarray | None = None, tolerance: float = 5e-3, label: str = "the object") -> Pinch:
+    """Plan a pinch of an object whose mesh ``triangles`` (object frame) sit at ``object_pose`` (7,
+    w-first), squeezing along ``approach`` (3, in the object's frame; horizontal when the object is
+    upright): the digits where :func:`pinch_surface` puts them, solved by :func:`fingertip_grasp` from
+    ``q_init``. Raises ``IKError`` when the touch posture misses by more than ``tolerance`` m."""
+    pose = np.asarray(object_pose, float)
+    rot = np.empty(9)
+    mujoco.mju_quat2Mat(rot, pose[3:] / np.linalg.norm(pose[3:]))
+    rot = rot.reshape(3, 3)
+    u = rot @ np.asarray(approach, float)
+    surface = {k: rot @ p + pose[:3] for k, p in pinch_surface(triangles, approach=approach).items()}
+    touch, err = fingertip_grasp(model, surface, approach=u, q_init=q_init)
+    if err > tolerance:
+        raise IKError(f"fingertip grasp of {label} along {np.round(u, 3).tolist()} at "
+                      f"{pose[:3].round(3).tolist()} not reachable (residual {1000 * err:.1f} mm)")
+    # open/closed postures need not be met exactly (the fingers' reach ends)
+    open_, _ = fingertip_grasp(model, surface, approach=u, clearance=OPEN_CLEARANCE, q_init=touch, hand_only=True)
+    closed, _ = fingertip_grasp(model, surface, approach=u, clearance=-squeeze, q_init=touch, hand_only=True)
+    return Pinch(touch, open_, closed, u, err)
 
 
 def scripted_grasp_lift(object_name: str = "cube_050", *, lift: float = 0.10, hold_s: float = 3.0,
-                        squeeze: float = 0.012, nthread: int = 0, model=None, axis: str = "x") -> GraspResult:
+                        squeeze: float = SQUEEZE, nthread: int = 0, model=None, axis: str = "x") -> GraspResult:
     """Run the scripted grasp on ``object_name`` resting at the default spot, squeezing along ``axis``
     (``"x"``: away from the robot, or ``"y"``: across); see module docstring."""
     from adadex.sim import objects
 
     if axis not in PINCH_AXES:
         raise ValueError(f"axis must be one of {sorted(PINCH_AXES)}, got {axis!r}")
-    u = PINCH_AXES[axis]
     info = objects.get_object(object_name)
     model = model if model is not None else build_scene_model(object_name)
     obj0 = np.array([OBJECT_HOME_XY[0], OBJECT_HOME_XY[1], info.half_height])
-    # Each digit on the surface it meets (a mug's body beside its handle), not on the bounding box.
-    surface = {k: p + obj0 for k, p in pinch_surface(info.mesh().triangles, approach=u).items()}
-
-    def solve(clearance, seed, hand_only=False):
-        q, err = fingertip_grasp(model, surface, approach=u, clearance=clearance, q_init=seed, hand_only=hand_only)
-        if err > 5e-3 and not hand_only:  # open/closed postures need not be met exactly
-            raise IKError(f"fingertip grasp of {object_name} along {axis} at {obj0.round(3).tolist()} not "
-                          f"reachable (residual {1000 * err:.1f} mm)")
-        return q
-
-    q_touch = solve(0.0, None)
-    q_open = solve(0.03, q_touch, hand_only=True)
-    q_closed = solve(-squeeze, q_touch, hand_only=True)
+    pinch = plan_pinch(model, info.mesh().triangles, np.r_[obj0, 1.0, 0.0, 0.0, 0.0], PINCH_AXES[axis],
+                       squeeze=squeeze, label=f"{object_name} along {axis}")
+    q_open, q_closed = pinch.open, pinch.closed
     # Above and lifted: the same hand posture, the palm translated straight up (arm IK only).
-    q_above = _translate_palm(model, q_open, [0, 0, 0.10])
-    q_lift = _translate_palm(model, q_closed, [0, 0, lift])
+    q_above = translate_palm(model, q_open, [0, 0, 0.10])
+    q_lift = translate_palm(model, q_closed, [0, 0, lift])
 
     steps = lambda s: int(round(s * CONTROL_HZ))  # noqa: E731
     plan = [  # (phase, control steps, start posture, end posture)

@@ -2,11 +2,11 @@
 
 Retargeting moves the human's grasp onto the robot: the fingertips go where the human's were. Those
 contacts do not make a pinch on this hand — in simulation the closing hand presses the object into
-the table and pushes it away, and kinematic replay carries 15 of 171 rising references of the
-``small`` dataset (README, "Quality"). A pinch planned for the robot
-(:func:`adadex.sim.grasp.plan_pinch`: thumb on one side, index and middle on the other, each
-where its line meets the object's surface, commanded ``squeeze`` m inside) lifts 55 of the 62
-objects. :func:`plan_hold` puts that pinch into a retargeted reference:
+the table and pushes it away: kinematic replay carries 15 of the 161 training references of the
+``small`` dataset whose object rises (``python benchmarks/replay_grasp.py --all-groups``). A pinch
+planned for the robot (:func:`adadex.sim.grasp.plan_pinch`: thumb on one side, index and middle on
+the other, each where its line meets the object's surface, commanded ``squeeze`` m inside) lifts 56
+of those references' 65 objects. :func:`plan_hold` puts that pinch into a retargeted reference:
 
 =============================  =======================================================================
 frames (synthesis phases)      robot joints
@@ -133,22 +133,26 @@ def _limit_margin(model: mujoco.MjModel, q: np.ndarray) -> float:
     return float(np.minimum(q[:6] - lo, hi - q[:6]).min())
 
 
-def _pinches(model, object_name: str, object_pose: np.ndarray, q_near: np.ndarray, squeeze: float):
-    """Reachable pinches, best first: axes in :func:`axis_order`, each solved from ``q_near`` (the
-    retargeted posture: the shortest way there) and from the home posture; those whose arm keeps
-    :data:`LIMIT_MARGIN` from its joint limits first (the hold must be able to turn the wrist either
-    way). Also returns why the others failed."""
+def _pinches(model, object_name: str, object_pose: np.ndarray, q_near: np.ndarray, squeeze: float, tried: list):
+    """Reachable pinches with their axis, best first, solved as they are asked for: axes in
+    :func:`axis_order`, each solved from ``q_near`` (the retargeted posture: the shortest way there)
+    and from the home posture; those whose arm comes within :data:`LIMIT_MARGIN` of a joint limit
+    last (the hold must be able to turn the wrist either way). Why others failed goes to ``tried``."""
     triangles = get_object(object_name).mesh().triangles
-    found, tried = [], []
+    near_limits = []
     for axis in axis_order(object_pose):
         for init in (q_near, HOME_QPOS):
             try:
-                found.append((plan_pinch(model, triangles, object_pose, _axis_vector(axis), squeeze=squeeze,
-                                         q_init=init, tolerance=TOLERANCE, label=object_name), axis))
+                pinch = plan_pinch(model, triangles, object_pose, _axis_vector(axis), squeeze=squeeze,
+                                   q_init=init, tolerance=TOLERANCE, label=object_name)
             except IKError as e:
                 tried.append(f"{axis}: {e}")
-    found.sort(key=lambda pa: _limit_margin(model, pa[0].touch) < LIMIT_MARGIN)     # stable: order kept
-    return found, tried
+                continue
+            if _limit_margin(model, pinch.touch) < LIMIT_MARGIN:
+                near_limits.append((pinch, axis))
+            else:
+                yield pinch, axis
+    yield from near_limits
 
 
 def _hold(model, start: np.ndarray, palm: np.ndarray, fingers: np.ndarray, object_name: str, first: int):
@@ -188,10 +192,9 @@ def plan_hold(joint_pos: np.ndarray, object_pose: np.ndarray, object_name: str, 
     if not 0 < approach < reach < grasp < manip <= release or release + 3 * n_rise >= T:
         raise PlannedGraspError(f"{object_name}: phases {dict(phases)} do not fit a planned grasp in {T} frames")
     model = _robot_model()
-    pinches, tried = _pinches(model, object_name, object_pose[grasp], q_ret[grasp], squeeze)
     smooth = smooth_poses(object_pose)
-    best = None
-    for pinch, axis in pinches:
+    best, tried = None, []
+    for pinch, axis in _pinches(model, object_name, object_pose[grasp], q_ret[grasp], squeeze, tried):
         try:
             plan = _plan(model, q_ret, smooth, pinch, object_name, approach, reach, grasp, manip, release,
                          n_rise, fps)

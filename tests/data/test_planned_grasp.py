@@ -83,10 +83,18 @@ def test_replay_carries_the_object_of_a_planned_reference(tmp_path):
     from adadex.envs.replay import replay_policy
     from adadex.envs.tracking import TrackingEnv
 
+    from adadex.cli import main
+    from adadex.data.reference import ReferenceDataset
+
     rises = {}
     for planned in (False, True):
         out = tmp_path / f"ds_{planned}"
-        build_dataset("tiny", out, seed=3, progress=False, limit=1, planned_grasp=planned)   # lift the cube
+        if planned:   # the command line's flag reaches the build
+            assert main(["data", "build", "--preset", "tiny", "--seed", "3", "--limit", "1", "--planned-grasp",
+                         "--out", str(out), "--quiet"]) == 0
+            assert ReferenceDataset(out)[0].meta["planned_grasp"]["axis"] in ("+x", "-x", "+y", "-y")
+        else:
+            build_dataset("tiny", out, seed=3, progress=False, limit=1)          # lift the cube 21 cm
         env = TrackingEnv(out, num_worlds=1, split=None, draw="cycle", seed=0)
         td = env.rollout(299, replay_policy(), break_when_any_done=False)
         obj = td["next", "object", "pose"][0, :, 2]

@@ -97,17 +97,18 @@ def _palm_pose(model: mujoco.MjModel, q: np.ndarray) -> np.ndarray:
     return np.concatenate([data.xpos[model.body("palm").id], data.xquat[model.body("palm").id]])
 
 
+#: the pinch axes a reference may use: the object's horizontal body axes either way
+DIRECTIONS = {f"{s}{k}": sign * v for k, v in PINCH_AXES.items() for s, sign in (("+", 1.0), ("-", -1.0))}
+
+
 def axis_order(object_pose: np.ndarray) -> list[str]:
-    """The object's horizontal body axes (``"+x"``, ``"-y"`` …) as pinch axes, thumb nearest the robot first."""
+    """:data:`DIRECTIONS` (``"+x"``, ``"-y"`` …) for an object at ``object_pose``, the one that puts the
+    thumb nearest the robot first."""
     rot = np.empty(9)
     mujoco.mju_quat2Mat(rot, object_pose[3:] / np.linalg.norm(object_pose[3:]))
     outward = np.r_[object_pose[:2], 0.0] / max(np.linalg.norm(object_pose[:2]), 1e-9)
-    axes = {f"{s}{k}": sign * v for k, v in PINCH_AXES.items() for s, sign in (("+", 1.0), ("-", -1.0))}
-    return sorted(axes, key=lambda k: -float(outward @ (rot.reshape(3, 3) @ axes[k])))
-
-
-def _axis_vector(name: str) -> np.ndarray:
-    return (1.0 if name[0] == "+" else -1.0) * PINCH_AXES[name[1:]]
+    along = outward @ rot.reshape(3, 3)                  # the outward direction in the object's frame
+    return sorted(DIRECTIONS, key=lambda k: -float(along @ DIRECTIONS[k]))
 
 
 def smooth_poses(poses: np.ndarray, sigma: float = SMOOTHING) -> np.ndarray:
@@ -143,7 +144,7 @@ def _pinches(model, object_name: str, object_pose: np.ndarray, q_near: np.ndarra
     for axis in axis_order(object_pose):
         for init in (q_near, HOME_QPOS):
             try:
-                pinch = plan_pinch(model, triangles, object_pose, _axis_vector(axis), squeeze=squeeze,
+                pinch = plan_pinch(model, triangles, object_pose, DIRECTIONS[axis], squeeze=squeeze,
                                    q_init=init, tolerance=TOLERANCE, label=object_name)
             except IKError as e:
                 tried.append(f"{axis}: {e}")

@@ -74,6 +74,8 @@ class PipelineConfig:
     dataset: str | None = None
     dataset_preset: str = "small"
     dataset_seed: int = 0
+    #: the built dataset holds the object with a pinch planned for the hand (adadex.data.planned_grasp)
+    dataset_planned_grasp: bool = False
     seeds: tuple[int, ...] = (0, 1)          # training seeds: the whole chain runs once per seed
     #: seeds trained side by side, each chain in its own process; 2 on 2 cores fills the core that one
     #: seed's single-threaded updates, distillation and evaluations leave idle
@@ -179,8 +181,17 @@ class Pipeline:
             from adadex.data.build import build_dataset
 
             self.log(f"[run ] dataset: preset {self.cfg.dataset_preset} → {path}")
-            build_dataset(self.cfg.dataset_preset, path, seed=self.cfg.dataset_seed, progress=self.cfg.progress)
-        return ReferenceDataset(path)
+            build_dataset(self.cfg.dataset_preset, path, seed=self.cfg.dataset_seed, progress=self.cfg.progress,
+                          planned_grasp=self.cfg.dataset_planned_grasp)
+        ds = ReferenceDataset(path)
+        if not self.cfg.dataset:       # built here: by these settings, or refused like any other stage
+            want = {"preset": self.cfg.dataset_preset, "seed": self.cfg.dataset_seed,
+                    "planned_grasp": self.cfg.dataset_planned_grasp}
+            have = {k: ds.info.get(k, False if k == "planned_grasp" else None) for k in want}
+            if have != want:
+                raise ConfigError(f"{path}: this dataset was built with other settings ({have}, asked for {want}); "
+                                  f"use a new out")
+        return ds
 
     def _train_config(self, out: Path, seed: int, frames: int, **kw) -> TrainConfig:
         c = self.cfg

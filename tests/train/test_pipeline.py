@@ -4,6 +4,7 @@ reference subsets of the data-scaling study)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -188,3 +189,19 @@ def test_seed_workers_end_with_a_killed_pipeline(tiny_dataset, tmp_path):
     while any(_alive(c) for c in children) and time.time() < deadline:
         time.sleep(0.5)
     assert not any(_alive(c) for c in children), [c for c in children if _alive(c)]
+
+
+def test_a_dataset_built_with_other_settings_is_refused(tiny_dataset, tmp_path):
+    """``out/data`` is the pipeline's own build: reused with the settings it was built with, refused
+    (not silently mixed) when asked for another preset, seed or grasp."""
+    import shutil
+
+    from adadex.train.pipeline import Pipeline
+
+    shutil.copytree(tiny_dataset, tmp_path / "data")
+    built = ReferenceDataset(tiny_dataset).info
+    same = PipelineConfig(out=str(tmp_path), dataset_preset=built["preset"], dataset_seed=built["seed"])
+    assert len(Pipeline(same).dataset()) == len(ReferenceDataset(tiny_dataset))
+    for other in ({"dataset_planned_grasp": True}, {"dataset_seed": built["seed"] + 1}):
+        with pytest.raises(ConfigError, match="built with other settings"):
+            Pipeline(dataclasses.replace(same, **other)).dataset()

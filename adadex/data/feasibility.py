@@ -60,7 +60,10 @@ class Rejection:
         return asdict(self)
 
 
-REASONS = ("no_grasp", "no_planned_grasp", "two_hands", "unreachable", "hand_arm_collision", "table_collision", "window_too_short")
+#: ``no_grasp``: synthesis found no human grasp; ``no_planned_grasp``: no pinch planned for this hand fits
+#: (builds with ``planned_grasp``, :mod:`adadex.data.planned_grasp`)
+REASONS = ("no_grasp", "no_planned_grasp", "two_hands", "unreachable", "hand_arm_collision", "table_collision",
+           "window_too_short")
 
 
 class KinematicReplay:

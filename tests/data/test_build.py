@@ -249,5 +249,5 @@ def test_short_reference_is_rejected():
 
 
 def test_reasons_are_the_documented_ones():
-    assert set(REASONS) == {"no_grasp", "two_hands", "unreachable", "hand_arm_collision", "table_collision",
-                            "window_too_short"}
+    assert set(REASONS) == {"no_grasp", "no_planned_grasp", "two_hands", "unreachable", "hand_arm_collision",
+                            "table_collision", "window_too_short"}

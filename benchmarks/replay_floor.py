@@ -49,8 +49,9 @@ def main(argv=None) -> dict:
         if not (dataset / "index.json").exists():
             build_dataset("small", dataset, seed=0)
     table3 = Randomization()
-    randomize = dataclasses.replace(table3, action_noise_correlated=a.action_noise_scale * table3.action_noise_correlated,
-                                    action_noise_uncorrelated=a.action_noise_scale * table3.action_noise_uncorrelated)
+    scale = a.action_noise_scale
+    randomize = dataclasses.replace(table3, action_noise_correlated=scale * table3.action_noise_correlated,
+                                    action_noise_uncorrelated=scale * table3.action_noise_uncorrelated)
     res = evaluate(replay_policy(), dataset, split=(a.split, a.part), max_worlds=a.max_worlds,
                    randomize=randomize if a.randomize else None)
     summary = res["summary"]

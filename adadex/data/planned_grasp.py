@@ -248,5 +248,5 @@ def _plan(model, q_ret, smooth, pinch, object_name, approach, reach, grasp, mani
     q[end + n_rise + 1: back + 1] = _blend(up, q_ret[back], back - end - n_rise)
     arm_step = float(np.abs(np.diff(q[descend: end + 1, :6], axis=0)).max())
     approach_step = float(np.abs(np.diff(q[start: descend + 1], axis=0)).max())
-    return {"q": q, "approach_from": int(start), "approach_step": approach_step, "close_from": int(close), "release": int(release),
-            "open_until": int(end), "back_at": int(back), "arm_step": arm_step}
+    return {"q": q, "approach_from": int(start), "approach_step": approach_step, "close_from": int(close),
+            "release": int(release), "open_until": int(end), "back_at": int(back), "arm_step": arm_step}

@@ -13,8 +13,9 @@ frames (synthesis phases)      robot joints
 =============================  =======================================================================
 before ``approach``            retargeted (the hand at rest, far from the object)
 ``approach`` → ``grasp``       joint-space blend to the open pinch 8 cm above the object, then down
-                               to the open pinch (the last ``grasp − reach`` frames)
-``grasp`` → ``manipulate``     the fingers close to the squeeze posture
+                               to the open pinch (at least the last ``grasp − reach`` frames)
+``grasp`` → ``manipulate``     the fingers close to the squeeze posture (earlier, if closing within
+                               :data:`MAX_STEP` per frame takes longer); the palm holds from here on
 ``manipulate`` → release       the palm keeps its pose in the object's frame while the object moves
                                along its reference path (arm IK per frame, warm-started)
 release → + ``open`` frames    the fingers open again
@@ -24,11 +25,12 @@ then                           the palm rises 8 cm, and the joints blend back to
 
 The release is the later of the human's release and the object coming to rest (synthesis phases
 ``release`` and ``placed``), so the hand never lets go of a moving object. The object's path is
-the reference's own, noise included: the hand follows it, jitter and all.
+the reference's own, noise included; the palm follows it low-passed (:func:`smooth_poses`).
 
 The pinch axis is one of the object's horizontal body axes (±x, ±y), tried in the order that puts
-the thumb nearest the robot (the scripted grasp's side); the first whose fingertips reach their
-surface points within :data:`TOLERANCE` wins. A reference with no reachable pinch, or whose hold the
+the thumb nearest the robot (the scripted grasp's side), each solved from the retargeted and the
+home posture; of those whose fingertips reach their surface points within :data:`TOLERANCE`, the
+first whose hold moves no arm joint more than :data:`MAX_STEP` per frame wins. A reference with no reachable pinch, or whose hold the
 arm cannot follow, raises :class:`PlannedGraspError` (the build counts it as ``no_planned_grasp``).
 
 Example::

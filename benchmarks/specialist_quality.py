@@ -30,7 +30,28 @@ import torch
 from adadex.io import atomic_write_text
 
 RESULTS = Path(__file__).resolve().parent / "results"
+LIFT = 0.03          # m: an object counts as lifted once it rose this far above its start
 METRICS = ("completion_pct", "success_mean_error_pct", "T_o", "R_o", "T_h", "R_h", "E_finger")
+
+
+def _carried(rollouts) -> tuple[float, float]:
+    """(% of the episodes whose reference lifts the object ≥ LIFT in which the object rose ≥ LIFT
+    above its start before the episode ended, % of all episodes that terminated). Completion alone
+    does not tell a carried object from one left on the table while the hand tracks: an episode
+    whose object stays within the success thresholds of the reference counts as completed frames."""
+    lifted, should, term, n = 0, 0, 0, 0
+    for td in rollouts:
+        done = td["next", "done"].squeeze(-1)
+        before_end = (done.cumsum(1) - done.int()) == 0                  # frames up to the first done
+        z = td["next", "object", "pose"][..., 2]
+        ref_z = td["reference", "object_pose"][..., 0, 2]
+        wants = (ref_z - ref_z[:, :1]).amax(1) >= LIFT
+        rose = ((z - z[:, :1]) * before_end).amax(1) >= LIFT
+        lifted += int((rose & wants).sum())
+        should += int(wants.sum())
+        term += int(td["next", "terminated"].squeeze(-1).any(1).sum())
+        n += done.shape[0]
+    return (100.0 * lifted / should if should else float("nan")), 100.0 * term / n
 
 
 def _summary(res: dict) -> dict:
@@ -55,6 +76,8 @@ def main(argv=None) -> dict:
     p.add_argument("--loc-bound", type=float, default=None, help="bound of its pre-tanh mean, 0: none "
                    "(default: PolicyConfig's)")
     p.add_argument("--seed", type=int, default=0, help="training seed of both runs")
+    p.add_argument("--reward", action="append", default=[], metavar="KEY=VALUE",
+                   help="a RewardConfig setting for both runs, e.g. object_frame=1 (repeatable)")
     p.add_argument("--out", type=Path, default=RESULTS / "specialist_quality.json")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -82,22 +105,31 @@ def main(argv=None) -> dict:
 
     def score(policy) -> dict:
         res = evaluate(policy, ds, references=refs * a.repeats, max_worlds=64, randomize=Randomization(), seed=123,
-                       progress=False)
+                       progress=False, keep_rollouts=True)
         print(format_summary(res["summary"]))
-        return _summary(res)
+        out = _summary(res)
+        out["lifted_pct"], out["terminated_pct"] = _carried(res.pop("rollouts"))
+        print(f"object lifted ≥ {LIFT * 100:.0f} cm in {out['lifted_pct']:.1f} % of the episodes whose reference "
+              f"lifts it; {out['terminated_pct']:.1f} % of all episodes terminated")
+        return out
 
+    try:
+        reward = {k: float(v) for k, v in (kv.split("=", 1) for kv in a.reward)}
+    except ValueError:
+        p.error(f"--reward takes KEY=NUMBER, got {a.reward}")
     chosen = {"residual": a.residual, "init_scale": a.init_scale, "loc_bound": a.loc_bound}
     policy = PolicyConfig(**{k: v for k, v in chosen.items() if v is not None})
     out = {"group": group, "references": len(refs), "repeats": a.repeats, "frames": a.frames, "seed": a.seed,
-           "residual": policy.residual, "init_scale": policy.init_scale, "loc_bound": policy.loc_bound}
+           "residual": policy.residual, "init_scale": policy.init_scale, "loc_bound": policy.loc_bound, "reward": reward}
     out["replay"] = score(replay_policy())
     runs = {"specialist": TrainConfig(dataset=str(a.dataset), out=str(a.runs / f"specialist_{group}"), group=group,
                                       seed=a.seed, resume=True, progress=False, ppo=PPOConfig(total_frames=a.frames),
-                                      collector=CollectorConfig(workers=a.workers), policy=policy)}
+                                      collector=CollectorConfig(workers=a.workers), policy=policy,
+                                      reward=reward)}
     if not a.skip_ppo:
         runs["ppo"] = TrainConfig(dataset=str(a.dataset), out=str(a.runs / "ppo"), seed=a.seed, resume=True,
                                   progress=False, ppo=PPOConfig(total_frames=a.frames), collector=CollectorConfig(workers=a.workers),
-                                  policy=policy)
+                                  policy=policy, reward=reward)
     for name, cfg in runs.items():
         t0 = time.perf_counter()
         res = train(cfg, run_name=name)

@@ -20,6 +20,7 @@ from adadex.envs.observation import (
     flat_from_tensordict,
     flat_observation,
 )
+from adadex.errors import ConfigError
 from adadex.quat import quat_angle
 
 
@@ -109,3 +110,35 @@ def test_reward_with_and_without_precomputed_errors():
                                      ref_link_pose=rlink, ref_object_pose=robj)
     assert torch.allclose(terms["bonus"], torch.ones(4, dtype=perfect.dtype))
     assert torch.allclose(terms["tracking"], torch.zeros(4, dtype=perfect.dtype), atol=1e-6)
+
+
+def test_object_frame_hand_tracking_rewards_meeting_a_displaced_object():
+    """With ``object_frame=1``, a hand that follows a displaced object in a contact phase tracks
+    perfectly (only the object terms see the displacement); far from contact, and with the default
+    world frame, the same hand is charged for the displacement."""
+    from adadex.envs.reward import RewardConfig, tracking_reward
+
+    B = 2
+    rq = torch.zeros(B, 22)
+    rlink = torch.zeros(B, 5, 7)
+    rlink[..., 3] = 1.0
+    robj = torch.zeros(B, 7)
+    robj[:, 3] = 1.0
+    rlink[0, :, 0] = 0.05          # world 0: reference hand 5 cm from its object (contact phase)
+    rlink[1, :, 0] = 0.40          # world 1: 40 cm away (approach)
+    shift = torch.tensor([0.06, -0.03, 0.0])
+    link, obj = rlink.clone(), robj.clone()
+    link[..., :3] += shift
+    obj[:, :3] += shift
+    kw = dict(joint_pos=rq, link_pose=link, object_pose=obj, ref_joint_pos=rq, ref_link_pose=rlink,
+              ref_object_pose=robj)
+    _, world = tracking_reward(RewardConfig(), **kw)
+    _, rel = tracking_reward(RewardConfig(object_frame=1.0), **kw)
+    _, half = tracking_reward(RewardConfig(object_frame=0.5), **kw)
+    moved = float(shift.norm())
+    assert torch.allclose(world["tracking"], torch.full((B,), 2 * moved), atol=1e-6)   # palm + mean fingertip
+    assert float(rel["tracking"][0]) < 1e-6 and abs(float(rel["tracking"][1]) - 2 * moved) < 1e-6
+    assert abs(float(half["tracking"][0]) - moved) < 1e-6
+    assert torch.equal(rel["goal"], world["goal"])        # the object's own error is charged either way
+    with pytest.raises(ConfigError, match="object_frame"):
+        RewardConfig(object_frame=1.5)

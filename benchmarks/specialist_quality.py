@@ -11,7 +11,9 @@ paper's metrics. Targets: specialist completion success ≥ replay's + 15 points
 mean T_o ≤ 0.7 × replay's.
 
 Writes ``benchmarks/results/specialist_quality.json`` (``replay``, ``specialist``, ``ppo``: each with
-``completion_pct``, ``mean_error_pct``, ``T_o`` …, plus the training wall times) and keeps the runs
+``completion_pct``, ``mean_error_pct``, ``T_o`` …, ``lifted_pct`` — the episodes whose object rose
+3 cm or more, of those whose reference lifts it — and ``terminated_pct``, plus the training wall
+times) and keeps the runs
 (checkpoints, metrics.csv) under ``--runs``; rerunning resumes them. Run it in the background:
 
     nohup python benchmarks/specialist_quality.py --dataset data/small > specialist.log 2>&1 &

@@ -27,7 +27,9 @@ by the randomization (Table 3: x, y + N(0, 5 cm)) loses the hand-tracking terms 
 it moves to the object, so it keeps the hand on the reference and carries the object along offset
 (measured: replay's T_o is 3.5 cm without randomization, 12.0 cm with only the displacement and the
 physics draws). Relative to the object, grasping it where it lies costs nothing; the object terms
-then pull it back onto its reference path.
+then pull it back onto its reference path. Off by default: on one semantic group at 1 M frames it
+did not make a specialist carry the object more often (README, "Quality on references that hold
+the object").
 
 Eq. 1 alone is negative unless tracking is already good, so ending an episode early is its best
 policy (measured: PPO learned to push the palm away, episodes 27 → 6 steps). The alive term and the

@@ -159,6 +159,10 @@ class TrainConfig:
     #: :class:`~adadex.envs.reward.RewardConfig` fields to change for this run (``{"w_prox": 1.0}``);
     #: the rest keep their defaults (or those of the ``env_config`` the trainer is given)
     reward: dict = field(default_factory=dict)
+    #: :class:`~adadex.envs.randomization.Randomization` fields to change when ``randomize`` is on
+    #: (``{"object_xy_std": 0.02, "object_mass": [0.9, 1.1]}``), for training and its evaluations;
+    #: the rest keep Table 3's values. Per-joint effect ranges and patches are set in code.
+    randomization: dict = field(default_factory=dict)
     checkpoint_every: int = 5             # iterations
     eval_every: int = 0                   # iterations (0: only at the end)
     eval_split: tuple[str, str] | None = None   # default: the training references themselves
@@ -189,12 +193,32 @@ class TrainConfig:
                 setattr(self, name, sub(**v))
         self.reward = dict(self.reward or {})
         self._reward_config(None)             # unknown or out-of-range reward settings fail here
+        self.randomization = dict(self.randomization or {})
+        self._randomization()                 # … and randomization settings
 
     def _reward_config(self, base):
         from adadex.envs.reward import RewardConfig
 
         base = RewardConfig() if base is None else base
         return from_known_keys(RewardConfig, {**dataclasses.asdict(base), **self.reward})
+
+    def _randomization(self):
+        from adadex.envs.randomization import Randomization
+
+        fixed = sorted(set(self.randomization) & {"effects", "patch"})
+        if fixed:
+            raise ConfigError(f"TrainConfig.randomization: {fixed} cannot be set here; build a Randomization "
+                              f"in code (Randomization.from_patch) for per-joint ranges and patches")
+        values = {k: tuple(v) if isinstance(v, (list, tuple)) else v for k, v in self.randomization.items()}
+        try:
+            return from_known_keys(Randomization, values)
+        except (ValueError, TypeError) as e:
+            raise ConfigError(f"TrainConfig.randomization: {e}") from e
+
+    def randomization_config(self):
+        """The run's :class:`~adadex.envs.randomization.Randomization` (Table 3 with this run's
+        ``randomization`` settings), or None when ``randomize`` is off."""
+        return self._randomization() if self.randomize else None
 
     def env_config(self, base=None):
         """``base`` (a :class:`~adadex.envs.tracking.TrackingConfig`, default: the defaults) with this

@@ -39,7 +39,6 @@ from tqdm.auto import tqdm
 from adadex.data.reference import ReferenceDataset
 from adadex.envs.observation import ERRORS as ERRORS_KEY
 from adadex.envs.observation import REFERENCE_INDEX, REWARD_TERMS, STEP
-from adadex.envs.randomization import Randomization
 from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import AdadexError, ConfigError
 from adadex.eval.evaluate import evaluate
@@ -127,7 +126,7 @@ class PPOTrainer:
     def env_factory(self, seed: int) -> TrackingEnvFactory:
         c = self.cfg.collector
         return TrackingEnvFactory(str(self.dataset.path), tuple(self.references), num_worlds=c.worlds, seed=seed,
-                                  randomize=Randomization() if self.cfg.randomize else None,
+                                  randomize=self.cfg.randomization_config(),
                                   config=self.env_config, nthread=c.env_threads, transform=self.transform)
 
     def _resume(self) -> bool:
@@ -271,7 +270,7 @@ class PPOTrainer:
             primer = policy.primer
         res = evaluate(policy, self.dataset, split=None, references=eval_refs, env_transform=primer,
                        max_worlds=self.cfg.collector.worlds, config=self.env_config, progress=False,
-                       randomize=Randomization() if self.cfg.randomize else None, seed=self.cfg.seed + 17,
+                       randomize=self.cfg.randomization_config(), seed=self.cfg.seed + 17,
                        nthread=self.cfg.collector.env_threads)
         s = res["summary"]
         return {f"eval_{k}": v for k, v in s.items() if isinstance(v, (int, float))}

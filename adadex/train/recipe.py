@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 from adadex.train.config import CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, TrainConfig
 
 _TOP = ("seed", "resume", "group", "randomize", "checkpoint_every", "eval_every", "eval_split",
-        "eval_max_references", "wandb", "progress", "reward")
+        "eval_max_references", "wandb", "progress", "reward", "randomization")
 
 
 def train_config(cfg: Mapping) -> TrainConfig:

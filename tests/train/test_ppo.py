@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -314,6 +315,7 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
     ("train_specialist.py", ["group=999"], "semantic group 999"),
     ("train_ppo.py", ["collector.backend=slurm"], "backend must be 'local' or 'ray'"),
     ("train_ppo.py", ["+reward.w_alvie=1.0"], "RewardConfig: unknown keys ['w_alvie']"),
+    ("train_ppo.py", ["+randomization.object_mass=[1.3,0.7]"], "object_mass must be a range"),
 ])
 def test_recipes_refuse_bad_input_in_one_line(tiny_dataset, tmp_path, recipe, args, fragment):
     out = tmp_path / "run"
@@ -377,6 +379,24 @@ def test_reward_settings_reach_the_envs_a_run_trains_on(tiny_dataset, tmp_path):
     assert TrainConfig.from_dict(tc.to_dict()).reward == {"w_alive": 0.0, "w_prox": 2.0}
     with pytest.raises(ConfigError, match="sigma_hand must be"):
         TrainConfig(dataset="d", out="o", reward={"sigma_hand": 0.0})
+
+
+def test_randomization_settings_reach_the_envs_a_run_trains_on(tiny_dataset, tmp_path):
+    from adadex.train.recipe import train_config
+
+    tc = train_config({"dataset": str(tiny_dataset), "out": str(tmp_path / "run"),
+                       "randomization": {"action_noise_uncorrelated": 0.005, "object_mass": [0.9, 1.1]}})
+    rnd = PPOTrainer(tc).env_factory(0).randomize
+    assert (rnd.action_noise_uncorrelated, rnd.object_mass, rnd.object_xy_std) == (0.005, (0.9, 1.1), 0.05)
+    assert TrainConfig.from_dict(tc.to_dict()).randomization_config() == rnd     # a resumed run reads them back
+    off = TrainConfig(dataset="d", out="o", randomize=False, randomization={"object_xy_std": 0.0})
+    assert off.randomization_config() is None
+    for bad, fragment in (({"object_xy_sd": 0.1}, "unknown keys ['object_xy_sd']"),
+                          ({"object_mass": [1.3, 0.7]}, "object_mass must be a range"),
+                          ({"proprio_noise": -1.0}, "proprio_noise"),
+                          ({"effects": []}, "cannot be set here")):
+        with pytest.raises(ConfigError, match=re.escape(fragment)):
+            TrainConfig(dataset="d", out="o", randomization=bad)
 
 
 def test_non_finite_minibatches_are_skipped_and_an_all_bad_iteration_raises(tiny_dataset, tmp_path):

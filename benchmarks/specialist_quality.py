@@ -80,13 +80,15 @@ def main(argv=None) -> dict:
     p.add_argument("--seed", type=int, default=0, help="training seed of both runs")
     p.add_argument("--reward", action="append", default=[], metavar="KEY=VALUE",
                    help="a RewardConfig setting for both runs, e.g. object_frame=1 (repeatable)")
+    p.add_argument("--randomization", action="append", default=[], metavar="KEY=VALUE",
+                   help="a Randomization setting for training and every evaluation, e.g. "
+                        "action_noise_uncorrelated=0.005 (repeatable)")
     p.add_argument("--out", type=Path, default=RESULTS / "specialist_quality.json")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
 
     from adadex.data.build import build_dataset
     from adadex.data.reference import ReferenceDataset
-    from adadex.envs.randomization import Randomization
     from adadex.envs.replay import replay_policy
     from adadex.envs.tracking import episode_references
     from adadex.eval.evaluate import evaluate, format_summary
@@ -106,7 +108,7 @@ def main(argv=None) -> dict:
           f"{ds.entries[refs[0]]['object']}), evaluated {a.repeats}× each under Table 3 randomization")
 
     def score(policy) -> dict:
-        res = evaluate(policy, ds, references=refs * a.repeats, max_worlds=64, randomize=Randomization(), seed=123,
+        res = evaluate(policy, ds, references=refs * a.repeats, max_worlds=64, randomize=randomize, seed=123,
                        progress=False, keep_rollouts=True)
         print(format_summary(res["summary"]))
         out = _summary(res)
@@ -117,21 +119,24 @@ def main(argv=None) -> dict:
 
     try:
         reward = {k: float(v) for k, v in (kv.split("=", 1) for kv in a.reward)}
+        randomization = {k: float(v) for k, v in (kv.split("=", 1) for kv in a.randomization)}
     except ValueError:
-        p.error(f"--reward takes KEY=NUMBER, got {a.reward}")
+        p.error(f"--reward and --randomization take KEY=NUMBER, got {a.reward + a.randomization}")
+    randomize = TrainConfig(dataset="", out="", randomization=randomization).randomization_config()
     chosen = {"residual": a.residual, "init_scale": a.init_scale, "loc_bound": a.loc_bound}
     policy = PolicyConfig(**{k: v for k, v in chosen.items() if v is not None})
     out = {"group": group, "references": len(refs), "repeats": a.repeats, "frames": a.frames, "seed": a.seed,
-           "residual": policy.residual, "init_scale": policy.init_scale, "loc_bound": policy.loc_bound, "reward": reward}
+           "residual": policy.residual, "init_scale": policy.init_scale, "loc_bound": policy.loc_bound, "reward": reward,
+           "randomization": randomization}
     out["replay"] = score(replay_policy())
     runs = {"specialist": TrainConfig(dataset=str(a.dataset), out=str(a.runs / f"specialist_{group}"), group=group,
                                       seed=a.seed, resume=True, progress=False, ppo=PPOConfig(total_frames=a.frames),
                                       collector=CollectorConfig(workers=a.workers), policy=policy,
-                                      reward=reward)}
+                                      reward=reward, randomization=randomization)}
     if not a.skip_ppo:
         runs["ppo"] = TrainConfig(dataset=str(a.dataset), out=str(a.runs / "ppo"), seed=a.seed, resume=True,
                                   progress=False, ppo=PPOConfig(total_frames=a.frames), collector=CollectorConfig(workers=a.workers),
-                                  policy=policy, reward=reward)
+                                  policy=policy, reward=reward, randomization=randomization)
     for name, cfg in runs.items():
         t0 = time.perf_counter()
         res = train(cfg, run_name=name)

@@ -105,7 +105,8 @@ def main(argv=None) -> dict:
     group = a.group if a.group is not None else min(g for g, n in counts.items() if n == max(counts.values()))
     refs = [i for i in train_refs if ds.entries[i]["group"] == group]
     print(f"group {group}: {len(refs)} references ({ds.entries[refs[0]]['instruction']!r} on "
-          f"{ds.entries[refs[0]]['object']}), evaluated {a.repeats}× each under Table 3 randomization")
+          f"{ds.entries[refs[0]]['object']}), evaluated {a.repeats}× each under Table 3 randomization"
+          + (f" with {a.randomization}" if a.randomization else ""))
 
     def score(policy) -> dict:
         res = evaluate(policy, ds, references=refs * a.repeats, max_worlds=64, randomize=randomize, seed=123,

@@ -5,10 +5,10 @@ Runs :func:`adadex.envs.replay.replay_policy` once over every reference of a spl
 success rates (mean-error and completion).
 
     python benchmarks/replay_floor.py [--dataset DIR] [--split unseen_trajectory] [--part test] [--out FILE]
-    python benchmarks/replay_floor.py --randomize [--action-noise-scale 0.1]
+    python benchmarks/replay_floor.py --randomize [--action-noise-scale 10]
 
 ``--action-noise-scale`` multiplies Table 3's action-noise standard deviations (the env adds them in
-radians to every joint's target change; 0.1 reads them in units of the 0.1 rad action bound).
+units of the action bound, 0.1 rad; 10 gives the radian reading used before 2026-11-25).
 
 Without ``--dataset`` the ``small`` preset is built into ``data/small`` first (a few minutes).
 """

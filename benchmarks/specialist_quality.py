@@ -77,6 +77,8 @@ def main(argv=None) -> dict:
     p.add_argument("--init-scale", type=float, default=None, help="its exploration scale (default: PolicyConfig's)")
     p.add_argument("--loc-bound", type=float, default=None, help="bound of its pre-tanh mean, 0: none "
                    "(default: PolicyConfig's)")
+    p.add_argument("--anchor", type=float, default=None, help="anchor the feed-forward to the object, fading over "
+                   "this many m of the reference object's travel; 0: plain replay (default: PolicyConfig's)")
     p.add_argument("--seed", type=int, default=0, help="training seed of both runs")
     p.add_argument("--reward", action="append", default=[], metavar="KEY=VALUE",
                    help="a RewardConfig setting for both runs, e.g. object_frame=1 (repeatable)")
@@ -124,10 +126,10 @@ def main(argv=None) -> dict:
     except ValueError:
         p.error(f"--reward and --randomization take KEY=NUMBER, got {a.reward + a.randomization}")
     randomize = TrainConfig(dataset="", out="", randomization=randomization).randomization_config()
-    chosen = {"residual": a.residual, "init_scale": a.init_scale, "loc_bound": a.loc_bound}
+    chosen = {"residual": a.residual, "init_scale": a.init_scale, "loc_bound": a.loc_bound, "anchor": a.anchor}
     policy = PolicyConfig(**{k: v for k, v in chosen.items() if v is not None})
     out = {"group": group, "references": len(refs), "repeats": a.repeats, "frames": a.frames, "seed": a.seed,
-           "residual": policy.residual, "init_scale": policy.init_scale, "loc_bound": policy.loc_bound, "reward": reward,
+           "residual": policy.residual, "init_scale": policy.init_scale, "loc_bound": policy.loc_bound, "anchor": policy.anchor, "reward": reward,
            "randomization": randomization}
     out["replay"] = score(replay_policy())
     runs = {"specialist": TrainConfig(dataset=str(a.dataset), out=str(a.runs / f"specialist_{group}"), group=group,

@@ -7,8 +7,11 @@ The tracking environment writes structured entries (batch dims first)::
     ("reference", "hand_joint_pos")   (…, 5, 22)    reference frames at offsets REF_OFFSETS = (0, 1, 2, 4, 12)
     ("reference", "hand_link_pose")   (…, 5, 5, 7)
     ("reference", "object_pose")      (…, 5, 7)
+    ("object", "start_pose")          (…, 7)        the object's pose seen at the episode's first frame
+    ("object", "reference_start")     (…, 7)        the reference object's pose at that frame
 
-and :func:`flat_observation` assembles the 273-D vector in exactly this order (:data:`LAYOUT`):
+(the last two are outside the 273-D vector; an object-anchored tracker reads them,
+:mod:`adadex.modules.anchor`), and :func:`flat_observation` assembles the 273-D vector in exactly this order (:data:`LAYOUT`):
 
 ====================  =======  ==========================================================
 ``joint_pos``         0–22     arm-hand joint positions
@@ -52,9 +55,13 @@ JOINT_TARGET = ("proprio", "joint_target")
 LINK_POSE = ("proprio", "link_pose")
 OBJECT_POSE = ("object", "pose")
 OBJECT_LATENT = ("object", "latent")
+OBJECT_START = ("object", "start_pose")        # (…, 7) the object pose seen at the episode's first frame
 REF_JOINT_POS = ("reference", "hand_joint_pos")
 REF_LINK_POSE = ("reference", "hand_link_pose")
 REF_OBJECT_POSE = ("reference", "object_pose")
+#: (…, 7) the reference object's pose at the episode's first frame (in the "object" group: teacher
+#: rollouts keep a dataset index under "reference")
+REF_OBJECT_START = ("object", "reference_start")
 #: Ground truth the env reports for evaluation and logs, never for a policy: the metric errors
 #: (``(PRIVILEGED, "errors", name)``), the unstable-physics flag and the reward's terms. A policy
 #: reads only the keys above; TorchRL modules that take every observation key must leave this out.

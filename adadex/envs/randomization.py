@@ -15,7 +15,12 @@ not bouncy by default; a restitution e is obtained with the contact damping rati
 so each (object, size) scene compiles once. Initial object pose: x, y + N(0, 0.05) m,
 yaw + N(0, 0.5) rad. Observation noise N(0, 0.002) on the joint positions and the tracked-link
 positions; action noise: a per-episode offset N(0, 0.02) (correlated) plus a per-step N(0, 0.05)
-(uncorrelated), in rad of joint-target change.
+(uncorrelated), **in units of the action bound** (``TrackingConfig.max_action``: 0.005 rad per step
+at 0.1 rad), added before the action is clipped to that bound. The paper trains in Isaac Gym, and
+Table 3's observation and per-step action noise are the numbers of IsaacGymEnvs' dexterous-hand
+randomization configs, whose ``VecTask.step`` adds the action noise to the policy's normalized
+action (in [−1, 1]) before clipping and scaling it. Read in radians instead, N(0, 0.05) per step shakes the palm by about 2.5 cm at 12 Hz and
+kinematic replay loses the grasp of a mug it otherwise lifts (README, "Quality").
 
 Every range is a config value; :meth:`Randomization.off` turns everything off.
 
@@ -116,8 +121,8 @@ class Randomization:
     object_xy_std: float = 0.05
     object_yaw_std: float = 0.5
     proprio_noise: float = 0.002
-    action_noise_correlated: float = 0.02
-    action_noise_uncorrelated: float = 0.05
+    action_noise_correlated: float = 0.02     # per episode, in units of the action bound
+    action_noise_uncorrelated: float = 0.05   # per step, likewise
     effects: tuple[EffectRange, ...] = ()
     patch: ModelPatch | None = field(default=None, compare=False)
 

@@ -211,6 +211,7 @@ class TrackingEnv(EnvBase):
         self._t = np.zeros(B, dtype=np.int64)
         self._ref_index = np.zeros(B, dtype=np.int64)
         self._latent = np.zeros((B, LATENT_DIM), dtype=np.float32)
+        self._object_start = np.zeros((B, 7), dtype=np.float32)   # object pose seen at each episode's first frame
         lim = joint_limits()
         self._lo, self._hi = lim[:, 0].copy(), lim[:, 1].copy()
         self._offsets = np.asarray(REF_OFFSETS)[None]
@@ -283,7 +284,7 @@ class TrackingEnv(EnvBase):
         K, L = len(REF_OFFSETS), len(TRACKED_SITES)
         self.observation_spec = Composite(
             proprio=Composite(joint_pos=u(NUM_JOINTS), joint_target=u(NUM_JOINTS), link_pose=u(L, 7), shape=B),
-            object=Composite(pose=u(7), latent=u(LATENT_DIM), shape=B),
+            object=Composite(pose=u(7), latent=u(LATENT_DIM), start_pose=u(7), reference_start=u(7), shape=B),
             reference=Composite(hand_joint_pos=u(K, NUM_JOINTS), hand_link_pose=u(K, L, 7), object_pose=u(K, 7),
                                 shape=B),
             observation=u(OBS_DIM),
@@ -366,7 +367,9 @@ class TrackingEnv(EnvBase):
             np.flatnonzero(mask.reshape(self.batch_size).cpu().numpy())
         if len(worlds):
             self._start_worlds(worlds)
-        out, _ = self._observe(self.sim.readout())
+        readout = self.sim.readout()
+        self._object_start[worlds] = readout.object_pose[worlds]
+        out, _ = self._observe(readout)
         B = self.batch_size
         out[PRIVILEGED].update({"unstable": torch.zeros(*B, 1, dtype=torch.bool),
                                 "reward_terms": self._td({k: torch.zeros(*B) for k in TERM_NAMES})})
@@ -376,10 +379,10 @@ class TrackingEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         cfg = self.config
         action = check_array("action", tensordict.get("action").detach().cpu().numpy(), tuple(self.action_spec.shape))
+        if self.randomize is not None:     # in units of the action bound, before it (as Isaac Gym's VecTask)
+            noise = self._action_offset + self._rng.normal(0, self.randomize.action_noise_uncorrelated, action.shape)
+            action = action + cfg.max_action * noise
         action = np.clip(action, -cfg.max_action, cfg.max_action)
-        if self.randomize is not None:
-            action = action + self._action_offset + self._rng.normal(0, self.randomize.action_noise_uncorrelated,
-                                                                     action.shape)
         np.clip(self._q_target + action, self._lo, self._hi, out=self._q_target)
         readout = self.sim.step(self._servo_command())
         self._t += 1
@@ -391,6 +394,7 @@ class TrackingEnv(EnvBase):
             self._t[worlds] = 0
             self._put_at_start(worlds)          # no NaN leaves the env; the episode ends below
             readout = self.sim.readout()
+            self._object_start[worlds] = readout.object_pose[worlds]
         out, frame = self._observe(readout)
         err = frame["errors"]
         reward, terms = tracking_reward(cfg.reward, **frame)
@@ -464,7 +468,8 @@ class TrackingEnv(EnvBase):
         out = {
             "proprio": td({"joint_pos": t(seen_q), "joint_target": t(self._q_target.astype(f32)),
                            "link_pose": t(seen_link)}),
-            "object": td({"pose": t(object_pose), "latent": t(latent)}),
+            "object": td({"pose": t(object_pose), "latent": t(latent), "start_pose": t(self._object_start.copy()),
+                          "reference_start": t(self._ref_obj[self._base])}),
             "reference": td({"hand_joint_pos": t(ref_q), "hand_link_pose": t(ref_link), "object_pose": t(ref_obj)}),
             "observation": t(flat),
             PRIVILEGED: {"errors": td({k: t(v) for k, v in errors.items()}),

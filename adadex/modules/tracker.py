@@ -40,8 +40,9 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from adadex.envs.observation import JOINT_TARGET, LAYOUT, OBS_DIM, OBSERVATION
-from adadex.errors import check_number
+from adadex.envs.observation import JOINT_TARGET, LAYOUT, OBJECT_START, OBS_DIM, OBSERVATION, REF_OBJECT_START
+from adadex.errors import ConfigError, check_number
+from adadex.modules.anchor import ObjectAnchor
 from adadex.modules.nets import ActorCritic, make_actor, make_critic
 from adadex.sim.robot import NUM_JOINTS
 
@@ -49,16 +50,22 @@ _NEXT_REF = slice(LAYOUT["ref_joint_future"].start, LAYOUT["ref_joint_future"].s
 
 
 class ReplayBounds(nn.Module):
-    """(observation, joint target) → (feed-forward − r, feed-forward + r), the feed-forward being
-    kinematic replay's action: the reference joints at t+1 (read from the flat observation, so a
-    modulated reference moves it too) minus the current joint targets."""
+    """(observation, joint target[, object start, reference object start]) → (feed-forward − r,
+    feed-forward + r), the feed-forward being kinematic replay's action: the reference joints at t+1
+    (read from the flat observation, so a modulated reference moves it too) minus the current joint
+    targets; with an ``anchor`` (:class:`~adadex.modules.anchor.ObjectAnchor`), of the reference
+    shifted onto the object where it started the episode."""
 
-    def __init__(self, residual: float):
+    def __init__(self, residual: float, anchor: ObjectAnchor | None = None):
         super().__init__()
         self.residual = float(residual)
+        self.anchor = anchor
 
-    def forward(self, observation: torch.Tensor, joint_target: torch.Tensor):
+    def forward(self, observation: torch.Tensor, joint_target: torch.Tensor, object_start: torch.Tensor | None = None,
+                ref_object_start: torch.Tensor | None = None):
         ff = observation[..., _NEXT_REF] - joint_target
+        if self.anchor is not None:
+            ff = ff + self.anchor(observation, object_start, ref_object_start)
         return ff - self.residual, ff + self.residual
 
 
@@ -75,22 +82,32 @@ class Tracker(ActorCritic):
         loc_bound: > 0 bounds the Gaussian's pre-tanh mean to ±loc_bound (see
             :func:`~adadex.modules.nets.make_actor`); 0, the default of checkpoints saved before it
             existed, leaves it unbounded.
+        anchor: > 0 (needs ``residual > 0``) anchors the feed-forward to the object
+            (:class:`~adadex.modules.anchor.ObjectAnchor` with ``release=anchor`` m): replay of the
+            reference shifted onto where the object started the episode, fading out as the reference
+            carries the object; the actor then also reads ``("object", "start_pose")`` and
+            ``("object", "reference_start")``. 0 (default): plain replay.
     """
 
     kind = "tracker"
 
     def __init__(self, hidden: Sequence[int] = (512, 256, 128), max_action: float = 0.1, init_scale: float = 1.0,
-                 residual: float = 0.0, loc_bound: float = 0.0):
+                 residual: float = 0.0, loc_bound: float = 0.0, anchor: float = 0.0):
         super().__init__()
         check_number("Tracker.max_action", max_action, strict_low=True)
         check_number("Tracker.residual", residual)
         check_number("Tracker.loc_bound", loc_bound)
+        check_number("Tracker.anchor", anchor)
+        if anchor > 0 and not residual > 0:
+            raise ConfigError(f"Tracker(anchor={anchor}) anchors the replay feed-forward, which only a residual "
+                              f"tracker has; set residual > 0")
         self.config = {"hidden": list(hidden), "max_action": float(max_action), "init_scale": float(init_scale),
-                       "residual": float(residual), "loc_bound": float(loc_bound)}
+                       "residual": float(residual), "loc_bound": float(loc_bound), "anchor": float(anchor)}
         bounds = None
         if residual > 0:
-            bounds = TensorDictModule(ReplayBounds(residual), in_keys=[OBSERVATION, JOINT_TARGET],
-                                      out_keys=[("tracker", "low"), ("tracker", "high")])
+            keys = [OBSERVATION, JOINT_TARGET] + ([OBJECT_START, REF_OBJECT_START] if anchor > 0 else [])
+            bounds = TensorDictModule(ReplayBounds(residual, ObjectAnchor(anchor) if anchor > 0 else None),
+                                      in_keys=keys, out_keys=[("tracker", "low"), ("tracker", "high")])
         self.actor = make_actor(OBSERVATION, OBS_DIM, [NUM_JOINTS], -max_action, max_action, hidden,
                                 namespace="tracker", init_scale=init_scale, bounds=bounds, loc_bound=loc_bound)
         self.critic = make_critic(OBSERVATION, OBS_DIM, hidden)

@@ -105,10 +105,14 @@ class PolicyConfig:
     #: to 7.8 with scale 0.04 after 3.6 M frames, and one action's log-probability moved from -104
     #: (collection) to 7 (update): the PPO ratio overflowed and NaN reached the weights
     loc_bound: float = 5.0
+    #: > 0: the feed-forward is replay of the reference shifted onto the object where it started the
+    #: episode, fading out over this many metres of the reference object's travel (Tracker ``anchor``,
+    #: :class:`adadex.modules.anchor.ObjectAnchor`); 0: plain replay
+    anchor: float = 0.0
 
     def __post_init__(self):
         self.hidden = tuple(int(h) for h in self.hidden)
-        check_numbers("PolicyConfig", self, ("residual", "init_scale", "loc_bound"))
+        check_numbers("PolicyConfig", self, ("residual", "init_scale", "loc_bound", "anchor"))
 
 
 @dataclass

@@ -147,7 +147,8 @@ def teacher_rollouts(teachers: Mapping, dataset, out, *, episodes_per_reference:
         seed: env seed of the first chunk (chunk ``k`` uses ``seed + k``).
         max_worlds: worlds stepped together.
         criterion: ``"mean_error"`` or ``"completion>=x"`` (:func:`success_criterion`).
-        keys: observation entries stored per step (the flat ``"observation"`` always).
+        keys: observation entries stored per step (the flat ``"observation"`` and every entry a teacher's
+            actor reads, always).
 
     Returns the content of ``rollouts.json`` (a dict). Raises :class:`NoSuccessfulRollouts` when no
     episode succeeded (``out`` is then left as it was).
@@ -174,6 +175,8 @@ def teacher_rollouts(teachers: Mapping, dataset, out, *, episodes_per_reference:
             raise RolloutsError(f"{ds.path}: teacher {name} needs a non-empty list of dataset indices with a "
                                 f"{config.window}-frame episode window; not usable: {bad[:10]}")
         plan.append((name, path, tracker.eval(), refs))
+    # whatever a teacher reads, its student reads too (an object-anchored tracker's start poses …)
+    keys = list(dict.fromkeys([*keys, *(k for p in plan for k in p[2].actor.in_keys)]))
     steps = config.window - 1
     total = sum(len(p[3]) for p in plan) * episodes_per_reference
     per_ref: dict[int, dict] = {}

@@ -1,6 +1,7 @@
 """TrackingEnv: specs, resets, stepping, unstable worlds, replay — on a tiny dataset built once."""
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
@@ -232,4 +233,21 @@ def test_flung_object_counts_as_unstable(dataset):
     td = env.rand_step(env.reset())["next"]     # the objects settle the 2 mm they start above the table
     assert td["privileged", "unstable"].all() and td["terminated"].all() and env.unstable_count == 3
     assert (td["privileged", "errors", "T_o"] <= env.config.object_lift + 1e-5).all()   # back at the start pose
+    env.close()
+
+
+def test_action_noise_is_in_units_of_the_action_bound_and_clipped_to_it(dataset):
+    """Table 3's action noise is IsaacGymEnvs' (added to the normalized action before the clip)."""
+    rnd = dataclasses.replace(Randomization.off(), action_noise_uncorrelated=0.5)
+    env = TrackingEnv(dataset, num_worlds=8, split=None, seed=0, randomize=rnd, config=TrackingConfig(max_action=0.04))
+    td = env.reset()
+    steps = []
+    for _ in range(6):
+        td = env.step(td.set("action", torch.zeros(8, 22)))
+        steps.append(td["next", "proprio", "joint_target"] - td["proprio", "joint_target"])
+        td = td["next"]
+    change = torch.stack(steps)
+    assert change.abs().max() <= 0.04 + 1e-6                          # never past the bound
+    # N(0, 0.5 · 0.04) clipped at ±0.04 has a std of 0.0186 (read in rad it would be nearly all ±0.04)
+    assert 0.015 < change.std() < 0.021, change.std()
     env.close()

@@ -216,3 +216,17 @@ def test_recipes_end_to_end(made, tiny_dataset, tmp_path):
                          cwd=tmp_path, env=env, capture_output=True, text=True,
                        timeout=300)
     assert bad.returncode == 2 and "no teacher rollouts there" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_an_anchored_teacher_gives_an_anchored_student(tiny_dataset, tmp_path):
+    """The rollouts keep what an object-anchored teacher reads, so its student can be cloned from them."""
+    torch.manual_seed(0)
+    teacher = Tracker(hidden=(16,), residual=0.25, anchor=0.05)
+    path = teacher.save(tmp_path / "spec_a" / "tracker.pt")
+    teacher_rollouts({path: REFS[:1]}, tiny_dataset, tmp_path / "rollouts", episodes_per_reference=2, seed=SEED,
+                     max_worlds=2, nthread=1, progress=False, criterion="completion>=0.01")
+    buf = load_rollouts(tmp_path / "rollouts")
+    assert {("object", "start_pose"), ("object", "reference_start")} <= set(buf[0:1].keys(True, True))
+    res = distill(DistillConfig(rollouts=str(tmp_path / "rollouts"), out=str(tmp_path / "bc"), steps=4,
+                                batch_size=64, hidden=(16,), wandb=False, progress=False))
+    assert Tracker.load(res["tracker"]).config["anchor"] == 0.05

@@ -5,6 +5,7 @@ after a real ``kill -9``."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import os
 import re
 import signal
@@ -70,6 +71,16 @@ def test_two_worker_multisync_collector(tiny_dataset, tmp_path):
     res = train(_config(tiny_dataset, tmp_path / "ms", workers=2, frames=1024))
     assert res["frames"] == 1024 and res["iterations"] == 2
     assert Tracker.load(res["tracker"])
+
+
+def test_object_anchored_tracker_trains_in_workers(tiny_dataset, tmp_path):
+    """The anchor's extra inputs reach the workers' policy, the PPO buffer and the checkpoint."""
+    cfg = dataclasses.replace(_config(tiny_dataset, tmp_path / "anchor", workers=2, frames=512),
+                              policy=PolicyConfig(hidden=(32, 32), anchor=0.05, init_scale=0.05))
+    res = train(cfg)
+    tracker = Tracker.load(res["tracker"])
+    assert tracker.config["anchor"] == 0.05 and ("object", "start_pose") in tracker.actor.in_keys
+    assert all(float(r["loss_objective"]) == float(r["loss_objective"]) for r in _rows(tmp_path / "anchor")[:-1])
 
 
 @pytest.mark.parametrize("method, preloaded", [("forkserver", True), ("spawn", False)])

@@ -1,0 +1,96 @@
+"""Object anchoring: move the reference's hand onto the object where it actually lies.
+
+Table 3 displaces the object at each reset (x, y + N(0, 5 cm)), and a tracker whose feed-forward is
+kinematic replay closes the hand where the *reference* object is: under the displacement alone,
+replay lifts a mug in about a fifth of the episodes (README, "Quality"). :class:`ObjectAnchor` turns
+the feed-forward into replay of a reference shifted onto the observed object:
+
+* ``Δ`` — the horizontal offset between where the object started this episode (the pose the env
+  saw at the episode's first frame, ``("object", "start_pose")``) and where the reference object
+  starts (``("object", "reference_start")``). It is fixed for the episode: anchoring to the object's
+  *current* pose instead made the hand chase an object it had nudged, and under Table 3's action
+  noise that ran away (terminations 44 → 86 % for replay so anchored). The height is left alone so
+  the hand is never pushed into the table;
+* ``w`` — 1 until the reference object at t+1 has travelled ``hold`` from its start (the
+  references are noisy on purpose: an object at rest jitters by up to 1 cm), then falling linearly
+  to 0 over the next ``release`` of travel: the hand reaches and grasps the object where it lies, then,
+  as the reference carries the object, returns to the reference path and brings the object onto it;
+* ``Δq`` — the arm-joint change that moves the palm by ``w·Δ`` without turning it, at the next
+  reference joints: damped least squares on the palm's Jacobian (pytorch-kinematics, from the
+  robot's MJCF).
+
+It is a function of what the policy observes, so a tracker using it is still one TensorDictModule
+over the observation (distillation clones it as it is).
+
+Example
+-------
+>>> import torch
+>>> anchor = ObjectAnchor(release=0.05)
+>>> obs, start, ref_start = torch.zeros(2, 273), torch.zeros(2, 7), torch.zeros(2, 7)
+>>> start[:, 0] = 0.03                      # the object started 3 cm off its reference in x
+>>> dq = anchor(obs, start, ref_start)
+>>> dq.shape, bool(dq[:, 6:].abs().max() == 0), bool(dq[:, :6].abs().max() > 0)
+(torch.Size([2, 22]), True, True)
+"""
+
+from __future__ import annotations
+
+import pytorch_kinematics as pk
+import torch
+from torch import nn
+
+from adadex.envs.observation import LAYOUT
+from adadex.errors import check_number
+from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
+
+ARM_JOINTS = 6
+_NEXT_REF = slice(LAYOUT["ref_joint_future"].start, LAYOUT["ref_joint_future"].start + NUM_JOINTS)
+_NEXT_REF_OBJECT = slice(LAYOUT["ref_object_future"].start, LAYOUT["ref_object_future"].start + 3)
+
+
+class ObjectAnchor(nn.Module):
+    """(flat observation, object start pose, reference object start pose) → (…, 22) joint offset of
+    the feed-forward (see the module docstring).
+
+    Args:
+        release: m the reference object travels, after ``hold``, while the anchor fades out (> 0).
+        hold: m of travel from its start within which the reference object counts as at rest.
+        damping: m, damping of the least-squares step (keeps it bounded near singular arm poses).
+    """
+
+    def __init__(self, release: float = 0.05, hold: float = 0.02, damping: float = 0.02):
+        super().__init__()
+        self.release = float(check_number("ObjectAnchor.release", release, strict_low=True))
+        self.hold = float(check_number("ObjectAnchor.hold", hold))
+        self.damping = float(check_number("ObjectAnchor.damping", damping, strict_low=True))
+        from adadex.sim.kinematics import RobotKinematics
+
+        chain = RobotKinematics(dtype=torch.float32).chain
+        self._palm = pk.SerialChain(chain, TRACKED_SITES[0])
+        names = self._palm.get_joint_parameter_names()
+        if len(names) != ARM_JOINTS:
+            raise ValueError(f"the palm's chain should hold the {ARM_JOINTS} arm joints, got {names}")
+
+    def weight(self, observation: torch.Tensor, object_start: torch.Tensor) -> torch.Tensor:
+        """(…,) anchor weight: 1 while the reference object is at rest, 0 once it travelled
+        ``hold + release`` from its start."""
+        travel = torch.linalg.vector_norm(observation[..., _NEXT_REF_OBJECT] - object_start[..., :3], dim=-1)
+        return (1.0 - (travel - self.hold) / self.release).clamp(0.0, 1.0)
+
+    def forward(self, observation: torch.Tensor, object_start: torch.Tensor, ref_object_start: torch.Tensor
+                ) -> torch.Tensor:
+        lead = observation.shape[:-1]
+        obs = observation.reshape(-1, observation.shape[-1])
+        start, ref_start = object_start.reshape(-1, 7), ref_object_start.reshape(-1, 7)
+        shift = torch.zeros(obs.shape[0], 6, dtype=obs.dtype, device=obs.device)   # palm: move, do not turn
+        shift[:, :2] = start[:, :2] - ref_start[:, :2]
+        shift = shift * self.weight(obs, ref_start)[:, None]
+        out = torch.zeros(obs.shape[0], NUM_JOINTS, dtype=obs.dtype, device=obs.device)
+        rows = shift.any(dim=1).nonzero()[:, 0]      # the Jacobian only where there is a shift
+        if len(rows):
+            jac = self._palm.jacobian(obs[rows, _NEXT_REF][:, :ARM_JOINTS].float()).to(obs.dtype)   # (n, 6, 6)
+            eye = torch.eye(6, dtype=obs.dtype, device=obs.device)
+            step = jac.transpose(1, 2) @ torch.linalg.solve(jac @ jac.transpose(1, 2) + self.damping ** 2 * eye,
+                                                            shift[rows, :, None])
+            out[rows, :ARM_JOINTS] = step[:, :, 0]
+        return out.reshape(*lead, NUM_JOINTS)

@@ -1,0 +1,137 @@
+"""Object anchoring: the feed-forward's shift moves the palm onto the displaced object, fades as the
+reference carries it, and an anchored tracker in the env meets a displaced object where replay misses it."""
+
+import copy
+import dataclasses
+import pickle
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from adadex.envs.observation import LAYOUT, OBJECT_START, REF_OBJECT_START
+from adadex.envs.randomization import Randomization
+from adadex.envs.replay import replay_policy
+from adadex.envs.tracking import TrackingEnv
+from adadex.errors import ConfigError
+from adadex.modules.anchor import ObjectAnchor
+from adadex.modules.tracker import Tracker
+from adadex.quat import quat_angle_between
+from adadex.sim.kinematics import RobotKinematics
+
+NEXT_REF = slice(LAYOUT["ref_joint_future"].start, LAYOUT["ref_joint_future"].start + 22)
+NEXT_REF_OBJECT = slice(LAYOUT["ref_object_future"].start, LAYOUT["ref_object_future"].start + 3)
+
+
+def _inputs(tiny_dataset, n=6, seed=0):
+    from adadex.data.reference import ReferenceDataset
+
+    frames = ReferenceDataset(tiny_dataset).frames
+    g = torch.Generator().manual_seed(seed)
+    rows = torch.randint(0, frames["hand_joint_pos"].shape[0], (n,), generator=g)
+    obs = torch.zeros(n, 273)
+    obs[:, NEXT_REF] = frames["hand_joint_pos"][rows].float()
+    ref_start = frames["object_pose"][rows].float()
+    obs[:, NEXT_REF_OBJECT] = ref_start[:, :3]          # the reference object has not moved yet
+    start = ref_start.clone()
+    start[:, :2] += 0.04 * (torch.rand(n, 2, generator=g) - 0.5)
+    return obs, start, ref_start
+
+
+def test_palm_moves_by_the_objects_offset_without_turning(tiny_dataset):
+    obs, start, ref_start = _inputs(tiny_dataset)
+    dq = ObjectAnchor(release=0.05)(obs, start, ref_start)
+    assert (dq[:, 6:] == 0).all()                                   # the fingers keep their reference
+    fk = RobotKinematics(dtype=torch.float32)
+    q = obs[:, NEXT_REF]
+    before, after = fk.link_poses(q)[:, 0], fk.link_poses(q + dq)[:, 0]
+    moved = after[:, :3] - before[:, :3]
+    wanted = torch.cat([start[:, :2] - ref_start[:, :2], torch.zeros(len(q), 1)], dim=1)
+    assert (moved - wanted).norm(dim=1).max() < 0.004, (moved, wanted)
+    assert quat_angle_between(after[:, 3:], before[:, 3:]).max() < 0.03
+
+
+def test_anchor_fades_as_the_reference_object_travels(tiny_dataset):
+    obs, start, ref_start = _inputs(tiny_dataset)
+    anchor = ObjectAnchor(release=0.05)
+    full = anchor(obs, start, ref_start)
+    for travel, weight in ((0.015, 1.0), (0.045, 0.5), (0.07, 0.0), (0.2, 0.0)):
+        moved = obs.clone()
+        moved[:, NEXT_REF_OBJECT.start + 2] += travel               # the reference lifts the object
+        torch.testing.assert_close(anchor(moved, start, ref_start), weight * full, atol=2e-4, rtol=1e-2)
+    assert (anchor(obs, ref_start, ref_start) == 0).all()          # no offset, no shift
+
+
+def test_bad_settings():
+    with pytest.raises(ValueError, match="release"):
+        ObjectAnchor(release=0.0)
+    with pytest.raises(ConfigError, match="residual"):
+        Tracker(hidden=(8,), anchor=0.05)
+
+
+def test_untrained_anchored_tracker_is_shifted_replay_and_round_trips(tiny_dataset, tmp_path):
+    obs, start, ref_start = _inputs(tiny_dataset)
+    td = TensorDict({"observation": obs, ("proprio", "joint_target"): obs[:, NEXT_REF] - 0.01,
+                     OBJECT_START: start, REF_OBJECT_START: ref_start}, batch_size=[len(obs)])
+    tracker = Tracker(hidden=(16,), residual=0.25, anchor=0.05)
+    _zero_correction(tracker)
+    with torch.no_grad():
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            action = tracker.actor(td.clone())["action"]
+        wanted = replay_like(td) + ObjectAnchor(0.05)(obs, start, ref_start)
+        torch.testing.assert_close(action, wanted, atol=1e-5, rtol=0)
+    tracker.save(tmp_path / "t.pt")
+    loaded = Tracker.load(tmp_path / "t.pt")
+    assert loaded.config["anchor"] == 0.05
+    assert set(loaded.actor.in_keys) >= {OBJECT_START, REF_OBJECT_START}
+    pickle.loads(pickle.dumps(copy.deepcopy(loaded.sampling_policy())))    # what a collector worker gets
+
+
+def _zero_correction(tracker):
+    """The correction's mean at 0: the deterministic action is the feed-forward."""
+    with torch.no_grad():
+        for head in tracker.actor._sampling_parts[0].heads:
+            head.weight.zero_()
+            head.bias.zero_()
+    return tracker
+
+
+def replay_like(td):
+    return td["observation"][:, NEXT_REF] - td["proprio", "joint_target"]
+
+
+def test_env_reports_the_objects_start_for_the_whole_episode(tiny_dataset):
+    rnd = dataclasses.replace(Randomization.off(), object_xy_std=0.05)
+    env = TrackingEnv(tiny_dataset, num_worlds=4, split=None, seed=0, randomize=rnd)
+    td = env.rollout(8, replay_policy(), break_when_any_done=False)
+    start = td[OBJECT_START]
+    torch.testing.assert_close(start[:, 0], td["object", "pose"][:, 0], rtol=0, atol=0)
+    assert (start == start[:, :1]).all()                                     # fixed within the episode
+    ref_start = td[REF_OBJECT_START][:, 0]
+    assert (start[:, 0, :2] - ref_start[:, :2]).norm(dim=-1).max() > 0.005  # the displacement shows
+    env.close()
+
+
+def test_anchored_tracker_meets_a_displaced_object_where_replay_misses_it(tiny_dataset):
+    """Before the reference moves the object, the hand should sit where the reference hand sits
+    *relative to the object*; replay keeps it where it is relative to the world."""
+    rnd = dataclasses.replace(Randomization.off(), object_xy_std=0.05)
+    tracker = _zero_correction(Tracker(hidden=(16,), residual=0.25, anchor=0.05))
+
+    def relative_error(policy):
+        env = TrackingEnv(tiny_dataset, num_worlds=6, split=None, seed=3, randomize=rnd)
+        td = env.rollout(20, policy, break_when_any_done=False)
+        env.close()
+        nxt = td["next"]
+        palm, obj = nxt["proprio", "link_pose"][..., 0, :3], nxt["object", "pose"][..., :3]
+        ref_palm, ref_obj = nxt["reference", "hand_link_pose"][..., 0, 0, :3], nxt["reference", "object_pose"][..., 0, :3]
+        still = (ref_obj - td[REF_OBJECT_START][..., :3]).norm(dim=-1) < 0.02      # reference object at rest
+        err = ((palm - obj) - (ref_palm - ref_obj)).norm(dim=-1)
+        return err[:, 5:][still[:, 5:]].mean(), int(still[:, 5:].sum())
+
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        anchored, n = relative_error(tracker.actor)
+    replayed, _ = relative_error(replay_policy())
+    assert n > 20
+    assert anchored < 0.4 * replayed and anchored < 0.02, (anchored, replayed)

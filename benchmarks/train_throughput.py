@@ -154,6 +154,34 @@ def _collector_fps(make, frames_per_batch: int, batches: int, recorders: list[_P
     return frames_per_batch / per_batch, max(0.0, first - per_batch)
 
 
+def _policy_ms(factory, pc, calls: int = 300) -> tuple[float, float]:
+    """ms per call of the sampling policy on one batch of the env's observations: the plain residual
+    tracker, and the object-anchored one with every world's object 3 cm off its reference start (so
+    every world needs the anchor's Jacobian, as under Table 3's displacement before the object moves;
+    the collection above runs unrandomized, where the anchor has nothing to do)."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from adadex.envs.observation import OBJECT_START
+    from adadex.modules.tracker import Tracker
+
+    env = factory()
+    td = env.reset()
+    env.close()
+    td[OBJECT_START][:, 0] += 0.03
+    out = []
+    for anchor in (0.0, pc.anchor or 0.05):
+        policy = Tracker(hidden=pc.hidden, residual=pc.residual, init_scale=pc.init_scale, loc_bound=pc.loc_bound,
+                         anchor=anchor).sampling_policy()
+        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+            for _ in range(20):
+                policy(td.clone())
+            t0 = time.perf_counter()
+            for _ in range(calls):
+                policy(td.clone())
+        out.append((time.perf_counter() - t0) / calls * 1e3)
+    return out[0], out[1]
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dataset", type=Path, default=None)
@@ -184,7 +212,7 @@ def main(argv=None) -> dict:
         factory = TrackingEnvFactory(str(dataset), refs, num_worlds=B, seed=0, nthread=2)
         pc = PolicyConfig()
         policy = Tracker(hidden=pc.hidden, residual=pc.residual, init_scale=pc.init_scale,
-                         loc_bound=pc.loc_bound).sampling_policy()
+                         loc_bound=pc.loc_bound, anchor=pc.anchor).sampling_policy()
         res = {"worlds": B, "frames_per_batch": fpb, "batches": batches, "references": len(refs)}
 
         recorders = []
@@ -201,6 +229,7 @@ def main(argv=None) -> dict:
         res["physics_in_collection_fps"] = rec.steps * B / rec.seconds
         res["physics_fps"], res["physics_replay_exact"] = _physics_fps(factory, rec)
         res["physics_static_fps"], _ = _physics_fps(factory, steps=rec.steps)
+        res["policy_ms"], res["policy_anchored_ms"] = _policy_ms(factory, pc)
 
         cfg = TrainConfig(dataset=str(dataset), out=str(Path(tmp) / "ppo"), randomize=False, wandb=False,
                           progress=False, eval_max_references=1, checkpoint_every=10 ** 6,
@@ -257,6 +286,8 @@ def main(argv=None) -> dict:
         print(f"Ray 1 worker {res['ray_1_fps']:.0f}, 2 workers {res['ray_2_fps']:.0f} frames/s: "
               f"{res['ray_two_workers_over_one']:.2f} ×; start-up {res['ray_1_startup_s']:.1f} / "
               f"{res['ray_2_startup_s']:.1f} s")
+    print(f"policy (sampling, B = {res['worlds']}): {res['policy_ms']:.2f} ms per step; object-anchored with every "
+          f"object displaced {res['policy_anchored_ms']:.2f} ms")
     print(f"wrote {a.out}")
     return res
 

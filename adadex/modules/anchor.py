@@ -41,6 +41,7 @@ from torch import nn
 
 from adadex.envs.observation import LAYOUT
 from adadex.errors import check_number
+from adadex.sim.kinematics import RobotKinematics
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 
 ARM_JOINTS = 6
@@ -63,18 +64,16 @@ class ObjectAnchor(nn.Module):
         self.release = float(check_number("ObjectAnchor.release", release, strict_low=True))
         self.hold = float(check_number("ObjectAnchor.hold", hold))
         self.damping = float(check_number("ObjectAnchor.damping", damping, strict_low=True))
-        from adadex.sim.kinematics import RobotKinematics
-
         chain = RobotKinematics(dtype=torch.float32).chain
         self._palm = pk.SerialChain(chain, TRACKED_SITES[0])
         names = self._palm.get_joint_parameter_names()
         if len(names) != ARM_JOINTS:
             raise ValueError(f"the palm's chain should hold the {ARM_JOINTS} arm joints, got {names}")
 
-    def weight(self, observation: torch.Tensor, object_start: torch.Tensor) -> torch.Tensor:
+    def weight(self, observation: torch.Tensor, ref_object_start: torch.Tensor) -> torch.Tensor:
         """(…,) anchor weight: 1 while the reference object is at rest, 0 once it travelled
         ``hold + release`` from its start."""
-        travel = torch.linalg.vector_norm(observation[..., _NEXT_REF_OBJECT] - object_start[..., :3], dim=-1)
+        travel = torch.linalg.vector_norm(observation[..., _NEXT_REF_OBJECT] - ref_object_start[..., :3], dim=-1)
         return (1.0 - (travel - self.hold) / self.release).clamp(0.0, 1.0)
 
     def forward(self, observation: torch.Tensor, object_start: torch.Tensor, ref_object_start: torch.Tensor
@@ -88,6 +87,8 @@ class ObjectAnchor(nn.Module):
         out = torch.zeros(obs.shape[0], NUM_JOINTS, dtype=obs.dtype, device=obs.device)
         rows = shift.any(dim=1).nonzero()[:, 0]      # the Jacobian only where there is a shift
         if len(rows):
+            if torch.device(self._palm.device) != obs.device:   # the chain is no nn.Module: .to() does not move it
+                self._palm = self._palm.to(device=obs.device)
             jac = self._palm.jacobian(obs[rows, _NEXT_REF][:, :ARM_JOINTS].float()).to(obs.dtype)   # (n, 6, 6)
             eye = torch.eye(6, dtype=obs.dtype, device=obs.device)
             step = jac.transpose(1, 2) @ torch.linalg.solve(jac @ jac.transpose(1, 2) + self.damping ** 2 * eye,

@@ -422,12 +422,13 @@ class Pipeline:
                   [point([s["completion_pct"] for s in scaling[f]]) for f in scaling]}
         out["fig6_scaling"] = fig.plot_data_scaling(list(scaling), series, folder / "fig6_scaling.png")
         # Fig. 12: latent smoothness of the trackers on the observations the generalist met
-        obs = torch.cat([t.reshape(-1).select("observation", ("object", "latent"), ("proprio", "joint_target"))
+        actors = {row: Tracker.load(paths[row]).actor for row in ("tracker", "ppo", "il_rl")}
+        reads = dict.fromkeys(["observation", ("object", "latent"), *(k for a in actors.values() for k in a.in_keys)])
+        obs = torch.cat([t.reshape(-1).select(*reads)
                          for t in self.evaluate(self.policy("tracker", paths), "unseen_trajectory", "nominal",
                                                 20_000 + seed, keep_rollouts=True)["rollouts"]])
         pick = torch.randperm(obs.shape[0], generator=torch.Generator().manual_seed(seed))[: self.cfg.smoothness_samples]
-        rho = {row: latent_smoothness(Tracker.load(paths[row]).actor, obs[pick], seed=seed)
-               for row in ("tracker", "ppo", "il_rl")}
+        rho = {row: latent_smoothness(actor, obs[pick], seed=seed) for row, actor in actors.items()}
         plot_latent_smoothness({ROW_LABELS[k]: v for k, v in rho.items()}, folder / "fig12_smoothness.png")
         out["fig12_smoothness"] = folder / "fig12_smoothness.png"
         # which channels each modulator uses, on the randomized unseen-trajectory episodes

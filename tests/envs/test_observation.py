@@ -114,8 +114,8 @@ def test_reward_with_and_without_precomputed_errors():
 
 def test_object_frame_hand_tracking_rewards_meeting_a_displaced_object():
     """With ``object_frame=1``, a hand that follows a displaced object in a contact phase tracks
-    perfectly (only the object terms see the displacement); far from contact, and with the default
-    world frame, the same hand is charged for the displacement."""
+    perfectly (only the object terms see the displacement); far from contact, and with
+    ``object_frame=0`` (the world frame), the same hand is charged for the displacement."""
     from adadex.envs.reward import RewardConfig, tracking_reward
 
     B = 2
@@ -132,7 +132,7 @@ def test_object_frame_hand_tracking_rewards_meeting_a_displaced_object():
     obj[:, :3] += shift
     kw = dict(joint_pos=rq, link_pose=link, object_pose=obj, ref_joint_pos=rq, ref_link_pose=rlink,
               ref_object_pose=robj)
-    _, world = tracking_reward(RewardConfig(), **kw)
+    _, world = tracking_reward(RewardConfig(object_frame=0.0), **kw)
     _, rel = tracking_reward(RewardConfig(object_frame=1.0), **kw)
     _, half = tracking_reward(RewardConfig(object_frame=0.5), **kw)
     moved = float(shift.norm())

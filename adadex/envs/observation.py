@@ -11,7 +11,8 @@ The tracking environment writes structured entries (batch dims first)::
     ("object", "reference_start")     (…, 7)        the reference object's pose at that frame
 
 (the last two are outside the 273-D vector; an object-anchored tracker reads them,
-:mod:`adadex.modules.anchor`), and :func:`flat_observation` assembles the 273-D vector in exactly this order (:data:`LAYOUT`):
+:mod:`adadex.modules.anchor`), and :func:`flat_observation` assembles the 273-D vector in exactly
+this order (:data:`LAYOUT`):
 
 ====================  =======  ==========================================================
 ``joint_pos``         0–22     arm-hand joint positions

@@ -89,6 +89,8 @@ def _layout() -> dict[str, slice]:
 
 #: Name → slice of the flat vector.
 LAYOUT: dict[str, slice] = _layout()
+#: The reference joints at t+1 within the flat vector (kinematic replay's next target).
+NEXT_REF_JOINTS = slice(LAYOUT["ref_joint_future"].start, LAYOUT["ref_joint_future"].start + NUM_JOINTS)
 
 
 _TAILS = ((NUM_JOINTS,), (len(TRACKED_SITES), 7), (7,), (LATENT_DIM,), (len(REF_OFFSETS), NUM_JOINTS),

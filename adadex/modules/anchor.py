@@ -39,13 +39,12 @@ import pytorch_kinematics as pk
 import torch
 from torch import nn
 
-from adadex.envs.observation import LAYOUT
+from adadex.envs.observation import LAYOUT, NEXT_REF_JOINTS as _NEXT_REF
 from adadex.errors import check_number
 from adadex.sim.kinematics import RobotKinematics
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 
 ARM_JOINTS = 6
-_NEXT_REF = slice(LAYOUT["ref_joint_future"].start, LAYOUT["ref_joint_future"].start + NUM_JOINTS)
 _NEXT_REF_OBJECT = slice(LAYOUT["ref_object_future"].start, LAYOUT["ref_object_future"].start + 3)
 
 

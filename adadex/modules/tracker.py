@@ -40,13 +40,13 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from adadex.envs.observation import JOINT_TARGET, LAYOUT, OBJECT_START, OBS_DIM, OBSERVATION, REF_OBJECT_START
+from adadex.envs.observation import JOINT_TARGET, NEXT_REF_JOINTS as _NEXT_REF, OBJECT_START, OBS_DIM, OBSERVATION, \
+    REF_OBJECT_START
 from adadex.errors import ConfigError, check_number
 from adadex.modules.anchor import ObjectAnchor
 from adadex.modules.nets import ActorCritic, make_actor, make_critic
 from adadex.sim.robot import NUM_JOINTS
 
-_NEXT_REF = slice(LAYOUT["ref_joint_future"].start, LAYOUT["ref_joint_future"].start + NUM_JOINTS)
 
 
 class ReplayBounds(nn.Module):

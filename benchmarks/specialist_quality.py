@@ -12,8 +12,8 @@ mean T_o ≤ 0.7 × replay's.
 
 Writes ``benchmarks/results/specialist_quality.json`` (``replay``, ``specialist``, ``ppo``: each with
 ``completion_pct``, ``mean_error_pct``, ``T_o`` …, ``lifted_pct`` — the episodes whose object rose
-3 cm or more, of those whose reference lifts it — and ``terminated_pct``, plus the training wall
-times) and keeps the runs
+3 cm or more, of those whose reference lifts it — ``terminated_pct``, and ``completion_by_offset``,
+completion by how far the randomization displaced the object, plus the training wall times) and keeps the runs
 (checkpoints, metrics.csv) under ``--runs``; rerunning resumes them. Run it in the background:
 
     nohup python benchmarks/specialist_quality.py --dataset data/small > specialist.log 2>&1 &
@@ -33,6 +33,7 @@ from adadex.io import atomic_write_text
 
 RESULTS = Path(__file__).resolve().parent / "results"
 LIFT = 0.03          # m: an object counts as lifted once it rose this far above its start
+OFFSET_BINS = (0.04, 0.07, 0.10)   # m: edges of the classes of Table 3's initial object displacement
 METRICS = ("completion_pct", "success_mean_error_pct", "T_o", "R_o", "T_h", "R_h", "E_finger")
 
 
@@ -54,6 +55,32 @@ def _carried(rollouts) -> tuple[float, float]:
         term += int(td["next", "terminated"].squeeze(-1).any(1).sum())
         n += done.shape[0]
     return (100.0 * lifted / should if should else float("nan")), 100.0 * term / n
+
+
+def _by_offset(rollouts) -> dict:
+    """Completion by how far Table 3 displaced the object from the reference's start (horizontal
+    distance, :data:`OFFSET_BINS`): ``{"<4 cm": {"episodes": n, "completion_pct": x}, …}``. Where
+    a tracker loses its points: once the hand holds an object displaced by more than 10 cm, the
+    frame's mean position error (object and palm) exceeds the 10 cm success threshold until the
+    object is back near its reference path."""
+    from adadex.envs.observation import OBJECT_START, REF_OBJECT_START
+    from adadex.eval.metrics import from_rollout
+
+    offsets, completion = [], []
+    for td in rollouts:
+        T = td.shape[-1]
+        offsets.append((td[OBJECT_START][:, 0, :2] - td[REF_OBJECT_START][:, 0, :2]).norm(dim=-1))
+        completion.append(from_rollout(td, lengths=torch.full((td.shape[0],), T))["completion"])
+    offsets, completion = torch.cat(offsets), torch.cat(completion)
+    edges = (0.0, *OFFSET_BINS, float("inf"))
+    out = {}
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        label = f"<{hi * 100:.0f} cm" if lo == 0 else (f"≥{lo * 100:.0f} cm" if hi == float("inf")
+                                                       else f"{lo * 100:.0f}–{hi * 100:.0f} cm")
+        keep = (offsets >= lo) & (offsets < hi)
+        out[label] = {"episodes": int(keep.sum()),
+                      "completion_pct": 100.0 * float(completion[keep].mean()) if keep.any() else float("nan")}
+    return out
 
 
 def _summary(res: dict) -> dict:
@@ -115,9 +142,13 @@ def main(argv=None) -> dict:
                        progress=False, keep_rollouts=True)
         print(format_summary(res["summary"]))
         out = _summary(res)
-        out["lifted_pct"], out["terminated_pct"] = _carried(res.pop("rollouts"))
+        rollouts = res.pop("rollouts")
+        out["lifted_pct"], out["terminated_pct"] = _carried(rollouts)
+        out["completion_by_offset"] = _by_offset(rollouts)
         print(f"object lifted ≥ {LIFT * 100:.0f} cm in {out['lifted_pct']:.1f} % of the episodes whose reference "
               f"lifts it; {out['terminated_pct']:.1f} % of all episodes terminated")
+        print("completion by the object's initial displacement: " + ", ".join(
+            f"{k} {v['completion_pct']:.1f} % ({v['episodes']} ep.)" for k, v in out["completion_by_offset"].items()))
         return out
 
     try:

@@ -16,7 +16,11 @@ Measured in one run, on the same dataset and references:
   fresh env's first scenes (the second version) ran the motion against objects it was not made
   for. ``physics_in_collection_fps`` (frames over the time spent inside ``BatchedSim.step`` during
   the collection) cross-checks it: it also holds the cost of stepping physics between other work
-  (cold caches, threads waking);
+  (cold caches, threads waking). ``collection_step_ms`` splits one collection step of the B worlds:
+  ``physics`` (inside ``BatchedSim.step``), ``env`` (the rest of ``TrackingEnv._step``), ``torchrl_env``
+  (the rest of TorchRL's ``step_and_maybe_reset``: partial resets, the ``RewardSum`` transform,
+  carrying the next observation over), ``policy`` (the sampling policy's forward) and ``collector``
+  (the rest: writing the batch, the exploration context);
 * ``ppo``: full PPO iterations (collect + GAE + 4 epochs of minibatch updates + weight sync), the
   trainer of ``adadex.train.ppo``;
 * ``multisync_1`` / ``multisync_2``: ``MultiSyncCollector`` with 1 and 2 worker processes, one MuJoCo
@@ -134,9 +138,31 @@ class _PhysicsRecorder:
         return self._put(worlds, *args, **kwargs)
 
 
-def _collector_fps(make, frames_per_batch: int, batches: int, recorders: list[_PhysicsRecorder] = ()):
+class _Timer:
+    """Time spent in ``obj.name`` (a method replaced on the instance) while ``timing`` is set;
+    :meth:`restore` puts the method back (a wrapped policy does not pickle into workers)."""
+
+    def __init__(self, obj, name: str):
+        self.obj, self.name, self.seconds, self.timing = obj, name, 0.0, False
+        self._orig = getattr(obj, name)
+
+        def timed(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return self._orig(*args, **kwargs)
+            finally:
+                if self.timing:
+                    self.seconds += time.perf_counter() - t0
+        setattr(obj, name, timed)
+
+    def restore(self):
+        delattr(self.obj, self.name)
+
+
+def _collector_fps(make, frames_per_batch: int, batches: int, recorders=()):
     """(frames/s over ``batches`` batches after the first, start-up s: first batch minus one batch).
-    ``recorders`` (filled when ``make`` builds its envs) time the physics of the timed batches."""
+    ``recorders`` (:class:`_PhysicsRecorder` or :class:`_Timer`, filled when ``make`` builds its envs)
+    time the physics, or their method, during the timed batches."""
     t0 = time.perf_counter()
     col = make()
     it = iter(col)
@@ -215,18 +241,31 @@ def main(argv=None) -> dict:
                          loc_bound=pc.loc_bound, anchor=pc.anchor).sampling_policy()
         res = {"worlds": B, "frames_per_batch": fpb, "batches": batches, "references": len(refs)}
 
-        recorders = []
+        recorders, timers = [], {"policy": _Timer(policy, "forward")}
+        watched = [timers["policy"]]             # filled as the collector builds its env
 
         def recorded_env():
             env = factory()
             recorders.append(_PhysicsRecorder(env.base_env))
+            timers["env_step"] = _Timer(env.base_env, "_step")
+            timers["torchrl_step"] = _Timer(env, "step_and_maybe_reset")
+            watched.extend([recorders[-1], timers["env_step"], timers["torchrl_step"]])
             return env
 
         res["collection_fps"], _ = _collector_fps(
             lambda: local_collector(recorded_env, policy, frames_per_batch=fpb, total_frames=-1),
-            fpb, batches, recorders)
+            fpb, batches, watched)
+        timers["policy"].restore()
         rec = recorders[-1]
         res["physics_in_collection_fps"] = rec.steps * B / rec.seconds
+        ms = {k: t.seconds / rec.steps * 1e3 for k, t in timers.items()}
+        step_ms = B / res["collection_fps"] * 1e3
+        res["collection_step_ms"] = {        # one step of the B worlds, where its time goes
+            "total": step_ms, "physics": rec.seconds / rec.steps * 1e3,
+            "env": ms["env_step"] - rec.seconds / rec.steps * 1e3,        # TrackingEnv._step besides physics
+            "torchrl_env": ms["torchrl_step"] - ms["env_step"],           # TorchRL's step, reset and transforms
+            "policy": ms["policy"],
+            "collector": step_ms - ms["torchrl_step"] - ms["policy"]}
         res["physics_fps"], res["physics_replay_exact"] = _physics_fps(factory, rec)
         res["physics_static_fps"], _ = _physics_fps(factory, steps=rec.steps)
         res["policy_ms"], res["policy_anchored_ms"] = _policy_ms(factory, pc)
@@ -278,6 +317,10 @@ def main(argv=None) -> dict:
     print(f"collection {res['collection_fps']:.0f} ({res['collection_over_physics']:.2f} × physics, target ≥ 0.8; "
           f"{res['collection_over_static_physics']:.2f} × the still worlds) | PPO {res['ppo_fps']:.0f} "
           f"({res['ppo_over_physics']:.2f} ×, target ≥ 0.5)")
+    c = res["collection_step_ms"]
+    print(f"one collection step of {res['worlds']} worlds, {c['total']:.2f} ms: physics {c['physics']:.2f}, env "
+          f"{c['env']:.2f}, TorchRL env {c['torchrl_env']:.2f}, policy {c['policy']:.2f}, collector {c['collector']:.2f} "
+          f"(physics alone: {res['worlds'] / res['physics_fps'] * 1e3:.2f})")
     print(f"MultiSync 1 worker {res['multisync_1_fps']:.0f}, 2 workers {res['multisync_2_fps']:.0f} frames/s: "
           f"{res['two_workers_over_one']:.2f} × (target ≥ 1.7); start-up "
           f"{res['multisync_1_startup_s']:.1f} / {res['multisync_2_startup_s']:.1f} s ({a.start_method}); "

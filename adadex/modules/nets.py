@@ -57,8 +57,9 @@ class GaussianHeads(nn.Module):
     order. The last layers start small (``init_gain``) so the initial mean action is near 0."""
 
     def __init__(self, obs_dim: int, head_sizes: Sequence[int], hidden: Sequence[int], *,
-                 init_gain: float = 0.01, init_scale: float = 1.0, activation=nn.ELU):
+                 init_gain: float = 0.01, init_scale: float = 1.0, activation=nn.ELU, loc_bound: float = 0.0):
         super().__init__()
+        self.loc_bound = float(loc_bound)
         self.norm = Normalizer(obs_dim)
         self.trunk = MLP(in_features=obs_dim, out_features=hidden[-1], num_cells=list(hidden[:-1]),
                          activation_class=activation, activate_last_layer=True)
@@ -72,12 +73,16 @@ class GaussianHeads(nn.Module):
     def forward(self, obs: torch.Tensor):
         z = self.trunk(self.norm(obs))
         locs, scales = zip(*(self.extract(h(z)) for h in self.heads))
-        return torch.cat(locs, -1), torch.cat(scales, -1)
+        loc = torch.cat(locs, -1)
+        if self.loc_bound > 0:
+            loc = self.loc_bound * torch.tanh(loc / self.loc_bound)
+        return loc, torch.cat(scales, -1)
 
 
 def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, high: float, hidden: Sequence[int], *,
                namespace: str, action_key="action", init_scale: float = 1.0,
-               bounds: TensorDictModule | None = None, loc_bound: float = 0.0) -> ProbabilisticActor:
+               bounds: TensorDictModule | None = None, loc_bound: float = 0.0,
+               torchrl_tanh_loc: bool = False) -> ProbabilisticActor:
     """A TanhNormal actor reading ``obs_key`` (flat), writing ``action_key`` and its log-prob, with
     the distribution parameters under ``(namespace, "loc")`` / ``(namespace, "scale")``.
 
@@ -85,11 +90,18 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
     the TanhNormal then spans those instead of the fixed ``[low, high]`` (a feed-forward plus a
     bounded learned residual, with the log-probability of the residual, as PPO needs).
 
-    ``loc_bound`` > 0 keeps the pre-tanh mean within ±``loc_bound`` (TorchRL's ``tanh_loc``:
-    ``loc = b·tanh(loc/b)``). Unbounded, a mean driven far past the bounds with a small scale gives
-    actions that float32 rounds onto the bound, whose log-probability then moves by tens of nats
-    under a small weight change: PPO's ratio overflows (seen after 3.6 M frames of a specialist)."""
-    net = GaussianHeads(obs_dim, head_sizes, hidden, init_scale=init_scale)
+    ``loc_bound`` > 0 keeps the pre-tanh mean within ±``loc_bound`` (``loc = b·tanh(loc/b)``, in the
+    network). Unbounded, a mean driven far past the bounds with a small scale gives actions that
+    float32 rounds onto the bound, whose log-probability then moves by tens of nats under a small
+    weight change: PPO's ratio overflows (seen after 3.6 M frames of a specialist).
+
+    ``torchrl_tanh_loc`` bounds it with TorchRL's ``TanhNormal(tanh_loc=True)`` instead, as checkpoints
+    saved before 2026-11-25 did. That is not the same for per-sample bounds: TorchRL 0.14 then also
+    adds the bounds' centre ``(low + high) / 2`` to the pre-tanh mean, so a residual tracker's zero
+    correction became ``residual·tanh(feed-forward)`` on top of the feed-forward (tested in
+    ``tests/modules/test_policy_modules.py``). Kept only so those checkpoints act as they were trained."""
+    net = GaussianHeads(obs_dim, head_sizes, hidden, init_scale=init_scale,
+                        loc_bound=0.0 if torchrl_tanh_loc else loc_bound)
     loc, scale = (namespace, "loc"), (namespace, "scale")
     module = TensorDictModule(net, in_keys=[obs_key], out_keys=[loc, scale])
     dim = sum(head_sizes)
@@ -98,7 +110,7 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
         module = TensorDictSequential(module, bounds)
         dist_keys.update(low=(namespace, "low"), high=(namespace, "high"))
         dist_kwargs = {}
-    if loc_bound > 0:
+    if loc_bound > 0 and torchrl_tanh_loc:
         dist_kwargs.update(tanh_loc=True, upscale=float(loc_bound))
     actor = ProbabilisticActor(
         module, in_keys=dist_keys, out_keys=[action_key],
@@ -205,9 +217,14 @@ class ActorCritic(nn.Module):
         kind = blob.get("kind") if isinstance(blob, dict) else None
         if kind != cls.kind:
             raise ValueError(f"{path}: not a {cls.kind} checkpoint (kind={kind!r})")
-        out = cls(**blob["config"])
+        out = cls(**cls.upgrade_config(dict(blob["config"])))
         out.load_state_dict(blob["state_dict"])
         return out
+
+    @classmethod
+    def upgrade_config(cls, config: dict) -> dict:
+        """A saved config as this version's constructor takes it (checkpoints of older versions)."""
+        return config
 
 
 def fit_normalizers(module: nn.Module, observations: torch.Tensor) -> None:

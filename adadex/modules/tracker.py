@@ -87,12 +87,16 @@ class Tracker(ActorCritic):
             reference shifted onto where the object started the episode, fading out as the reference
             carries the object; the actor then also reads ``("object", "start_pose")`` and
             ``("object", "reference_start")``. 0 (default): plain replay.
+        torchrl_tanh_loc: bound the mean as checkpoints saved before 2026-11-25 did (see
+            :func:`~adadex.modules.nets.make_actor`: for a residual tracker TorchRL's ``tanh_loc``
+            also shifted the mean by the feed-forward); :meth:`load` sets it for those checkpoints.
     """
 
     kind = "tracker"
 
     def __init__(self, hidden: Sequence[int] = (512, 256, 128), max_action: float = 0.1, init_scale: float = 1.0,
-                 residual: float = 0.0, loc_bound: float = 0.0, anchor: float = 0.0):
+                 residual: float = 0.0, loc_bound: float = 0.0, anchor: float = 0.0,
+                 torchrl_tanh_loc: bool = False):
         super().__init__()
         check_number("Tracker.max_action", max_action, strict_low=True)
         check_number("Tracker.residual", residual)
@@ -102,13 +106,22 @@ class Tracker(ActorCritic):
             raise ConfigError(f"Tracker(anchor={anchor}) anchors the replay feed-forward, which only a residual "
                               f"tracker has; set residual > 0")
         self.config = {"hidden": list(hidden), "max_action": float(max_action), "init_scale": float(init_scale),
-                       "residual": float(residual), "loc_bound": float(loc_bound), "anchor": float(anchor)}
+                       "residual": float(residual), "loc_bound": float(loc_bound), "anchor": float(anchor),
+                       "torchrl_tanh_loc": bool(torchrl_tanh_loc)}
         bounds = None
         if residual > 0:
             keys = [OBSERVATION, JOINT_TARGET] + ([OBJECT_START, REF_OBJECT_START] if anchor > 0 else [])
             bounds = TensorDictModule(ReplayBounds(residual, ObjectAnchor(anchor) if anchor > 0 else None),
                                       in_keys=keys, out_keys=[("tracker", "low"), ("tracker", "high")])
         self.actor = make_actor(OBSERVATION, OBS_DIM, [NUM_JOINTS], -max_action, max_action, hidden,
-                                namespace="tracker", init_scale=init_scale, bounds=bounds, loc_bound=loc_bound)
+                                namespace="tracker", init_scale=init_scale, bounds=bounds, loc_bound=loc_bound,
+                                torchrl_tanh_loc=torchrl_tanh_loc)
         self.critic = make_critic(OBSERVATION, OBS_DIM, hidden)
+
+    @classmethod
+    def upgrade_config(cls, config: dict) -> dict:
+        """Checkpoints saved before ``torchrl_tanh_loc`` existed bounded their mean with TorchRL's
+        ``tanh_loc`` (it makes a difference only with ``residual`` and ``loc_bound`` both > 0)."""
+        config.setdefault("torchrl_tanh_loc", float(config.get("loc_bound", 0.0)) > 0)
+        return config
 

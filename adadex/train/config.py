@@ -141,6 +141,22 @@ class ModulatorSettings:
                               f"(train or distill one first)")
 
 
+def randomization_with(changes: dict, where: str):
+    """Table 3's :class:`~adadex.envs.randomization.Randomization` with ``changes`` (field → value; lists
+    become tuples); a bad field or value raises :class:`ConfigError` naming ``where``."""
+    from adadex.envs.randomization import Randomization
+
+    fixed = sorted(set(changes) & {"effects", "patch"})
+    if fixed:
+        raise ConfigError(f"{where}: {fixed} cannot be set here; build a Randomization in code "
+                          f"(Randomization.from_patch) for per-joint ranges and patches")
+    values = {k: tuple(v) if isinstance(v, (list, tuple)) else v for k, v in changes.items()}
+    try:
+        return from_known_keys(Randomization, values)
+    except (ValueError, TypeError) as e:
+        raise ConfigError(f"{where}: {e}") from e
+
+
 @dataclass
 class TrainConfig:
     """A PPO tracker run: which references, which env, which learner, where results go.
@@ -210,17 +226,7 @@ class TrainConfig:
         return from_known_keys(RewardConfig, {**dataclasses.asdict(base), **self.reward})
 
     def _randomization(self):
-        from adadex.envs.randomization import Randomization
-
-        fixed = sorted(set(self.randomization) & {"effects", "patch"})
-        if fixed:
-            raise ConfigError(f"TrainConfig.randomization: {fixed} cannot be set here; build a Randomization "
-                              f"in code (Randomization.from_patch) for per-joint ranges and patches")
-        values = {k: tuple(v) if isinstance(v, (list, tuple)) else v for k, v in self.randomization.items()}
-        try:
-            return from_known_keys(Randomization, values)
-        except (ValueError, TypeError) as e:
-            raise ConfigError(f"TrainConfig.randomization: {e}") from e
+        return randomization_with(self.randomization, "TrainConfig.randomization")
 
     def randomization_config(self):
         """The run's :class:`~adadex.envs.randomization.Randomization` (Table 3 with this run's

@@ -96,6 +96,53 @@ def test_tracker_checkpoint_round_trip(tmp_path):
     assert torch.equal(tracker.critic(_obs())["state_value"], again.critic(_obs())["state_value"])
 
 
+def _residual_inputs(n=8, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    return TensorDict({"observation": 0.3 * torch.randn(n, 273, generator=g),
+                       ("proprio", "joint_target"): 0.3 * torch.randn(n, 22, generator=g)}, batch_size=[n])
+
+
+def _deterministic_correction(tracker, td):
+    """The deterministic action minus kinematic replay's (the residual tracker's feed-forward)."""
+    from adadex.envs.observation import NEXT_REF_JOINTS
+
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        action = tracker.actor(td.clone())["action"]
+    return action - (td["observation"][:, NEXT_REF_JOINTS] - td["proprio", "joint_target"])
+
+
+@pytest.mark.parametrize("loc_bound", [0.0, 5.0])
+def test_a_residual_tracker_with_a_zero_mean_is_replay_whatever_its_bound(loc_bound):
+    """With the network's mean at 0 the action is the feed-forward, bounded mean or not. (TorchRL's own
+    ``tanh_loc`` adds the bounds' centre — here the feed-forward — to the pre-tanh mean, which made
+    this correction ``residual·tanh(feed-forward)``: up to 0.2 rad on these inputs.)"""
+    tracker = Tracker(hidden=(16,), residual=0.25, init_scale=0.05, loc_bound=loc_bound)
+    head = tracker.actor._sampling_parts[0].heads[0]
+    with torch.no_grad():
+        head.weight.zero_()
+        head.bias.zero_()
+    assert _deterministic_correction(tracker, _residual_inputs()).abs().max() < 1e-6
+
+
+def test_checkpoints_from_before_the_in_network_bound_act_as_trained(tmp_path):
+    """A residual tracker saved with ``loc_bound`` but without ``torchrl_tanh_loc`` was trained with
+    TorchRL's ``tanh_loc``: it loads with it and gives the same actions as then (the shifted mean);
+    new checkpoints keep the in-network bound."""
+    torch.manual_seed(3)
+    td = _residual_inputs()
+    legacy = Tracker(hidden=(16,), residual=0.25, init_scale=0.05, loc_bound=5.0, torchrl_tanh_loc=True)
+    blob = {"kind": "tracker", "config": {k: v for k, v in legacy.config.items() if k != "torchrl_tanh_loc"},
+            "state_dict": legacy.state_dict()}
+    torch.save(blob, tmp_path / "old.pt")
+    again = Tracker.load(tmp_path / "old.pt")
+    assert again.config["torchrl_tanh_loc"] is True
+    shifted = _deterministic_correction(again, td)
+    torch.testing.assert_close(shifted, _deterministic_correction(legacy, td), rtol=0, atol=0)
+    assert shifted.abs().max() > 0.05                           # the old parametrization's offset, not replay
+    fresh = Tracker.load(Tracker(hidden=(16,), residual=0.25, loc_bound=5.0).save(tmp_path / "new.pt"))
+    assert fresh.config["torchrl_tanh_loc"] is False
+
+
 def test_checkpoints_from_before_loc_bound_load_unbounded(tmp_path):
     """A tracker saved before ``loc_bound`` existed has no such key: it loads with an unbounded mean,
     as it was trained, and acts as before; a bounded one keeps its bound."""

@@ -115,6 +115,41 @@ def test_bad_settings_are_one_line_errors(tiny_dataset, tmp_path):
         PipelineConfig(out="o", ppo={"lr": -1.0})
     with pytest.raises(ConfigError, match="scaling_fractions"):
         PipelineConfig(out="o", scaling_fractions=(0.0, 1.0))
+    with pytest.raises(ConfigError, match="PipelineConfig.randomization.*object_xy"):
+        PipelineConfig(out="o", randomization={"object_xy": 0.02})
+    with pytest.raises(ConfigError, match="PipelineConfig.randomization"):
+        PipelineConfig(out="o", randomization={"object_xy_std": -1.0})
+
+
+def test_randomization_changes_reach_training_rollouts_and_evaluation(tiny_dataset, tmp_path, monkeypatch):
+    """``randomization`` is one setting for the whole chain: the training runs, the teacher rollouts and
+    the randomized evaluations all see Table 3 with the change (nominal evaluations none)."""
+    from adadex.eval import evaluate as evaluate_module
+    from adadex.train import pipeline as pipeline_module
+    from adadex.train import rollouts as rollouts_module
+
+    pipe = pipeline_module.Pipeline(PipelineConfig(out=str(tmp_path), randomization={"object_xy_std": 0.02}))
+    pipe.ds = ReferenceDataset(tiny_dataset)
+    tc = pipe._train_config(tmp_path / "run", 0, 1000)
+    assert tc.randomization_config().object_xy_std == 0.02
+    assert tc.randomization_config().object_yaw_std == PipelineConfig(out="o").randomization_config().object_yaw_std
+    seen = {}
+
+    def fake_evaluate(policy, ds, **kw):
+        seen.setdefault("evaluate", []).append(kw["randomize"])
+        return {"summary": {}, "per_reference": []}
+
+    def fake_rollouts(teachers, ds, out, **kw):
+        seen["rollouts"] = kw["randomize"]
+        return {"episodes_tried": 0, "episodes_kept": 0, "success_pct": 0.0, "frames": 0}
+
+    monkeypatch.setattr(evaluate_module, "evaluate", fake_evaluate)
+    monkeypatch.setattr(rollouts_module, "teacher_rollouts", fake_rollouts)
+    for condition in ("randomized", "nominal"):
+        pipe.evaluate(pipe.policy("replay", {}), "unseen_trajectory", condition, 0, references=[0])
+    pipe.rollouts(0, tmp_path / "seed_0", {"t.pt": [0]})
+    assert seen["evaluate"][0].object_xy_std == 0.02 and seen["evaluate"][1] is None
+    assert seen["rollouts"].object_xy_std == 0.02
 
 
 def test_run_stage_stores_skips_and_refuses_changed_settings(tmp_path):
@@ -200,8 +235,10 @@ def test_a_dataset_built_with_other_settings_is_refused(tiny_dataset, tmp_path):
 
     shutil.copytree(tiny_dataset, tmp_path / "data")
     built = ReferenceDataset(tiny_dataset).info
-    same = PipelineConfig(out=str(tmp_path), dataset_preset=built["preset"], dataset_seed=built["seed"])
+    planned = bool(built.get("planned_grasp", False))
+    same = PipelineConfig(out=str(tmp_path), dataset_preset=built["preset"], dataset_seed=built["seed"],
+                          dataset_planned_grasp=planned)
     assert len(Pipeline(same).dataset()) == len(ReferenceDataset(tiny_dataset))
-    for other in ({"dataset_planned_grasp": True}, {"dataset_seed": built["seed"] + 1}):
+    for other in ({"dataset_planned_grasp": not planned}, {"dataset_seed": built["seed"] + 1}):
         with pytest.raises(ConfigError, match="built with other settings"):
             Pipeline(dataclasses.replace(same, **other)).dataset()

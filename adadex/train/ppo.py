@@ -224,14 +224,16 @@ class PPOTrainer:
             g["lr"] = lr
 
     def _imitation(self, batch: TensorDictBase) -> torch.Tensor:
-        """The teacher's logged action at the same (reference, step) as a target for the policy's mean —
-        keyed by time index, no observation matching (B.2.1); steps without a logged teacher action do
-        not count. Measured where the Gaussian lives (before the tanh) and in units of the policy's
-        own exploration scale, held fixed: ``½·Σ((loc − atanh(a*))/σ)²``, the negative log-likelihood
-        of the teacher's action as far as the mean can change it. So the term pulls as hard as PPO's
-        log-probability gradient (∝ 1/σ) at any scale: a squared error in radians, the form before,
-        weighed 1 next to PPO at σ = 0.05 and left IL+RL scoring like vanilla PPO (Table 1). PPO
-        alone sets σ."""
+        """Mean squared difference between the policy's deterministic action and the teacher's logged
+        action at the same (reference, step) — keyed by time index, no observation matching (B.2.1);
+        steps without a logged teacher action do not count.
+
+        In radians, not in units of the policy's scale: a scale-free form (the teacher's action before
+        the tanh, over the detached σ) tried on 2026-11-25 pulled ~10³ × harder and made IL+RL worse
+        as it trained (Table 1 settings, 2 seeds: the training batches' frame success fell from 75–78 % to
+        44–48 % by 300–380 k frames, where vanilla PPO held 77–79 %). The teacher's action
+        at a time index comes from another episode — another object displacement, so another anchored
+        feed-forward and joint target — and copying it hard is copying the wrong state's action."""
         actions, mask = self.teacher
         ref, step = batch[REFERENCE_INDEX].long(), batch[STEP].long().clamp(max=actions.shape[1] - 1)
         keep = mask[ref, step]
@@ -240,11 +242,7 @@ class PPOTrainer:
         # the loss optimizes its own (functional) copy of the actor's parameters: compute under it
         with self.loss.actor_network_params.to_module(self.loss.actor_network):
             dist = self.loss.actor_network.get_dist(batch[keep])
-        base = dist.root_dist                                      # the Normal before tanh and rescaling
-        low, high = dist.low, dist.high
-        unit = (actions[ref[keep], step[keep]] - (high + low) / 2) / ((high - low) / 2)
-        target = torch.atanh(unit.clamp(-1.0 + 1e-4, 1.0 - 1e-4))  # a teacher action on a bound: atanh = 4.95
-        return 0.5 * (((base.loc - target) / base.scale.detach()) ** 2).sum(-1).mean()
+        return ((dist.deterministic_sample - actions[ref[keep], step[keep]]) ** 2).sum(-1).mean()
 
     @staticmethod
     def batch_metrics(data: TensorDictBase) -> dict:

@@ -291,9 +291,9 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
     n = len(ReferenceDataset(tiny_dataset))
     teacher = (torch.full((n, 300, 22), 0.05), torch.ones(n, 300, dtype=torch.bool))
     fixed, losses = None, {}
-    # weight 1: the term is in units of the exploration scale, as PPO's pull is (with the squared error
-    # in radians it had before, a weight of 100 no longer outweighed PPO at the default scale 0.05)
-    for name, coef in (("il", 1.0), ("plain", 0.0)):
+    # 1000: PPO's pull on the mean grows as the exploration scale shrinks (∝ 1/scale); at the default
+    # scale 0.05 a weight of 100 no longer outweighed it (the loss rose), at the old 0.5 it did
+    for name, coef in (("il", 1000.0), ("plain", 0.0)):
         cfg = _config(tiny_dataset, tmp_path / name, frames=2048)
         # 16 epochs: with 4 (64 updates) the states change faster than the policy learns the teacher's
         # state-dependent residual, and whether the loss on the fixed rollout fell was a coin toss

@@ -291,10 +291,14 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
     n = len(ReferenceDataset(tiny_dataset))
     teacher = (torch.full((n, 300, 22), 0.05), torch.ones(n, 300, dtype=torch.bool))
     fixed, losses = None, {}
-    # 1000: PPO's pull on the mean grows as the exploration scale shrinks (∝ 1/scale); at the default
-    # scale 0.05 a weight of 100 no longer outweighed it (the loss rose), at the old 0.5 it did
-    for name, coef in (("il", 1000.0), ("plain", 0.0)):
+    # 100: PPO's pull on the mean grows as the exploration scale shrinks (∝ 1/scale), and at the default
+    # scale 0.05 the term in radians weighs little next to it
+    for name, coef in (("il", 100.0), ("plain", 0.0)):
         cfg = _config(tiny_dataset, tmp_path / name, frames=2048)
+        # a plain tracker: the teacher's constant action is then a constant mean it can learn; a residual
+        # tracker would have to learn (0.05 − its feed-forward) from the state, and whether the loss on the
+        # fixed rollout fell was a matter of a few per cent either way
+        cfg.policy = PolicyConfig(hidden=(32, 32), residual=0.0, anchor=0.0)
         # 16 epochs: with 4 (64 updates) the states change faster than the policy learns the teacher's
         # state-dependent residual, and whether the loss on the fixed rollout fell was a coin toss
         cfg.ppo = PPOConfig(total_frames=2048, frames_per_batch=256, minibatch_size=128, epochs=16, imitation_coef=coef,

@@ -5,6 +5,9 @@ worlds stepped together (world ``w`` of a chunk tracks its ``w``-th reference), 
 episode window, deterministically (``ExplorationType.DETERMINISTIC``), and reads the per-frame
 errors the environment writes — no physics is recomputed. A trajectory that ends early (object
 or palm beyond the termination errors, unstable physics) counts its missing frames as failures.
+Each chunk's environment draws with its own seed (the first with ``seed``, chunk k with one derived
+from ``(seed, k)``), so a reference listed again beyond ``max_worlds`` meets new randomization
+draws, not a copy of its first episode.
 
 Example::
 
@@ -20,6 +23,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
+import numpy as np
 import torch
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -63,11 +67,12 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
     steps = config.window - 1
     chunks = [refs[i:i + max_worlds] for i in range(0, len(refs), max_worlds)]
     per_chunks, names, rollouts = [], [], []
+    seed = int(env_kwargs.pop("seed", 0))
     bar = tqdm(total=len(refs) * steps, unit="frame", desc="evaluate", disable=not progress)
     t0 = time.perf_counter()
-    for chunk in chunks:
+    for k, chunk in enumerate(chunks):
         env = TrackingEnv(ds, num_worlds=len(chunk), split=None, references=chunk, draw="cycle", config=config,
-                          **env_kwargs)
+                          seed=chunk_seed(seed, k), **env_kwargs)
         if env_transform is not None:
             env = TransformedEnv(env, env_transform())
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -90,6 +95,12 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
     if keep_rollouts:
         out["rollouts"] = rollouts
     return out
+
+
+def chunk_seed(seed: int, chunk: int) -> int:
+    """The env seed of chunk ``chunk`` of an evaluation seeded ``seed``: ``seed`` itself for the
+    first (an evaluation that fits one chunk draws as it always did), independent ones after it."""
+    return seed if chunk == 0 else int(np.random.SeedSequence([seed, chunk]).generate_state(1)[0])
 
 
 def format_summary(summary: dict) -> str:

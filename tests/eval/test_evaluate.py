@@ -76,3 +76,21 @@ def test_smoothness_is_seeded_and_checks_input(tmp_path):
         latent_smoothness(tracker.actor, TensorDict({"x": torch.zeros(2)}, batch_size=[2]))
     plot_latent_smoothness({"tracker": a, "other": c}, tmp_path / "rho.png")
     assert (tmp_path / "rho.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_chunks_beyond_max_worlds_meet_new_draws(tiny_dataset):
+    """A reference listed twice, one world per chunk, under Table 3: the second chunk draws its own
+    object displacement (before, every chunk repeated the first one's draws); the first chunk keeps
+    the draws of an evaluation that fits in one chunk."""
+    from adadex.data.reference import ReferenceDataset
+    from adadex.envs.observation import OBJECT_START
+    from adadex.envs.randomization import Randomization
+    from adadex.envs.tracking import episode_references
+
+    idx = episode_references(ReferenceDataset(tiny_dataset), None, CFG.window)[:1] * 2
+    kw = dict(config=CFG, progress=False, randomize=Randomization(), seed=5, keep_rollouts=True)
+    two = evaluate(replay_policy(), tiny_dataset, references=idx, max_worlds=1, **kw)
+    starts = [td[OBJECT_START][0, 0] for td in two["rollouts"]]
+    assert not torch.allclose(starts[0], starts[1])
+    one = evaluate(replay_policy(), tiny_dataset, references=idx[:1], max_worlds=1, **kw)
+    assert torch.equal(one["rollouts"][0][OBJECT_START][0, 0], starts[0])

@@ -2,7 +2,8 @@
 
 They are the paper's metrics (Sec. 4.1) at one frame, defined here, at the env's level, so the env
 never imports evaluation code; :mod:`adadex.eval.metrics` builds trajectory means and success
-rates on them (and re-exports both names).
+rates on them (and re-exports these names). :func:`frame_success` is the paper's per-frame success
+test (:class:`Thresholds`): the frames completion success counts, and the reward's ``success`` term.
 
 ``T_o`` object position error and ``T_h`` wrist (palm) position error in m, ``R_o`` and ``R_h``
 their rotation errors in rad (angle of :func:`adadex.quat.quat_diff`, so q ≡ −q), ``E_finger`` the
@@ -19,6 +20,9 @@ Example
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import torch
 
@@ -43,3 +47,26 @@ def frame_errors(object_pose: torch.Tensor, ref_object_pose: torch.Tensor, palm_
         "R_h": quat_angle_between(palm_pose[..., 3:], ref_palm_pose[..., 3:]),
         "E_finger": abs(joint_pos[..., _FINGERS] - ref_joint_pos[..., _FINGERS]).mean(axis=-1),
     }
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """Success thresholds (SI units): position in m, rotations in rad."""
+
+    position: float = 0.10
+    rotation: float = math.radians(60.0)
+    finger: float = math.radians(40.0)
+
+    def __post_init__(self):
+        for k in ("position", "rotation", "finger"):
+            v = getattr(self, k)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"Thresholds.{k} must be a positive number, got {v}")
+
+
+def frame_success(errors: dict, thresholds: Thresholds = Thresholds()):
+    """Whether each frame meets the thresholds: 0.5·T_o + 0.5·T_h ≤ position,
+    0.5·R_o + 0.5·R_h ≤ rotation and E_finger ≤ finger (bool, the errors' shape; torch or numpy)."""
+    th = thresholds
+    return ((0.5 * errors["T_o"] + 0.5 * errors["T_h"] <= th.position)
+            & (0.5 * errors["R_o"] + 0.5 * errors["R_h"] <= th.rotation) & (errors["E_finger"] <= th.finger))

@@ -2,7 +2,7 @@
 every weight a config value.
 
 ``r = − w_track · (w_palm_pos·e_palm + w_palm_rot·e_palm_rot + w_joint·e_joint + w_tip·e_tip)``
-``    + w_prox · proximity − w_goal · d_goal + w_bonus · bonus``
+``    + w_prox · proximity − w_goal · d_goal + w_bonus · bonus``  (+ ``w_success · success``, below)
 
 * tracking errors: palm position (m) and rotation (rad, :func:`adadex.quat.quat_diff` angle),
   mean absolute joint error (rad), mean fingertip position error (m);
@@ -46,13 +46,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from adadex.arrays import namespace, to_float
+from adadex.envs.frame_errors import frame_errors, frame_success
 from adadex.errors import check_number, check_numbers
-from adadex.quat import quat_angle_between
 
 
 #: The reward's terms as the env reports them (``("privileged", "reward_terms", name)``), unweighted
 #: except ``shaping`` (the weighted sum of the shaping terms) and ``termination`` (the penalty charged).
-TERM_NAMES = ("tracking", "proximity", "goal", "bonus", "shaping", "termination")
+TERM_NAMES = ("tracking", "proximity", "goal", "bonus", "success", "shaping", "termination")
 
 
 @dataclass(frozen=True)
@@ -84,6 +84,9 @@ class RewardConfig:
     w_joint_exp: float = 0.25        # exp(−mean |joint error| / sigma_joint)
     sigma_joint: float = 0.1
     w_termination: float = 10.0      # charged once when an episode terminates (not at truncation)
+    #: per step on which the frame meets the paper's success thresholds (the frames completion success
+    #: counts; :func:`adadex.envs.frame_errors.frame_success`, world frame)
+    w_success: float = 0.0
     #: 0: palm and fingertip errors in the world frame; up to 1: in contact phases, blended towards
     #: their errors relative to the object (see the module docstring)
     object_frame: float = 1.0
@@ -110,12 +113,11 @@ def tracking_reward(cfg: RewardConfig, *, joint_pos, link_pose, object_pose, ref
                        obj - ref_object_pose[:, None, :3]], axis=1)            # 11  object tracking
     dist = xp.linalg.vector_norm(diffs, axis=-1)
     e_tip, d_palm, d_tip, d_ref = dist[:, 0:4].mean(axis=-1), dist[:, 4], dist[:, 5:9].mean(axis=-1), dist[:, 9]
-    if errors is not None:
-        e_palm, e_palm_rot, t_o, r_o = errors["T_h"], errors["R_h"], errors["T_o"], errors["R_o"]
-    else:
-        e_palm, t_o = dist[:, 10], dist[:, 11]
-        e_palm_rot = quat_angle_between(link_pose[:, 0, 3:], ref_link_pose[:, 0, 3:])
-        r_o = quat_angle_between(object_pose[:, 3:], ref_object_pose[:, 3:])
+    if errors is None:
+        errors = frame_errors(object_pose, ref_object_pose, link_pose[:, 0], ref_link_pose[:, 0], joint_pos,
+                              ref_joint_pos)
+    e_palm, e_palm_rot, t_o, r_o = errors["T_h"], errors["R_h"], errors["T_o"], errors["R_o"]
+    success = to_float(frame_success(errors), t_o)
     gate = to_float(d_palm <= cfg.palm_gate, d_palm)
     near = to_float(d_ref <= cfg.contact_distance, d_palm)
     if cfg.object_frame > 0:            # hand errors relative to the object, in contact phases
@@ -134,6 +136,8 @@ def tracking_reward(cfg: RewardConfig, *, joint_pos, link_pose, object_pose, ref
     shaping = (cfg.w_alive + cfg.w_hand_exp * xp.exp(-(e_palm + e_tip) / cfg.sigma_hand)
                + cfg.w_object_exp * xp.exp(-d_goal / cfg.sigma_object)
                + cfg.w_joint_exp * xp.exp(-e_joint / cfg.sigma_joint))
-    reward = -cfg.w_track * tracking + cfg.w_prox * proximity - cfg.w_goal * d_goal + cfg.w_bonus * bonus + shaping
-    terms = {"tracking": tracking, "proximity": proximity, "goal": d_goal, "bonus": bonus, "shaping": shaping}
+    reward = (-cfg.w_track * tracking + cfg.w_prox * proximity - cfg.w_goal * d_goal + cfg.w_bonus * bonus
+              + cfg.w_success * success + shaping)
+    terms = {"tracking": tracking, "proximity": proximity, "goal": d_goal, "bonus": bonus, "success": success,
+             "shaping": shaping}
     return reward, terms

@@ -31,39 +31,13 @@ Example
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 
-from adadex.envs.frame_errors import ERROR_NAMES, frame_errors
+from adadex.envs.frame_errors import ERROR_NAMES, Thresholds, frame_errors, frame_success
 
 __all__ = ["ERROR_NAMES", "Thresholds", "frame_errors", "frame_success", "from_rollout", "summarize",
            "trajectory_metrics"]
-
-
-@dataclass(frozen=True)
-class Thresholds:
-    """Success thresholds (SI units): position in m, rotations in rad."""
-
-    position: float = 0.10
-    rotation: float = math.radians(60.0)
-    finger: float = math.radians(40.0)
-
-    def __post_init__(self):
-        for k in ("position", "rotation", "finger"):
-            v = getattr(self, k)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"Thresholds.{k} must be a positive number, got {v}")
-
-
-def _meets(t_o, r_o, t_h, r_h, e_f, th: Thresholds) -> torch.Tensor:
-    return ((0.5 * t_o + 0.5 * t_h <= th.position) & (0.5 * r_o + 0.5 * r_h <= th.rotation)
-            & (e_f <= th.finger))
-
-
-def frame_success(errors: dict[str, torch.Tensor], thresholds: Thresholds = Thresholds()) -> torch.Tensor:
-    """Whether each frame meets the thresholds."""
-    return _meets(*(errors[k] for k in ERROR_NAMES), thresholds)
 
 
 def _check(errors: dict) -> tuple[int, int]:
@@ -103,8 +77,7 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
     out["frames"] = n
     out["empty"] = n == 0
     out["ended_early"] = n < target
-    out["success_mean_error"] = (~out["empty"]) & (~out["ended_early"]) & _meets(
-        *(out[k] for k in ERROR_NAMES), thresholds)
+    out["success_mean_error"] = (~out["empty"]) & (~out["ended_early"]) & frame_success(out, thresholds)
     out["completion"] = torch.where(target > 0, good.sum(1) / target.clamp(min=1), 0.0).to(torch.float64)
     return out
 

@@ -142,3 +142,31 @@ def test_object_frame_hand_tracking_rewards_meeting_a_displaced_object():
     assert torch.equal(rel["goal"], world["goal"])        # the object's own error is charged either way
     with pytest.raises(ConfigError, match="object_frame"):
         RewardConfig(object_frame=1.5)
+
+
+def test_success_term_pays_for_the_frames_completion_counts():
+    """``w_success`` adds exactly its weight on the frames that meet the paper's success thresholds
+    (world frame: an object and palm both 12 cm off fail, 8 cm off pass) and nothing elsewhere."""
+    from adadex.envs.frame_errors import frame_errors, frame_success
+    from adadex.envs.reward import RewardConfig, tracking_reward
+
+    B = 3
+    rq = torch.zeros(B, 22)
+    rlink = torch.zeros(B, 5, 7)
+    rlink[..., 3] = 1.0
+    robj = torch.zeros(B, 7)
+    robj[:, 3] = 1.0
+    link, obj = rlink.clone(), robj.clone()
+    off = torch.tensor([0.0, 0.08, 0.12])          # world 0 on its reference; 1 and 2 moved with the object
+    link[..., 0] += off[:, None]
+    obj[:, 0] += off
+    kw = dict(joint_pos=rq, link_pose=link, object_pose=obj, ref_joint_pos=rq, ref_link_pose=rlink,
+              ref_object_pose=robj)
+    base, t0 = tracking_reward(RewardConfig(), **kw)
+    paid, t1 = tracking_reward(RewardConfig(w_success=2.5), **kw)
+    ok = frame_success(frame_errors(obj, robj, link[:, 0], rlink[:, 0], rq, rq))
+    assert ok.tolist() == [True, True, False]
+    assert torch.equal(t0["success"], ok.float()) and torch.equal(t1["success"], ok.float())
+    assert torch.allclose(paid - base, 2.5 * ok.float())
+    with pytest.raises(ConfigError, match="w_success"):
+        RewardConfig(w_success=float("nan"))

@@ -8,7 +8,8 @@ replay, with Table 3 randomization, and the vanilla-PPO baseline at the same fra
 All three are evaluated on the group's training references (a specialist is trained on exactly
 these; paper A.3.1), each reference ``--repeats`` times under independent Table 3 draws, with the
 paper's metrics. Targets: specialist completion success ≥ replay's + 15 points, and the specialist's
-mean T_o ≤ 0.7 × replay's.
+mean T_o ≤ 0.7 × replay's. The gain comes with a Student-t 95 % interval paired by episode
+(``completion_gain_ci95``): every policy meets the same references under the same Table 3 draws.
 
 Writes ``benchmarks/results/specialist_quality.json`` (``replay``, ``specialist``, ``ppo``: each with
 ``completion_pct``, ``mean_error_pct``, ``T_o`` …, ``lifted_pct`` — the episodes whose object rose
@@ -57,12 +58,9 @@ def _carried(rollouts) -> tuple[float, float]:
     return (100.0 * lifted / should if should else float("nan")), 100.0 * term / n
 
 
-def _by_offset(rollouts) -> dict:
-    """Completion by how far Table 3 displaced the object from the reference's start (horizontal
-    distance, :data:`OFFSET_BINS`): ``{"<4 cm": {"episodes": n, "completion_pct": x}, …}``. Where
-    a tracker loses its points: once the hand holds an object displaced by more than 10 cm, the
-    frame's mean position error (object and palm) exceeds the 10 cm success threshold until the
-    object is back near its reference path."""
+def _episodes(rollouts) -> tuple[torch.Tensor, torch.Tensor]:
+    """(horizontal distance Table 3 displaced each episode's object from the reference's start, m;
+    each episode's completion, 0–1), in evaluation order."""
     from adadex.envs.observation import OBJECT_START, REF_OBJECT_START
     from adadex.eval.metrics import from_rollout
 
@@ -71,7 +69,14 @@ def _by_offset(rollouts) -> dict:
         T = td.shape[-1]
         offsets.append((td[OBJECT_START][:, 0, :2] - td[REF_OBJECT_START][:, 0, :2]).norm(dim=-1))
         completion.append(from_rollout(td, lengths=torch.full((td.shape[0],), T))["completion"])
-    offsets, completion = torch.cat(offsets), torch.cat(completion)
+    return torch.cat(offsets), torch.cat(completion)
+
+
+def _by_offset(offsets: torch.Tensor, completion: torch.Tensor) -> dict:
+    """Completion by how far Table 3 displaced the object from the reference's start (:data:`OFFSET_BINS`):
+    ``{"<4 cm": {"episodes": n, "completion_pct": x}, …}``. Where a tracker loses its points: once
+    the hand holds an object displaced by more than 10 cm, the frame's mean position error (object
+    and palm) exceeds the 10 cm success threshold until the object is back near its reference path."""
     edges = (0.0, *OFFSET_BINS, float("inf"))
     out = {}
     for lo, hi in zip(edges[:-1], edges[1:]):
@@ -81,6 +86,23 @@ def _by_offset(rollouts) -> dict:
         out[label] = {"episodes": int(keep.sum()),
                       "completion_pct": 100.0 * float(completion[keep].mean()) if keep.any() else float("nan")}
     return out
+
+
+def _paired_gain(episodes: tuple, baseline: tuple) -> list[float] | None:
+    """Student-t 95 % interval of the completion gain in points, paired by episode: both policies are
+    evaluated with the same seed, so episode i has the same reference and the same Table 3 draws
+    for both (checked on the object offsets; ``None`` if they differ), and the pairing removes the
+    spread of the draws themselves."""
+    from adadex.eval.table1 import ci95
+
+    (offsets, completion), (base_offsets, base_completion) = episodes, baseline
+    if not torch.equal(offsets, base_offsets):
+        return None
+    return ci95((100.0 * (completion - base_completion)).tolist())
+
+
+def _interval(ci) -> str:
+    return "n/a (the episodes' draws differ)" if ci is None else f"[{ci[0]:+.1f}, {ci[1]:+.1f}]"
 
 
 def _summary(res: dict) -> dict:
@@ -137,14 +159,17 @@ def main(argv=None) -> dict:
           f"{ds.entries[refs[0]]['object']}), evaluated {a.repeats}× each under Table 3 randomization"
           + (f" with {a.randomization}" if a.randomization else ""))
 
-    def score(policy) -> dict:
+    per_episode = {}                           # name → (each episode's object offset, its completion)
+
+    def score(name, policy) -> dict:
         res = evaluate(policy, ds, references=refs * a.repeats, max_worlds=64, randomize=randomize, seed=123,
                        progress=False, keep_rollouts=True)
         print(format_summary(res["summary"]))
         out = _summary(res)
         rollouts = res.pop("rollouts")
         out["lifted_pct"], out["terminated_pct"] = _carried(rollouts)
-        out["completion_by_offset"] = _by_offset(rollouts)
+        per_episode[name] = _episodes(rollouts)
+        out["completion_by_offset"] = _by_offset(*per_episode[name])
         print(f"object lifted ≥ {LIFT * 100:.0f} cm in {out['lifted_pct']:.1f} % of the episodes whose reference "
               f"lifts it; {out['terminated_pct']:.1f} % of all episodes terminated")
         print("completion by the object's initial displacement: " + ", ".join(
@@ -162,7 +187,7 @@ def main(argv=None) -> dict:
     out = {"group": group, "references": len(refs), "repeats": a.repeats, "frames": a.frames, "seed": a.seed,
            "residual": policy.residual, "init_scale": policy.init_scale, "loc_bound": policy.loc_bound, "anchor": policy.anchor, "reward": reward,
            "randomization": randomization}
-    out["replay"] = score(replay_policy())
+    out["replay"] = score("replay", replay_policy())
     runs = {"specialist": TrainConfig(dataset=str(a.dataset), out=str(a.runs / f"specialist_{group}"), group=group,
                                       seed=a.seed, resume=True, progress=False, ppo=PPOConfig(total_frames=a.frames),
                                       collector=CollectorConfig(workers=a.workers), policy=policy,
@@ -174,19 +199,24 @@ def main(argv=None) -> dict:
     for name, cfg in runs.items():
         t0 = time.perf_counter()
         res = train(cfg, run_name=name)
-        out[name] = score(Tracker.load(res["tracker"]).actor)
+        out[name] = score(name, Tracker.load(res["tracker"]).actor)
         out[name]["train_wall_s"] = time.perf_counter() - t0
         out[name]["train_frames"] = res["frames"]
         atomic_write_text(a.out, json.dumps(out, indent=1))
     r, s = out["replay"], out["specialist"]
     out["completion_gain_points"] = s["completion_pct"] - r["completion_pct"]
+    out["completion_gain_ci95"] = _paired_gain(per_episode["specialist"], per_episode["replay"])
+    if "ppo" in out:
+        out["ppo"]["completion_gain_ci95"] = _paired_gain(per_episode["ppo"], per_episode["replay"])
     out["T_o_ratio"] = s["T_o"] / r["T_o"]
     atomic_write_text(a.out, json.dumps(out, indent=1))
     print(f"specialist vs replay: completion {s['completion_pct']:.1f} vs {r['completion_pct']:.1f} % "
-          f"({out['completion_gain_points']:+.1f} points, target ≥ +15); T_o {s['T_o']:.1f} vs {r['T_o']:.1f} cm "
+          f"({out['completion_gain_points']:+.1f} points, 95 % interval paired by episode "
+          f"{_interval(out['completion_gain_ci95'])}, target ≥ +15); T_o {s['T_o']:.1f} vs {r['T_o']:.1f} cm "
           f"(× {out['T_o_ratio']:.2f}, target ≤ 0.7)")
     if "ppo" in out:
-        print(f"vanilla PPO at the same budget: completion {out['ppo']['completion_pct']:.1f} %, "
+        print(f"vanilla PPO at the same budget: completion {out['ppo']['completion_pct']:.1f} % (gain over replay "
+              f"{_interval(out['ppo']['completion_gain_ci95'])}), "
               f"T_o {out['ppo']['T_o']:.1f} cm")
     print(f"wrote {a.out}")
     return out

@@ -152,6 +152,19 @@ def test_randomization_changes_reach_training_rollouts_and_evaluation(tiny_datas
     assert seen["rollouts"].object_xy_std == 0.02
 
 
+def test_pipeline_trackers_are_unanchored_unless_asked(tiny_dataset, tmp_path):
+    """The pipeline trains plain residual trackers (POLICY_DEFAULTS), while PolicyConfig, which the
+    specialist recipes use, keeps its anchor; ``policy.anchor`` sets it back, other keys keep the default."""
+    from adadex.train import pipeline as pipeline_module
+    from adadex.train.config import PolicyConfig
+
+    assert PolicyConfig().anchor > 0
+    for policy, anchor in (({}, 0.0), ({"hidden": [32, 32]}, 0.0), ({"anchor": 0.05}, 0.05)):
+        pipe = pipeline_module.Pipeline(PipelineConfig(out=str(tmp_path), policy=policy))
+        pipe.ds = ReferenceDataset(tiny_dataset)
+        assert pipe._train_config(tmp_path / "run", 0, 1000).policy.anchor == anchor
+
+
 def test_run_stage_stores_skips_and_refuses_changed_settings(tmp_path):
     calls = []
     fn = lambda: calls.append(1) or {"x": (1, 2)}         # noqa: E731

@@ -112,6 +112,15 @@ def test_reward_with_and_without_precomputed_errors():
     assert torch.allclose(terms["tracking"], torch.zeros(4, dtype=perfect.dtype), atol=1e-6)
 
 
+def _reference_at_origin(B: int):
+    """(joints, link poses, object pose) of a reference with everything at the origin, unrotated."""
+    rlink = torch.zeros(B, 5, 7)
+    rlink[..., 3] = 1.0
+    robj = torch.zeros(B, 7)
+    robj[:, 3] = 1.0
+    return torch.zeros(B, 22), rlink, robj
+
+
 def test_object_frame_hand_tracking_rewards_meeting_a_displaced_object():
     """With ``object_frame=1``, a hand that follows a displaced object in a contact phase tracks
     perfectly (only the object terms see the displacement); far from contact, and with
@@ -119,11 +128,7 @@ def test_object_frame_hand_tracking_rewards_meeting_a_displaced_object():
     from adadex.envs.reward import RewardConfig, tracking_reward
 
     B = 2
-    rq = torch.zeros(B, 22)
-    rlink = torch.zeros(B, 5, 7)
-    rlink[..., 3] = 1.0
-    robj = torch.zeros(B, 7)
-    robj[:, 3] = 1.0
+    rq, rlink, robj = _reference_at_origin(B)
     rlink[0, :, 0] = 0.05          # world 0: reference hand 5 cm from its object (contact phase)
     rlink[1, :, 0] = 0.40          # world 1: 40 cm away (approach)
     shift = torch.tensor([0.06, -0.03, 0.0])
@@ -151,11 +156,7 @@ def test_success_term_pays_for_the_frames_completion_counts():
     from adadex.envs.reward import RewardConfig, tracking_reward
 
     B = 3
-    rq = torch.zeros(B, 22)
-    rlink = torch.zeros(B, 5, 7)
-    rlink[..., 3] = 1.0
-    robj = torch.zeros(B, 7)
-    robj[:, 3] = 1.0
+    rq, rlink, robj = _reference_at_origin(B)
     link, obj = rlink.clone(), robj.clone()
     off = torch.tensor([0.0, 0.08, 0.12])          # world 0 on its reference; 1 and 2 moved with the object
     link[..., 0] += off[:, None]

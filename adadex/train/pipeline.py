@@ -437,7 +437,7 @@ class Pipeline:
         obj = self.ds.entries[refs[w]]["object"]
         out["fig5_latent"] = fig.plot_latent_decoding(load_encoder(SHIPPED_ENCODER)[0], latents, frames, obj,
                                                       folder / "fig5_latent.png",
-                                                      original_latent=torch.as_tensor(encoder_latent(obj)))
+                                                      original_latent=torch.tensor(encoder_latent(obj)))   # a copy: the cache is read-only
         # Fig. 6: completion against the fraction of references distilled from
         def point(values):
             lo_hi = ci95(values)

@@ -67,7 +67,7 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
     steps = config.window - 1
     chunks = [refs[i:i + max_worlds] for i in range(0, len(refs), max_worlds)]
     per_chunks, names, rollouts = [], [], []
-    seed = int(env_kwargs.pop("seed", 0))
+    seed = env_kwargs.pop("seed", 0)
     bar = tqdm(total=len(refs) * steps, unit="frame", desc="evaluate", disable=not progress)
     t0 = time.perf_counter()
     for k, chunk in enumerate(chunks):
@@ -97,10 +97,13 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
     return out
 
 
-def chunk_seed(seed: int, chunk: int) -> int:
+def chunk_seed(seed: int | None, chunk: int) -> int | None:
     """The env seed of chunk ``chunk`` of an evaluation seeded ``seed``: ``seed`` itself for the
-    first (an evaluation that fits one chunk draws as it always did), independent ones after it."""
-    return seed if chunk == 0 else int(np.random.SeedSequence([seed, chunk]).generate_state(1)[0])
+    first (an evaluation that fits one chunk draws as it always did), independent ones after it;
+    ``None`` (fresh entropy) stays ``None``."""
+    if seed is None or chunk == 0:
+        return seed
+    return int(np.random.SeedSequence([int(seed), chunk]).generate_state(1)[0])
 
 
 def format_summary(summary: dict) -> str:

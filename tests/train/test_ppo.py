@@ -299,8 +299,8 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
         # tracker would have to learn (0.05 − its feed-forward) from the state, and whether the loss on the
         # fixed rollout fell was a matter of a few per cent either way
         cfg.policy = PolicyConfig(hidden=(32, 32), residual=0.0, anchor=0.0)
-        # 16 epochs: with 4 (64 updates) the states change faster than the policy learns the teacher's
-        # state-dependent residual, and whether the loss on the fixed rollout fell was a coin toss
+        # 16 epochs: with 4 (64 updates), on the residual tracker this test used before, whether the loss
+        # on the fixed rollout fell was a coin toss
         cfg.ppo = PPOConfig(total_frames=2048, frames_per_batch=256, minibatch_size=128, epochs=16, imitation_coef=coef,
                             lr=1e-3, max_grad_norm=100.0)
         torch.manual_seed(0)

@@ -87,6 +87,8 @@ class Tracker(ActorCritic):
             reference shifted onto where the object started the episode, fading out as the reference
             carries the object; the actor then also reads ``("object", "start_pose")`` and
             ``("object", "reference_start")``. 0 (default): plain replay.
+        anchor_reach: > 0 (needs ``anchor``) leaves objects displaced this far (m) or farther
+            unanchored (``ObjectAnchor(reach=…)``); 0 (default): no limit.
         torchrl_tanh_loc: bound the mean as checkpoints saved before 2026-11-25 did (see
             :func:`~adadex.modules.nets.make_actor`: for a residual tracker TorchRL's ``tanh_loc``
             also shifted the mean by the feed-forward); :meth:`load` sets it for those checkpoints.
@@ -95,23 +97,28 @@ class Tracker(ActorCritic):
     kind = "tracker"
 
     def __init__(self, hidden: Sequence[int] = (512, 256, 128), max_action: float = 0.1, init_scale: float = 1.0,
-                 residual: float = 0.0, loc_bound: float = 0.0, anchor: float = 0.0,
+                 residual: float = 0.0, loc_bound: float = 0.0, anchor: float = 0.0, anchor_reach: float = 0.0,
                  torchrl_tanh_loc: bool = False):
         super().__init__()
         check_number("Tracker.max_action", max_action, strict_low=True)
         check_number("Tracker.residual", residual)
         check_number("Tracker.loc_bound", loc_bound)
         check_number("Tracker.anchor", anchor)
+        check_number("Tracker.anchor_reach", anchor_reach)
+        if anchor_reach > 0 and not anchor > 0:
+            raise ConfigError(f"Tracker(anchor_reach={anchor_reach}) limits the object anchor, which is off; "
+                              f"set anchor > 0")
         if anchor > 0 and not residual > 0:
             raise ConfigError(f"Tracker(anchor={anchor}) anchors the replay feed-forward, which only a residual "
                               f"tracker has; set residual > 0")
         self.config = {"hidden": list(hidden), "max_action": float(max_action), "init_scale": float(init_scale),
                        "residual": float(residual), "loc_bound": float(loc_bound), "anchor": float(anchor),
+                       "anchor_reach": float(anchor_reach),
                        "torchrl_tanh_loc": bool(torchrl_tanh_loc)}
         bounds = None
         if residual > 0:
             keys = [OBSERVATION, JOINT_TARGET] + ([OBJECT_START, REF_OBJECT_START] if anchor > 0 else [])
-            bounds = TensorDictModule(ReplayBounds(residual, ObjectAnchor(anchor) if anchor > 0 else None),
+            bounds = TensorDictModule(ReplayBounds(residual, ObjectAnchor(anchor, reach=anchor_reach) if anchor > 0 else None),
                                       in_keys=keys, out_keys=[("tracker", "low"), ("tracker", "high")])
         self.actor = make_actor(OBSERVATION, OBS_DIM, [NUM_JOINTS], -max_action, max_action, hidden,
                                 namespace="tracker", init_scale=init_scale, bounds=bounds, loc_bound=loc_bound,

@@ -112,10 +112,14 @@ class PolicyConfig:
     #: :class:`adadex.modules.anchor.ObjectAnchor`); 0: plain replay. With it a specialist's T_o is
     #: 0.48–0.51 × replay's under Table 3 (3 runs of 1 M frames; without it 0.92–1.10 ×)
     anchor: float = 0.05
+    #: > 0: objects displaced this far (m) or farther from the reference's start are left unanchored
+    #: (Tracker ``anchor_reach``): holding them, every frame fails the paper's 10 cm position threshold
+    #: (:class:`adadex.modules.anchor.ObjectAnchor`); 0: no limit
+    anchor_reach: float = 0.0
 
     def __post_init__(self):
         self.hidden = tuple(int(h) for h in self.hidden)
-        check_numbers("PolicyConfig", self, ("residual", "init_scale", "loc_bound", "anchor"))
+        check_numbers("PolicyConfig", self, ("residual", "init_scale", "loc_bound", "anchor", "anchor_reach"))
 
 
 @dataclass

@@ -117,11 +117,12 @@ def reference_subset(buffer, fraction: float, seed: int) -> TensorDictReplayBuff
 
 
 def teacher_settings(info: dict) -> dict:
-    """The Tracker settings a student must share with its teachers (``residual``, ``max_action``, ``anchor``),
-    from the teachers' configs in ``rollouts.json``; teachers that disagree are refused."""
+    """The Tracker settings a student must share with its teachers (``residual``, ``max_action``,
+    ``anchor``, ``anchor_reach``), from the teachers' configs in ``rollouts.json``; teachers that
+    disagree are refused."""
     configs = [t["config"] for t in info["teachers"]]
     out = {}
-    for k in ("residual", "max_action", "anchor"):
+    for k in ("residual", "max_action", "anchor", "anchor_reach"):
         values = sorted({float(c.get(k, 0.0)) for c in configs})
         if len(values) != 1:
             raise RolloutsError(f"the teachers disagree on Tracker.{k} ({values}); one student cannot imitate "

@@ -99,7 +99,8 @@ class PPOTrainer:
         if m is None:
             p = cfg.policy
             self.policy = Tracker(hidden=p.hidden, max_action=env_config.max_action, init_scale=p.init_scale,
-                                  residual=p.residual, loc_bound=p.loc_bound, anchor=p.anchor)
+                                  residual=p.residual, loc_bound=p.loc_bound, anchor=p.anchor,
+                                  anchor_reach=p.anchor_reach)
             self.transform = None
         else:
             self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound)

@@ -63,11 +63,29 @@ def test_anchor_fades_as_the_reference_object_travels(tiny_dataset):
     assert (anchor(obs, ref_start, ref_start) == 0).all()          # no offset, no shift
 
 
+def test_reach_leaves_objects_displaced_beyond_it_alone(tiny_dataset):
+    obs, start, ref_start = _inputs(tiny_dataset, n=8)
+    offsets = torch.tensor([0.0, 0.03, 0.06, 0.085, 0.095, 0.12, 0.2, 0.089])
+    start[:, :2] = ref_start[:, :2]
+    start[:, 0] += offsets * 0.6
+    start[:, 1] -= offsets * 0.8                                     # |Δ| = offsets
+    limited, free = ObjectAnchor(release=0.05, reach=0.09), ObjectAnchor(release=0.05)
+    dq, dq_free = limited(obs, start, ref_start), free(obs, start, ref_start)
+    inside = offsets < 0.09
+    torch.testing.assert_close(dq[inside], dq_free[inside])
+    assert (dq[~inside] == 0).all()
+    assert (dq_free[~inside].abs().amax(dim=1) > 0.01).all()        # the unlimited anchor reaches for them
+
+
 def test_bad_settings():
     with pytest.raises(ValueError, match="release"):
         ObjectAnchor(release=0.0)
+    with pytest.raises(ValueError, match="reach"):
+        ObjectAnchor(reach=-0.1)
     with pytest.raises(ConfigError, match="residual"):
         Tracker(hidden=(8,), anchor=0.05)
+    with pytest.raises(ConfigError, match="anchor_reach"):
+        Tracker(hidden=(8,), residual=0.25, anchor_reach=0.09)
 
 
 def test_untrained_anchored_tracker_is_shifted_replay_and_round_trips(tiny_dataset, tmp_path):
@@ -83,7 +101,11 @@ def test_untrained_anchored_tracker_is_shifted_replay_and_round_trips(tiny_datas
         torch.testing.assert_close(action, wanted, atol=1e-5, rtol=0)
     tracker.save(tmp_path / "t.pt")
     loaded = Tracker.load(tmp_path / "t.pt")
-    assert loaded.config["anchor"] == 0.05
+    assert loaded.config["anchor"] == 0.05 and loaded.config["anchor_reach"] == 0.0
+    reaching = Tracker(hidden=(16,), residual=0.25, anchor=0.05, anchor_reach=0.03)
+    reaching.save(tmp_path / "r.pt")
+    anchor = Tracker.load(tmp_path / "r.pt").actor._sampling_parts[1].module.anchor
+    assert anchor.reach == 0.03 and anchor.release == 0.05
     assert set(loaded.actor.in_keys) >= {OBJECT_START, REF_OBJECT_START}
     pickle.loads(pickle.dumps(copy.deepcopy(loaded.sampling_policy())))    # what a collector worker gets
 

@@ -230,3 +230,19 @@ def test_an_anchored_teacher_gives_an_anchored_student(tiny_dataset, tmp_path):
     res = distill(DistillConfig(rollouts=str(tmp_path / "rollouts"), out=str(tmp_path / "bc"), steps=4,
                                 batch_size=64, hidden=(16,), wandb=False, progress=False))
     assert Tracker.load(res["tracker"]).config["anchor"] == 0.05
+
+
+def test_teachers_that_anchor_differently_are_refused():
+    """A student shares its teachers' feed-forward: one anchor reach for all of them, or none."""
+    from adadex.train.distill import teacher_settings
+
+    def info(*reaches):
+        return {"teachers": [{"config": Tracker(hidden=(8,), residual=0.25, anchor=0.05, anchor_reach=r).config}
+                             for r in reaches]}
+
+    assert teacher_settings(info(0.09, 0.09))["anchor_reach"] == 0.09
+    with pytest.raises(RolloutsError, match="anchor_reach"):
+        teacher_settings(info(0.09, 0.0))
+    old = info(0.0)
+    del old["teachers"][0]["config"]["anchor_reach"]                 # a checkpoint saved before it existed
+    assert teacher_settings(old)["anchor_reach"] == 0.0

@@ -40,6 +40,18 @@ over ``physics`` (one env of B worlds on 2 threads): what the machine's two core
 process's policy and bookkeeping overlap the other's physics. The single-process collection cannot
 overlap them: each step's policy waits for that step's physics.
 
+``collection_split``: the same B worlds split over 2 worker processes of B/2 worlds, one MuJoCo and
+one torch thread each, made by ``make_collector`` as the trainer makes them
+(``collector.workers=2 collector.worlds=B/2 collector.env_threads=1``); ``ppo_split``: PPO iterations
+on that collector. Besides overlapping one worker's bookkeeping with the other's physics, the split
+may step its physics at another rate than one env on 2 threads (no barrier joins the halves each
+step), so it has its own yardstick: ``physics_split_static_fps`` steps B worlds holding still, the
+first half in one process and the second in another at once, one thread each, against
+``physics_static_cycle_fps``, the same B worlds in one env on 2 threads (world ``w`` holds reference
+``w`` in both). Their ratio is ``split_physics_speedup``; ``collection_split_over_split_physics``
+(``collection_split`` over ``physics`` divided by that ratio) is the split's collection over its own
+physics.
+
 Targets: collection ≥ 0.8 × physics; PPO overall ≥ 0.5 × physics; 2 workers ≥ 1.7 × 1 worker.
 Writes ``benchmarks/results/train_throughput.json`` with ``collection_over_physics``,
 ``ppo_over_physics`` and ``two_workers_over_one`` (MultiSync; ``ray_two_workers_over_one`` beside it).
@@ -180,6 +192,39 @@ def _collector_fps(make, frames_per_batch: int, batches: int, recorders=()):
     return frames_per_batch / per_batch, max(0.0, first - per_batch)
 
 
+def _static_steps(dataset: str, references: list[int], nthread: int, steps: int, barrier) -> float:
+    """Frames/s of a ``TrackingEnv`` whose world ``w`` holds ``references[w]`` at its start targets, on
+    ``nthread`` MuJoCo threads, for ``steps`` steps timed from ``barrier`` (crossed by every process
+    measured together)."""
+    from adadex.envs.tracking import TrackingEnv
+
+    torch.set_num_threads(1)
+    env = TrackingEnv(dataset, num_worlds=len(references), split=None, references=references, draw="cycle",
+                      nthread=nthread)
+    env.reset()
+    targets = env._q_target.copy()
+    env.sim.step(targets)
+    barrier.wait()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        env.sim.step(targets)
+    fps = steps * len(references) / (time.perf_counter() - t0)
+    env.close()
+    return fps
+
+
+def _static_fps(dataset: str, groups: list[list[int]], nthread: int, steps: int) -> float:
+    """Frames/s of worlds holding still, one env per group of references (each in its own process,
+    all at once, ``nthread`` MuJoCo threads each): the same worlds one env or split over several."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    n = len(groups)
+    with multiprocessing.Manager() as manager, ProcessPoolExecutor(n) as pool:
+        barrier = manager.Barrier(n)
+        return sum(pool.map(_static_steps, [dataset] * n, groups, [nthread] * n, [steps] * n, [barrier] * n))
+
+
 def _policy_ms(factory, pc, calls: int = 300) -> tuple[float, float]:
     """ms per call of the sampling policy on one batch of the env's observations: the plain residual
     tracker, and the object-anchored one with every world's object 3 cm off its reference start (so
@@ -290,6 +335,19 @@ def main(argv=None) -> dict:
                                                cat_results="stack", num_sub_threads=1,
                                                auto_register_policy_transforms=False,
                                                **collector_devices(policy)), fpb * n, batches)
+        split = CollectorConfig(workers=2, worlds=B // 2, env_threads=1, start_method=a.start_method)
+        half = dataclasses.replace(one, num_worlds=B // 2, nthread=1)
+        res["collection_split_fps"], res["collection_split_startup_s"] = _collector_fps(
+            lambda: make_collector(half, policy, split, frames_per_batch=fpb, total_frames=fpb * (batches + 2)),
+            fpb, batches)
+        worlds = [refs[i % len(refs)] for i in range(B)]            # the same worlds, one env or two
+        res["physics_static_cycle_fps"] = _static_fps(str(dataset), [worlds], 2, rec.steps)
+        res["physics_split_static_fps"] = _static_fps(str(dataset), [worlds[:B // 2], worlds[B // 2:]], 1, rec.steps)
+        cfg = dataclasses.replace(cfg, out=str(Path(tmp) / "ppo_split"), collector=split)
+        trainer = PPOTrainer(cfg)
+        trainer.evaluate = lambda *_, **__: {}
+        trainer.train()
+        res["ppo_split_fps"] = float(np.median([r["fps"] for r in trainer_rows(Path(cfg.out) / "metrics.csv")[1:]]))
         if not a.no_ray:
             try:
                 import ray
@@ -308,6 +366,10 @@ def main(argv=None) -> dict:
     res["collection_over_static_physics"] = res["collection_fps"] / res["physics_static_fps"]
     res["two_workers_over_one"] = res["multisync_2_fps"] / res["multisync_1_fps"]
     res["multisync_2_over_physics"] = res["multisync_2_fps"] / res["physics_fps"]
+    res["collection_split_over_physics"] = res["collection_split_fps"] / res["physics_fps"]
+    res["ppo_split_over_physics"] = res["ppo_split_fps"] / res["physics_fps"]
+    res["split_physics_speedup"] = res["physics_split_static_fps"] / res["physics_static_cycle_fps"]
+    res["collection_split_over_split_physics"] = res["collection_split_over_physics"] / res["split_physics_speedup"]
     if "ray_2_fps" in res:
         res["ray_two_workers_over_one"] = res["ray_2_fps"] / res["ray_1_fps"]
     atomic_write_text(a.out, json.dumps(res, indent=1))
@@ -321,6 +383,12 @@ def main(argv=None) -> dict:
     print(f"one collection step of {res['worlds']} worlds, {c['total']:.2f} ms: physics {c['physics']:.2f}, env "
           f"{c['env']:.2f}, TorchRL env {c['torchrl_env']:.2f}, policy {c['policy']:.2f}, collector {c['collector']:.2f} "
           f"(physics alone: {res['worlds'] / res['physics_fps'] * 1e3:.2f})")
+    print(f"the same {res['worlds']} worlds split over 2 workers (trainer: collector.workers=2 collector.worlds="
+          f"{res['worlds'] // 2} collector.env_threads=1): collection {res['collection_split_fps']:.0f} "
+          f"({res['collection_split_over_physics']:.2f} × physics), PPO {res['ppo_split_fps']:.0f} "
+          f"({res['ppo_split_over_physics']:.2f} ×); split, the physics of the same worlds holding still runs at "
+          f"{res['split_physics_speedup']:.2f} × one env's, so the split collects at "
+          f"{res['collection_split_over_split_physics']:.2f} × its own physics")
     print(f"MultiSync 1 worker {res['multisync_1_fps']:.0f}, 2 workers {res['multisync_2_fps']:.0f} frames/s: "
           f"{res['two_workers_over_one']:.2f} × (target ≥ 1.7); start-up "
           f"{res['multisync_1_startup_s']:.1f} / {res['multisync_2_startup_s']:.1f} s ({a.start_method}); "

@@ -120,6 +120,9 @@ class PolicyConfig:
     def __post_init__(self):
         self.hidden = tuple(int(h) for h in self.hidden)
         check_numbers("PolicyConfig", self, ("residual", "init_scale", "loc_bound", "anchor", "anchor_reach"))
+        if self.anchor_reach > 0 and not self.anchor > 0:
+            raise ConfigError(f"PolicyConfig.anchor_reach={self.anchor_reach} limits the object anchor, which is off "
+                              f"(anchor={self.anchor}); set policy.anchor > 0 or drop anchor_reach")
 
 
 @dataclass

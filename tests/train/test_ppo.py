@@ -106,6 +106,14 @@ def test_local_workers_start_with_the_heavy_imports_done(tmp_path, method, prelo
         CollectorConfig(start_method="fork")
 
 
+def test_anchor_reach_needs_the_anchor():
+    assert PolicyConfig(anchor=0.05, anchor_reach=0.09).anchor_reach == 0.09
+    with pytest.raises(ConfigError, match=r"PolicyConfig.anchor_reach=0.09 limits the object anchor, which is off"):
+        PolicyConfig(anchor=0.0, anchor_reach=0.09)
+    with pytest.raises(ValueError, match="PolicyConfig.anchor_reach"):
+        PolicyConfig(anchor_reach=-0.01)
+
+
 @pytest.fixture(scope="module")
 def ray_cluster():
     """Ray, shut down after this module's Ray tests (the collectors keep the cluster between them)."""

@@ -91,9 +91,10 @@ class ObjectAnchor(nn.Module):
         start, ref_start = object_start.reshape(-1, 7), ref_object_start.reshape(-1, 7)
         shift = torch.zeros(obs.shape[0], 6, dtype=obs.dtype, device=obs.device)   # palm: move, do not turn
         shift[:, :2] = start[:, :2] - ref_start[:, :2]
-        shift = shift * self.weight(obs, ref_start)[:, None]
+        weight = self.weight(obs, ref_start)
         if self.reach > 0:
-            shift = torch.where((start[:, :2] - ref_start[:, :2]).norm(dim=-1, keepdim=True) < self.reach, shift, 0.0)
+            weight = weight * (shift[:, :2].norm(dim=-1) < self.reach)
+        shift = shift * weight[:, None]
         out = torch.zeros(obs.shape[0], NUM_JOINTS, dtype=obs.dtype, device=obs.device)
         rows = shift.any(dim=1).nonzero()[:, 0]      # the Jacobian only where there is a shift
         if len(rows):

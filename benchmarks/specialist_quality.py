@@ -14,7 +14,8 @@ mean T_o ≤ 0.7 × replay's. The gain comes with a Student-t 95 % interval pair
 Writes ``benchmarks/results/specialist_quality.json`` (``replay``, ``specialist``, ``ppo``: each with
 ``completion_pct``, ``mean_error_pct``, ``T_o`` …, ``lifted_pct`` — the episodes whose object rose
 3 cm or more, of those whose reference lifts it — ``terminated_pct``, and ``completion_by_offset``,
-completion by how far the randomization displaced the object, plus the training wall times) and keeps the runs
+completion by how far the randomization displaced the object, ``failed_near``, the episodes displaced
+less than 10 cm that failed and why, plus the training wall times) and keeps the runs
 (checkpoints, metrics.csv) under ``--runs``; rerunning resumes them. Run it in the background:
 
     nohup python benchmarks/specialist_quality.py --dataset data/small > specialist.log 2>&1 &
@@ -35,6 +36,7 @@ from adadex.io import atomic_write_text
 RESULTS = Path(__file__).resolve().parent / "results"
 LIFT = 0.03          # m: an object counts as lifted once it rose this far above its start
 OFFSET_BINS = (0.04, 0.07, 0.10)   # m: edges of the classes of Table 3's initial object displacement
+FAILED = 0.9         # an episode completing fewer of its frames than this counts as failed (``_failures``)
 METRICS = ("completion_pct", "success_mean_error_pct", "T_o", "R_o", "T_h", "R_h", "E_finger")
 
 
@@ -86,6 +88,34 @@ def _by_offset(offsets: torch.Tensor, completion: torch.Tensor) -> dict:
         out[label] = {"episodes": int(keep.sum()),
                       "completion_pct": 100.0 * float(completion[keep].mean()) if keep.any() else float("nan")}
     return out
+
+
+def _failures(rollouts, offsets: torch.Tensor, completion: torch.Tensor) -> dict:
+    """The episodes displaced less than 10 cm that completed under ``FAILED`` of their frames, by what
+    failed them: ``terminated`` (ended early), else ``turned`` (more frames over the rotation threshold
+    than over the position one) or ``left_or_dropped`` (the object off its path while the hand went
+    on); ``lost_frames_pct``: their share of all lost frames of those episodes. Completion is lost a
+    few whole episodes at a time, so this says what a better tracker has to stop doing."""
+    from adadex.eval.metrics import Thresholds
+
+    th = Thresholds()
+    terminated, turned = [], []
+    for td in rollouts:
+        err = td["next", "privileged", "errors"]
+        done = td["next", "done"].squeeze(-1)
+        alive = (done.cumsum(1) - done.int()) == 0
+        position = ((0.5 * err["T_o"] + 0.5 * err["T_h"] > th.position) & alive).sum(1)
+        rotation = ((0.5 * err["R_o"] + 0.5 * err["R_h"] > th.rotation) & alive).sum(1)
+        terminated.append(td["next", "terminated"].squeeze(-1).any(1))
+        turned.append(rotation > position)
+    terminated, turned = torch.cat(terminated), torch.cat(turned)
+    near = offsets < OFFSET_BINS[-1]
+    failed = near & (completion < FAILED)
+    lost = (1.0 - completion)[near].sum()
+    return {"episodes": int(near.sum()), "failed": int(failed.sum()), "terminated": int((failed & terminated).sum()),
+            "turned": int((failed & ~terminated & turned).sum()),
+            "left_or_dropped": int((failed & ~terminated & ~turned).sum()),
+            "lost_frames_pct": 100.0 * float((1.0 - completion)[failed].sum() / lost) if lost > 0 else 0.0}
 
 
 def _paired_gain(episodes: tuple, baseline: tuple) -> list[float] | None:
@@ -172,10 +202,14 @@ def main(argv=None) -> dict:
         out["lifted_pct"], out["terminated_pct"] = _carried(rollouts)
         per_episode[name] = _episodes(rollouts)
         out["completion_by_offset"] = _by_offset(*per_episode[name])
+        out["failed_near"] = f = _failures(rollouts, *per_episode[name])
         print(f"object lifted ≥ {LIFT * 100:.0f} cm in {out['lifted_pct']:.1f} % of the episodes whose reference "
               f"lifts it; {out['terminated_pct']:.1f} % of all episodes terminated")
         print("completion by the object's initial displacement: " + ", ".join(
             f"{k} {v['completion_pct']:.1f} % ({v['episodes']} ep.)" for k, v in out["completion_by_offset"].items()))
+        print(f"displaced < 10 cm: {f['failed']} of {f['episodes']} episodes completed < {FAILED:.0%} of their frames "
+              f"({f['terminated']} terminated, {f['left_or_dropped']} left or dropped the object, {f['turned']} "
+              f"turned it), holding {f['lost_frames_pct']:.0f} % of those classes' lost frames")
         return out
 
     try:

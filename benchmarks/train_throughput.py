@@ -40,17 +40,27 @@ over ``physics`` (one env of B worlds on 2 threads): what the machine's two core
 process's policy and bookkeeping overlap the other's physics. The single-process collection cannot
 overlap them: each step's policy waits for that step's physics.
 
-``collection_split``: the same B worlds split over 2 worker processes of B/2 worlds, one MuJoCo and
-one torch thread each, made by ``make_collector`` as the trainer makes them
-(``collector.workers=2 collector.worlds=B/2 collector.env_threads=1``); ``ppo_split``: PPO iterations
+``collection_split``: the same B worlds split over 2 worker processes of B/2 worlds, each stepping
+its physics on its own thread (no MuJoCo pool) with one torch thread, made by ``make_collector`` as
+the trainer makes them (``collector.workers=2 collector.worlds=B/2 collector.env_threads=0``; before
+2026-11-26 the workers handed physics to a 1-thread pool, ``env_threads=1``); ``ppo_split``: PPO iterations
 on that collector. Besides overlapping one worker's bookkeeping with the other's physics, the split
 may step its physics at another rate than one env on 2 threads (no barrier joins the halves each
 step), so it has its own yardstick: ``physics_split_static_fps`` steps B worlds holding still, the
-first half in one process and the second in another at once, one thread each, against
+first half in one process and the second in another at once, each on its own thread, against
 ``physics_static_cycle_fps``, the same B worlds in one env on 2 threads (world ``w`` holds reference
 ``w`` in both). Their ratio is ``split_physics_speedup``; ``collection_split_over_split_physics``
 (``collection_split`` over ``physics`` divided by that ratio) is the split's collection over its own
 physics.
+
+``collector_floor_ms`` (``collector_floor_half_ms``): one step of the trainer's single-process
+collector with the same policy over the same env with ``TrackingEnv``'s own work taken out (its
+step hands back a cached output: no physics, no observation or reward computed), B (B/2) worlds —
+what TorchRL's transforms and collector and the policy cost alone. ``collection_ceiling`` is the
+collection's rate over ``physics`` were ``TrackingEnv`` free and physics as fast inside the
+collection as alone: ``physics step / (physics step + floor)``; ``collection_split_ceiling`` the same
+for the split (its workers' physics from ``split_physics_speedup``). A ceiling below 0.8 says the
+target cannot be met with this collector and policy on this machine, whatever the env does.
 
 Targets: collection ≥ 0.8 × physics; PPO overall ≥ 0.5 × physics; 2 workers ≥ 1.7 × 1 worker.
 Writes ``benchmarks/results/train_throughput.json`` with ``collection_over_physics``,
@@ -225,6 +235,32 @@ def _static_fps(dataset: str, groups: list[list[int]], nthread: int, steps: int)
         return sum(pool.map(_static_steps, [dataset] * n, groups, [nthread] * n, [steps] * n, [barrier] * n))
 
 
+def _floor_env(factory):
+    """The collected env with ``TrackingEnv``'s own work taken out: its ``_step`` hands back one real
+    step's output (no physics, no observation or reward to compute, no episode ending), so what a
+    collector spends per step on it is TorchRL's share alone — the transforms, ``step_mdp``, the
+    collector's bookkeeping — plus the policy."""
+    env = factory()
+    base = env.base_env
+    td = env.reset()
+    td["action"] = torch.zeros(base.action_spec.shape)
+    out = base._step(td)
+    for key in ("done", "terminated", "truncated"):
+        out[key] = torch.zeros_like(out[key])
+    base._step = lambda _: out.clone()
+    return env
+
+
+def _floor_ms(factory, policy, frames_per_batch: int, batches: int) -> float:
+    """ms per collection step of ``factory``'s worlds with :func:`_floor_env` (the trainer's collector)."""
+    from adadex.train.collectors import local_collector
+
+    fps, _ = _collector_fps(lambda: local_collector(lambda: _floor_env(factory), policy,
+                                                    frames_per_batch=frames_per_batch, total_frames=-1),
+                            frames_per_batch, batches)
+    return factory.num_worlds / fps * 1e3
+
+
 def _policy_ms(factory, pc, calls: int = 300) -> tuple[float, float]:
     """ms per call of the sampling policy on one batch of the env's observations: the plain residual
     tracker, and the object-anchored one with every world's object 3 cm off its reference start (so
@@ -314,6 +350,9 @@ def main(argv=None) -> dict:
         res["physics_fps"], res["physics_replay_exact"] = _physics_fps(factory, rec)
         res["physics_static_fps"], _ = _physics_fps(factory, steps=rec.steps)
         res["policy_ms"], res["policy_anchored_ms"] = _policy_ms(factory, pc)
+        res["collector_floor_ms"] = _floor_ms(factory, policy, fpb, batches)
+        res["collector_floor_half_ms"] = _floor_ms(dataclasses.replace(factory, num_worlds=B // 2, nthread=0),
+                                                   policy, fpb // 2, batches)
 
         cfg = TrainConfig(dataset=str(dataset), out=str(Path(tmp) / "ppo"), randomize=False, wandb=False,
                           progress=False, eval_max_references=1, checkpoint_every=10 ** 6,
@@ -335,14 +374,15 @@ def main(argv=None) -> dict:
                                                cat_results="stack", num_sub_threads=1,
                                                auto_register_policy_transforms=False,
                                                **collector_devices(policy)), fpb * n, batches)
-        split = CollectorConfig(workers=2, worlds=B // 2, env_threads=1, start_method=a.start_method)
-        half = dataclasses.replace(one, num_worlds=B // 2, nthread=1)
+        split = CollectorConfig(workers=2, worlds=B // 2, env_threads=0, start_method=a.start_method)
+        half = dataclasses.replace(one, num_worlds=B // 2, nthread=split.env_threads)
         res["collection_split_fps"], res["collection_split_startup_s"] = _collector_fps(
             lambda: make_collector(half, policy, split, frames_per_batch=fpb, total_frames=fpb * (batches + 2)),
             fpb, batches)
         worlds = [refs[i % len(refs)] for i in range(B)]            # the same worlds, one env or two
         res["physics_static_cycle_fps"] = _static_fps(str(dataset), [worlds], 2, rec.steps)
-        res["physics_split_static_fps"] = _static_fps(str(dataset), [worlds[:B // 2], worlds[B // 2:]], 1, rec.steps)
+        res["physics_split_static_fps"] = _static_fps(str(dataset), [worlds[:B // 2], worlds[B // 2:]],
+                                                      split.env_threads, rec.steps)
         cfg = dataclasses.replace(cfg, out=str(Path(tmp) / "ppo_split"), collector=split)
         trainer = PPOTrainer(cfg)
         trainer.evaluate = lambda *_, **__: {}
@@ -372,6 +412,10 @@ def main(argv=None) -> dict:
     res["collection_split_over_split_physics"] = res["collection_split_over_physics"] / res["split_physics_speedup"]
     if "ray_2_fps" in res:
         res["ray_two_workers_over_one"] = res["ray_2_fps"] / res["ray_1_fps"]
+    physics_ms = res["worlds"] / res["physics_fps"] * 1e3          # one step of all worlds, physics alone
+    res["collection_ceiling"] = physics_ms / (physics_ms + res["collector_floor_ms"])
+    split_ms = physics_ms / res["split_physics_speedup"]             # one step of a split worker, physics alone
+    res["collection_split_ceiling"] = res["split_physics_speedup"] * split_ms / (split_ms + res["collector_floor_half_ms"])
     atomic_write_text(a.out, json.dumps(res, indent=1))
     print(f"physics of the collected motion {res['physics_fps']:.0f} frames/s (replayed exactly: "
           f"{res['physics_replay_exact']}; inside the collection {res['physics_in_collection_fps']:.0f}; "
@@ -384,7 +428,7 @@ def main(argv=None) -> dict:
           f"{c['env']:.2f}, TorchRL env {c['torchrl_env']:.2f}, policy {c['policy']:.2f}, collector {c['collector']:.2f} "
           f"(physics alone: {res['worlds'] / res['physics_fps'] * 1e3:.2f})")
     print(f"the same {res['worlds']} worlds split over 2 workers (trainer: collector.workers=2 collector.worlds="
-          f"{res['worlds'] // 2} collector.env_threads=1): collection {res['collection_split_fps']:.0f} "
+          f"{res['worlds'] // 2} collector.env_threads=0): collection {res['collection_split_fps']:.0f} "
           f"({res['collection_split_over_physics']:.2f} × physics), PPO {res['ppo_split_fps']:.0f} "
           f"({res['ppo_split_over_physics']:.2f} ×); split, the physics of the same worlds holding still runs at "
           f"{res['split_physics_speedup']:.2f} × one env's, so the split collects at "
@@ -397,6 +441,11 @@ def main(argv=None) -> dict:
         print(f"Ray 1 worker {res['ray_1_fps']:.0f}, 2 workers {res['ray_2_fps']:.0f} frames/s: "
               f"{res['ray_two_workers_over_one']:.2f} ×; start-up {res['ray_1_startup_s']:.1f} / "
               f"{res['ray_2_startup_s']:.1f} s")
+    print(f"TorchRL's floor (the trainer's collector and policy on an env doing no work): "
+          f"{res['collector_floor_ms']:.2f} ms per step of {res['worlds']} worlds, "
+          f"{res['collector_floor_half_ms']:.2f} of {res['worlds'] // 2}; were TrackingEnv free and physics as fast "
+          f"as alone, collection would reach {res['collection_ceiling']:.2f} × physics (one process), "
+          f"{res['collection_split_ceiling']:.2f} × (the split)")
     print(f"policy (sampling, B = {res['worlds']}): {res['policy_ms']:.2f} ms per step; object-anchored with every "
           f"object displaced {res['policy_anchored_ms']:.2f} ms")
     print(f"wrote {a.out}")

@@ -70,7 +70,9 @@ class CollectorConfig:
     workers: int = 1
     backend: str = "local"
     worlds: int = 64                      # B, worlds per worker's env
-    env_threads: int = 2                  # MuJoCo rollout threads per env
+    #: MuJoCo rollout threads per env; 0 steps physics on the env's own thread, no hand-off to a pool
+    #: thread: 1-thread workers of a split (``workers=2 worlds=32``) collect 1–9 % faster with it
+    env_threads: int = 2
     ray_address: str | None = None
     #: how local worker processes start (``multiprocessing``): ``forkserver`` forks each from a server
     #: process that imported torch, TorchRL and MuJoCo once, so only the first pays the imports;
@@ -80,7 +82,7 @@ class CollectorConfig:
     def __post_init__(self):
         check_number("CollectorConfig.workers", self.workers, low=1, integer=True)
         check_number("CollectorConfig.worlds", self.worlds, low=1, integer=True)
-        check_number("CollectorConfig.env_threads", self.env_threads, low=1, integer=True)
+        check_number("CollectorConfig.env_threads", self.env_threads, low=0, integer=True)
         if self.backend not in ("local", "ray"):
             raise ConfigError(f"CollectorConfig.backend must be 'local' or 'ray', got {self.backend!r}")
         if self.start_method not in START_METHODS:

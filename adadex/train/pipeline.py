@@ -124,7 +124,8 @@ class PipelineConfig:
         self.scaling_fractions = tuple(sorted({float(f) for f in self.scaling_fractions}))
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
             raise ConfigError(f"PipelineConfig.seeds must be distinct training seeds, got {list(self.seeds)}")
-        for k in ("seed_workers", "specialists", "worlds", "env_threads", "workers", "specialist_frames",
+        check_number("PipelineConfig.env_threads", self.env_threads, low=0, integer=True)
+        for k in ("seed_workers", "specialists", "worlds", "workers", "specialist_frames",
                   "modulator_frames", "ppo_frames", "rollout_episodes", "distill_steps", "distill_batch",
                   "eval_repeats", "smoothness_samples"):
             check_number(f"PipelineConfig.{k}", getattr(self, k), low=1, integer=True)

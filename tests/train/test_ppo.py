@@ -73,6 +73,27 @@ def test_two_worker_multisync_collector(tiny_dataset, tmp_path):
     assert Tracker.load(res["tracker"])
 
 
+def test_split_workers_step_physics_on_their_own_thread(tiny_dataset, tmp_path, monkeypatch):
+    """``collector.env_threads=0``: the workers' envs step BatchedSim on their own thread (no pool)."""
+    factories = []
+    real = PPOTrainer.env_factory
+
+    def spy(self, seed):
+        factories.append(real(self, seed))
+        return factories[-1]
+
+    monkeypatch.setattr(PPOTrainer, "env_factory", spy)
+    cfg = _config(tiny_dataset, tmp_path / "split", workers=2, frames=512)
+    res = train(dataclasses.replace(cfg, collector=dataclasses.replace(cfg.collector, env_threads=0)))
+    assert res["frames"] == 512 and Tracker.load(res["tracker"])
+    assert factories and {f.nthread for f in factories} == {0}
+    env = factories[0]()
+    assert env.base_env.sim.nthread == 0
+    env.close()
+    with pytest.raises(ConfigError, match="env_threads"):
+        CollectorConfig(env_threads=-1)
+
+
 def test_object_anchored_tracker_trains_in_workers(tiny_dataset, tmp_path):
     """The anchor's extra inputs reach the workers' policy, the PPO buffer and the checkpoint."""
     cfg = dataclasses.replace(_config(tiny_dataset, tmp_path / "anchor", workers=2, frames=512),

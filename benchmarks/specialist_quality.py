@@ -160,6 +160,8 @@ def main(argv=None) -> dict:
                    "this many m of the reference object's travel; 0: plain replay (default: PolicyConfig's)")
     p.add_argument("--anchor-reach", type=float, default=None, help="leave objects displaced this far (m) or "
                    "farther unanchored; 0: no limit (default: PolicyConfig's)")
+    p.add_argument("--anchor-iterations", type=int, default=None, help="Gauss–Newton steps placing the anchored "
+                   "palm; 1: the linearized step alone (default: PolicyConfig's)")
     p.add_argument("--seed", type=int, default=0, help="training seed of both runs")
     p.add_argument("--reward", action="append", default=[], metavar="KEY=VALUE",
                    help="a RewardConfig setting for both runs, e.g. object_frame=1 (repeatable)")
@@ -219,11 +221,11 @@ def main(argv=None) -> dict:
         p.error(f"--reward and --randomization take KEY=NUMBER, got {a.reward + a.randomization}")
     randomize = TrainConfig(dataset="", out="", randomization=randomization).randomization_config()
     chosen = {"residual": a.residual, "init_scale": a.init_scale, "loc_bound": a.loc_bound, "anchor": a.anchor,
-              "anchor_reach": a.anchor_reach}
+              "anchor_reach": a.anchor_reach, "anchor_iterations": a.anchor_iterations}
     policy = PolicyConfig(**{k: v for k, v in chosen.items() if v is not None})
     out = {"group": group, "references": len(refs), "repeats": a.repeats, "frames": a.frames, "seed": a.seed,
            "residual": policy.residual, "init_scale": policy.init_scale, "loc_bound": policy.loc_bound, "anchor": policy.anchor,
-           "anchor_reach": policy.anchor_reach, "reward": reward,
+           "anchor_reach": policy.anchor_reach, "anchor_iterations": policy.anchor_iterations, "reward": reward,
            "randomization": randomization}
     out["replay"] = score("replay", replay_policy())
     runs = {"specialist": TrainConfig(dataset=str(a.dataset), out=str(a.runs / f"specialist_{group}"), group=group,

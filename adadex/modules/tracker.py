@@ -89,6 +89,8 @@ class Tracker(ActorCritic):
             ``("object", "reference_start")``. 0 (default): plain replay.
         anchor_reach: > 0 (needs ``anchor``) leaves objects displaced this far (m) or farther
             unanchored (``ObjectAnchor(reach=…)``); 0 (default): no limit.
+        anchor_iterations: Gauss–Newton steps of the anchor's palm shift (``ObjectAnchor(iterations=…)``;
+            3 by default; checkpoints saved before it existed load with 1, the step they used).
         torchrl_tanh_loc: bound the mean as checkpoints saved before 2026-11-25 did (see
             :func:`~adadex.modules.nets.make_actor`: for a residual tracker TorchRL's ``tanh_loc``
             also shifted the mean by the feed-forward); :meth:`load` sets it for those checkpoints.
@@ -98,7 +100,7 @@ class Tracker(ActorCritic):
 
     def __init__(self, hidden: Sequence[int] = (512, 256, 128), max_action: float = 0.1, init_scale: float = 1.0,
                  residual: float = 0.0, loc_bound: float = 0.0, anchor: float = 0.0, anchor_reach: float = 0.0,
-                 torchrl_tanh_loc: bool = False):
+                 anchor_iterations: int = 3, torchrl_tanh_loc: bool = False):
         super().__init__()
         check_number("Tracker.max_action", max_action, strict_low=True)
         check_number("Tracker.residual", residual)
@@ -113,12 +115,12 @@ class Tracker(ActorCritic):
                               f"tracker has; set residual > 0")
         self.config = {"hidden": list(hidden), "max_action": float(max_action), "init_scale": float(init_scale),
                        "residual": float(residual), "loc_bound": float(loc_bound), "anchor": float(anchor),
-                       "anchor_reach": float(anchor_reach),
+                       "anchor_reach": float(anchor_reach), "anchor_iterations": int(anchor_iterations),
                        "torchrl_tanh_loc": bool(torchrl_tanh_loc)}
         bounds = None
         if residual > 0:
             keys = [OBSERVATION, JOINT_TARGET] + ([OBJECT_START, REF_OBJECT_START] if anchor > 0 else [])
-            bounds = TensorDictModule(ReplayBounds(residual, ObjectAnchor(anchor, reach=anchor_reach) if anchor > 0 else None),
+            bounds = TensorDictModule(ReplayBounds(residual, ObjectAnchor(anchor, reach=anchor_reach, iterations=anchor_iterations) if anchor > 0 else None),
                                       in_keys=keys, out_keys=[("tracker", "low"), ("tracker", "high")])
         self.actor = make_actor(OBSERVATION, OBS_DIM, [NUM_JOINTS], -max_action, max_action, hidden,
                                 namespace="tracker", init_scale=init_scale, bounds=bounds, loc_bound=loc_bound,
@@ -130,5 +132,6 @@ class Tracker(ActorCritic):
         """Checkpoints saved before ``torchrl_tanh_loc`` existed bounded their mean with TorchRL's
         ``tanh_loc`` (it makes a difference only with ``residual`` and ``loc_bound`` both > 0)."""
         config.setdefault("torchrl_tanh_loc", float(config.get("loc_bound", 0.0)) > 0)
+        config.setdefault("anchor_iterations", 1)          # the anchor's single linearized step before 2026-11-26
         return config
 

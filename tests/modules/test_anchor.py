@@ -52,14 +52,39 @@ def test_palm_moves_by_the_objects_offset_without_turning(tiny_dataset):
     assert quat_angle_between(after[:, 3:], before[:, 3:]).max() < 0.03
 
 
+def test_iterations_place_the_palm_where_one_linearized_step_misses(tiny_dataset):
+    """At a 10 cm shift one damped least-squares step misses the shifted palm by centimetres;
+    three Gauss–Newton steps land within a millimetre and keep the palm's orientation."""
+    obs, start, ref_start = _inputs(tiny_dataset, n=16, seed=3)
+    angle = torch.linspace(0, 6.0, len(obs))
+    start[:, :2] = ref_start[:, :2] + 0.10 * torch.stack([angle.cos(), angle.sin()], dim=1)
+    fk = RobotKinematics(dtype=torch.float32)
+    q = obs[:, NEXT_REF]
+    before = fk.link_poses(q)[:, 0]
+    wanted = torch.cat([start[:, :2] - ref_start[:, :2], torch.zeros(len(q), 1)], dim=1)
+    miss, turn = {}, {}
+    for n in (1, 3):
+        after = fk.link_poses(q + ObjectAnchor(release=0.05, iterations=n)(obs, start, ref_start))[:, 0]
+        miss[n] = (after[:, :3] - before[:, :3] - wanted).norm(dim=1)
+        turn[n] = quat_angle_between(after[:, 3:], before[:, 3:])
+    assert miss[1].mean() > 0.008, miss[1]
+    assert miss[3].median() < 0.001 and miss[3].mean() < 0.25 * miss[1].mean(), miss[3]
+    assert turn[3].median() < 0.005 and turn[3].mean() < turn[1].mean()
+
+
 def test_anchor_fades_as_the_reference_object_travels(tiny_dataset):
     obs, start, ref_start = _inputs(tiny_dataset)
-    anchor = ObjectAnchor(release=0.05)
-    full = anchor(obs, start, ref_start)
+    linear, anchor = ObjectAnchor(release=0.05, iterations=1), ObjectAnchor(release=0.05)
+    full = linear(obs, start, ref_start)
+    fk = RobotKinematics(dtype=torch.float32)
+    q = obs[:, NEXT_REF]
+    wanted = torch.cat([start[:, :2] - ref_start[:, :2], torch.zeros(len(q), 1)], dim=1)
     for travel, weight in ((0.015, 1.0), (0.045, 0.5), (0.07, 0.0), (0.2, 0.0)):
         moved = obs.clone()
         moved[:, NEXT_REF_OBJECT.start + 2] += travel               # the reference lifts the object
-        torch.testing.assert_close(anchor(moved, start, ref_start), weight * full, atol=2e-4, rtol=1e-2)
+        torch.testing.assert_close(linear(moved, start, ref_start), weight * full, atol=2e-4, rtol=1e-2)
+        palm = fk.link_poses(q + anchor(moved, start, ref_start))[:, 0, :3] - fk.link_poses(q)[:, 0, :3]
+        assert (palm - weight * wanted).norm(dim=1).max() < 0.004     # the palm moves by the weighted offset
     assert (anchor(obs, ref_start, ref_start) == 0).all()          # no offset, no shift
 
 
@@ -82,6 +107,8 @@ def test_bad_settings():
         ObjectAnchor(release=0.0)
     with pytest.raises(ValueError, match="reach"):
         ObjectAnchor(reach=-0.1)
+    with pytest.raises(ValueError, match="iterations"):
+        ObjectAnchor(iterations=0)
     with pytest.raises(ConfigError, match="residual"):
         Tracker(hidden=(8,), anchor=0.05)
     with pytest.raises(ConfigError, match="anchor_reach"):
@@ -106,6 +133,11 @@ def test_untrained_anchored_tracker_is_shifted_replay_and_round_trips(tiny_datas
     reaching.save(tmp_path / "r.pt")
     anchor = Tracker.load(tmp_path / "r.pt").actor._sampling_parts[1].module.anchor
     assert anchor.reach == 0.03 and anchor.release == 0.05
+    assert anchor.iterations == 3
+    old = torch.load(tmp_path / "r.pt", weights_only=True)
+    del old["config"]["anchor_iterations"]                       # saved before the anchor iterated
+    torch.save(old, tmp_path / "old.pt")
+    assert Tracker.load(tmp_path / "old.pt").actor._sampling_parts[1].module.anchor.iterations == 1
     assert set(loaded.actor.in_keys) >= {OBJECT_START, REF_OBJECT_START}
     pickle.loads(pickle.dumps(copy.deepcopy(loaded.sampling_policy())))    # what a collector worker gets
 

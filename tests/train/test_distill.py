@@ -246,3 +246,19 @@ def test_teachers_that_anchor_differently_are_refused():
     old = info(0.0)
     del old["teachers"][0]["config"]["anchor_reach"]                 # a checkpoint saved before it existed
     assert teacher_settings(old)["anchor_reach"] == 0.0
+
+
+def test_teachers_must_place_the_anchored_palm_alike():
+    """Teachers saved before the anchor iterated used one step; a student imitates them with one."""
+    from adadex.train.distill import teacher_settings
+
+    def config(iterations, anchor=0.05):
+        return Tracker(hidden=(8,), residual=0.25, anchor=anchor, anchor_iterations=iterations).config
+
+    old = config(1)
+    del old["anchor_iterations"]
+    assert teacher_settings({"teachers": [{"config": old}, {"config": config(1)}]})["anchor_iterations"] == 1
+    with pytest.raises(RolloutsError, match="anchor_iterations"):
+        teacher_settings({"teachers": [{"config": old}, {"config": config(3)}]})
+    unanchored = teacher_settings({"teachers": [{"config": config(1, anchor=0.0)}, {"config": config(3, anchor=0.0)}]})
+    assert Tracker(hidden=(8,), **unanchored).config["anchor"] == 0.0        # nothing to place: no conflict

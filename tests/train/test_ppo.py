@@ -133,6 +133,9 @@ def test_anchor_reach_needs_the_anchor():
         PolicyConfig(anchor=0.0, anchor_reach=0.09)
     with pytest.raises(ValueError, match="PolicyConfig.anchor_reach"):
         PolicyConfig(anchor_reach=-0.01)
+    assert PolicyConfig().anchor_iterations == 3
+    with pytest.raises(ValueError, match="PolicyConfig.anchor_iterations"):
+        PolicyConfig(anchor_iterations=0)
 
 
 @pytest.fixture(scope="module")

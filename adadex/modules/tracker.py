@@ -107,6 +107,7 @@ class Tracker(ActorCritic):
         check_number("Tracker.loc_bound", loc_bound)
         check_number("Tracker.anchor", anchor)
         check_number("Tracker.anchor_reach", anchor_reach)
+        check_number("Tracker.anchor_iterations", anchor_iterations, low=1, integer=True)
         if anchor_reach > 0 and not anchor > 0:
             raise ConfigError(f"Tracker(anchor_reach={anchor_reach}) limits the object anchor, which is off; "
                               f"set anchor > 0")
@@ -120,7 +121,8 @@ class Tracker(ActorCritic):
         bounds = None
         if residual > 0:
             keys = [OBSERVATION, JOINT_TARGET] + ([OBJECT_START, REF_OBJECT_START] if anchor > 0 else [])
-            bounds = TensorDictModule(ReplayBounds(residual, ObjectAnchor(anchor, reach=anchor_reach, iterations=anchor_iterations) if anchor > 0 else None),
+            anchored = ObjectAnchor(anchor, reach=anchor_reach, iterations=anchor_iterations) if anchor > 0 else None
+            bounds = TensorDictModule(ReplayBounds(residual, anchored),
                                       in_keys=keys, out_keys=[("tracker", "low"), ("tracker", "high")])
         self.actor = make_actor(OBSERVATION, OBS_DIM, [NUM_JOINTS], -max_action, max_action, hidden,
                                 namespace="tracker", init_scale=init_scale, bounds=bounds, loc_bound=loc_bound,
@@ -130,7 +132,8 @@ class Tracker(ActorCritic):
     @classmethod
     def upgrade_config(cls, config: dict) -> dict:
         """Checkpoints saved before ``torchrl_tanh_loc`` existed bounded their mean with TorchRL's
-        ``tanh_loc`` (it makes a difference only with ``residual`` and ``loc_bound`` both > 0)."""
+        ``tanh_loc`` (it makes a difference only with ``residual`` and ``loc_bound`` both > 0); those
+        saved before ``anchor_iterations`` placed the anchored palm with one linearized step."""
         config.setdefault("torchrl_tanh_loc", float(config.get("loc_bound", 0.0)) > 0)
         config.setdefault("anchor_iterations", 1)          # the anchor's single linearized step before 2026-11-26
         return config

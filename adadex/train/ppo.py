@@ -9,7 +9,9 @@ is non-finite is skipped and counted as ``skipped_minibatches``; an iteration wi
 minibatches raises :class:`TrainingDiverged`), push the new weights to the collector's workers, log,
 and every ``checkpoint_every`` iterations write a checkpoint (:mod:`adadex.train.checkpoint`). The
 observation normalizers are fitted once, on the first batch (before any update), and then travel
-inside the modules' state.
+inside the modules' state. The loss reads a residual tracker's action bounds from the batch, where the
+collecting policy wrote them (:func:`~adadex.modules.nets.stored_bounds_actor`), rather than computing
+its object anchor again for every minibatch.
 
 Example (a few iterations on a tiny dataset)::
 
@@ -43,7 +45,7 @@ from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import AdadexError, ConfigError
 from adadex.eval.evaluate import evaluate
 from adadex.eval.metrics import ERROR_NAMES, frame_success
-from adadex.modules.nets import fit_normalizers
+from adadex.modules.nets import fit_normalizers, stored_bounds_actor
 from adadex.modules.channels import ModulationConfig
 from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
@@ -106,7 +108,7 @@ class PPOTrainer:
             self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound)
             self.transform = ModulatedEnv(m.tracker, m.channels, ModulationConfig(**m.modulation))
         self.ppo = cfg.ppo
-        self.loss = ClipPPOLoss(self.policy.actor, self.policy.critic, clip_epsilon=self.ppo.clip_epsilon,
+        self.loss = ClipPPOLoss(stored_bounds_actor(self.policy.actor), self.policy.critic, clip_epsilon=self.ppo.clip_epsilon,
                                 entropy_coeff=self.ppo.entropy_coef, critic_coeff=self.ppo.critic_coef,
                                 normalize_advantage=True)
         self.gae = GAE(gamma=self.ppo.gamma, lmbda=self.ppo.lmbda, value_network=self.policy.critic,

@@ -189,3 +189,40 @@ def test_anchored_tracker_meets_a_displaced_object_where_replay_misses_it(tiny_d
     replayed, _ = relative_error(replay_policy())
     assert n > 20
     assert anchored < 0.4 * replayed and anchored < 0.02, (anchored, replayed)
+
+
+def test_the_loss_reads_the_collected_bounds_instead_of_running_the_anchor(tiny_dataset, monkeypatch):
+    """PPO's loss rebuilds the action distribution of collected steps: from the bounds the collecting
+    policy wrote, it gets the same distribution as the full actor without the anchor's Jacobians."""
+    from torchrl.objectives import ClipPPOLoss
+
+    from adadex.modules.nets import stored_bounds_actor
+
+    rnd = dataclasses.replace(Randomization.off(), object_xy_std=0.05)
+    tracker = Tracker(hidden=(16,), residual=0.25, anchor=0.05, init_scale=0.05)
+    env = TrackingEnv(tiny_dataset, num_worlds=6, split=None, seed=3, randomize=rnd)
+    with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+        td = env.rollout(10, tracker.sampling_policy(), break_when_any_done=False).reshape(-1)
+    env.close()
+    assert (td[OBJECT_START][:, :2] != td[REF_OBJECT_START][:, :2]).any()      # the anchor had work to do
+    reading = stored_bounds_actor(tracker.actor)
+    assert not {OBJECT_START, REF_OBJECT_START} & set(reading.in_keys)
+    full, stored = ClipPPOLoss(tracker.actor, tracker.critic), ClipPPOLoss(reading, tracker.critic)
+    assert list(full.state_dict()) == list(stored.state_dict())                 # the same checkpoints
+    td["advantage"] = torch.randn(td.shape[0], 1)
+    td["value_target"] = torch.randn(td.shape[0], 1)
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        torch.testing.assert_close(reading.get_dist(td.clone()).deterministic_sample,
+                                   tracker.actor.get_dist(td.clone()).deterministic_sample)
+    torch.manual_seed(0)                        # TanhNormal's entropy is estimated by sampling
+    expected = full(td.clone())
+    calls = []
+    monkeypatch.setattr(ObjectAnchor, "forward", lambda *a: calls.append(a))
+    torch.manual_seed(0)
+    got = stored(td.clone())
+    assert not calls
+    for key in ("loss_objective", "loss_critic", "loss_entropy"):
+        torch.testing.assert_close(got[key], expected[key], rtol=1e-5, atol=1e-6)
+    plain = Tracker(hidden=(16,), residual=0.25)
+    assert stored_bounds_actor(Tracker(hidden=(16,)).actor).in_keys == ["observation"]
+    assert set(stored_bounds_actor(plain.actor).in_keys) == {"observation", ("tracker", "low"), ("tracker", "high")}

@@ -130,8 +130,9 @@ def stored_bounds_actor(actor: ProbabilisticActor) -> ProbabilisticActor:
     them, exactly as the action was sampled between them. For a residual tracker with the object
     anchor, recomputing them costs its Jacobians on every minibatch: on the specialist benchmark's
     batches the update took 0.41 instead of 0.53 s per 4096 frames (medians over a 1 M-frame run),
-    with the same losses to the last bit. The returned actor shares ``actor``'s parameters and has its state-dict keys (the bounds module holds
-    no state), so a loss built on it saves and loads the same checkpoints as one built on ``actor``.
+    with the same losses to the last bit. The returned actor shares ``actor``'s parameters and has its
+    state-dict keys (the bounds module holds no state), so a loss built on it saves and loads the same
+    checkpoints as one built on ``actor``.
 
     >>> import torch
     >>> from tensordict import TensorDict
@@ -143,7 +144,7 @@ def stored_bounds_actor(actor: ProbabilisticActor) -> ProbabilisticActor:
     >>> sorted(stored_bounds_actor(actor).in_keys, key=str)
     [('p', 'high'), ('p', 'low'), 'obs']
     """
-    net, bounds, obs_key, loc, scale, dist_keys, kwargs = actor._sampling_parts
+    _, bounds, _, _, _, dist_keys, kwargs = actor._sampling_parts
     if bounds is None:
         return actor
     module = actor.module[0].module[0]                      # the network's TensorDictModule, before the bounds

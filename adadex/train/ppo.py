@@ -108,9 +108,9 @@ class PPOTrainer:
             self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound)
             self.transform = ModulatedEnv(m.tracker, m.channels, ModulationConfig(**m.modulation))
         self.ppo = cfg.ppo
-        self.loss = ClipPPOLoss(stored_bounds_actor(self.policy.actor), self.policy.critic, clip_epsilon=self.ppo.clip_epsilon,
-                                entropy_coeff=self.ppo.entropy_coef, critic_coeff=self.ppo.critic_coef,
-                                normalize_advantage=True)
+        self.loss = ClipPPOLoss(stored_bounds_actor(self.policy.actor), self.policy.critic,
+                                clip_epsilon=self.ppo.clip_epsilon, entropy_coeff=self.ppo.entropy_coef,
+                                critic_coeff=self.ppo.critic_coef, normalize_advantage=True)
         self.gae = GAE(gamma=self.ppo.gamma, lmbda=self.ppo.lmbda, value_network=self.policy.critic,
                        average_gae=False)
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=self.ppo.lr)

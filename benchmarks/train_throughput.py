@@ -58,7 +58,7 @@ physics of the same arrangement, ``physics_two_envs_static_fps`` (two processes,
 holding still on one thread, at once) taken relative to ``physics_static_cycle_fps`` the way the split's
 is: what TorchRL's multi-process collection keeps of the physics its workers could step, at the batch
 size per env of the single-process measurement. It is the collection the trainer runs with
-``collector.workers=2`` on a 2-core machine (``collector.worlds`` = B).
+``collector.workers=2 collector.env_threads=1`` (``collector.worlds`` = B).
 
 ``collector_floor_ms`` (``collector_floor_half_ms``): one step of the trainer's single-process
 collector with the same policy over the same env with ``TrackingEnv``'s own work taken out (its

@@ -219,9 +219,12 @@ def main(argv=None) -> dict:
 
     per_episode = {}                           # name → (each episode's object offset, its completion)
 
+    def run(policy, randomization, **kwargs) -> dict:
+        return evaluate(policy, ds, references=refs * a.repeats, max_worlds=64, randomize=randomization, seed=123,
+                        progress=False, **kwargs)
+
     def score(name, policy) -> dict:
-        res = evaluate(policy, ds, references=refs * a.repeats, max_worlds=64, randomize=randomize, seed=123,
-                       progress=False, keep_rollouts=True)
+        res = run(policy, randomize, keep_rollouts=True)
         print(format_summary(res["summary"]))
         out = _summary(res)
         rollouts = res.pop("rollouts")
@@ -230,8 +233,7 @@ def main(argv=None) -> dict:
         out["completion_by_offset"] = _by_offset(*per_episode[name])
         out["failed_near"] = f = _failures(rollouts, *per_episode[name])
         if randomize is not None:
-            still = evaluate(policy, ds, references=refs * a.repeats, max_worlds=64, seed=123, progress=False,
-                             randomize=dataclasses.replace(randomize, object_xy_std=0.0))
+            still = run(policy, dataclasses.replace(randomize, object_xy_std=0.0))
             out["undisplaced_completion_pct"] = still["summary"]["completion_pct"]
             print(f"with the object's displacement removed: completion {out['undisplaced_completion_pct']:.1f} %")
         print(f"object lifted ≥ {LIFT * 100:.0f} cm in {out['lifted_pct']:.1f} % of the episodes whose reference "

@@ -119,7 +119,7 @@ class ObjectAnchor(nn.Module):
         rotation's axis·angle to first order), each step re-linearized at the joints reached."""
         eye = torch.eye(6, dtype=q.dtype, device=q.device)
         x, error, target = q, shift, None
-        for i in range(self.iterations):
+        for _ in range(self.iterations):
             jac, pose = self._palm.jacobian(x, ret_eef_pose=True)           # (n, 6, 6), (n, 4, 4) in the base frame
             if target is None:                                              # at q the error is the shift itself
                 target = pose[:, :3, 3] + shift[:, :3], pose[:, :3, :3]

@@ -25,7 +25,10 @@ Writes ``benchmarks/results/specialist_quality.json`` (``replay``, ``specialist`
 3 cm or more, of those whose reference lifts it — ``terminated_pct``, and ``completion_by_offset``,
 completion by how far the randomization displaced the object, ``failed_near``, the episodes displaced
 less than 10 cm that failed and why, plus the training wall times) and keeps the runs
-(checkpoints, metrics.csv) under ``--runs``; rerunning resumes them. Run it in the background:
+(checkpoints, metrics.csv) under ``--runs``; rerunning resumes them. ``--ppo KEY=VALUE`` changes a
+PPO setting of both runs (``--ppo desired_kl=0``: the constant learning rate); ``--eval-anchor-reach M``
+also evaluates each trained tracker with its anchor's reach set to M, the weights as trained (its
+``eval_reach`` entry). Run it in the background:
 
     nohup python benchmarks/specialist_quality.py --dataset data/small > specialist.log 2>&1 &
 """
@@ -186,12 +189,17 @@ def main(argv=None) -> dict:
                    "farther unanchored; 0: no limit (default: PolicyConfig's)")
     p.add_argument("--anchor-iterations", type=int, default=None, help="Gauss–Newton steps placing the anchored "
                    "palm; 1: the linearized step alone (default: PolicyConfig's)")
+    p.add_argument("--eval-anchor-reach", type=float, default=None, metavar="M",
+                   help="also evaluate each trained tracker with its anchor's reach set to M (m), its weights "
+                        "as trained (``eval_reach`` in its entry)")
     p.add_argument("--seed", type=int, default=0, help="training seed of both runs")
     p.add_argument("--reward", action="append", default=[], metavar="KEY=VALUE",
                    help="a RewardConfig setting for both runs, e.g. object_frame=1 (repeatable)")
     p.add_argument("--randomization", action="append", default=[], metavar="KEY=VALUE",
                    help="a Randomization setting for training and every evaluation, e.g. "
                         "action_noise_uncorrelated=0.005 (repeatable)")
+    p.add_argument("--ppo", action="append", default=[], metavar="KEY=VALUE",
+                   help="a PPOConfig setting for both runs, e.g. desired_kl=0.016 (repeatable)")
     p.add_argument("--out", type=Path, default=RESULTS / "specialist_quality.json")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -201,6 +209,7 @@ def main(argv=None) -> dict:
     from adadex.envs.replay import replay_policy
     from adadex.envs.tracking import episode_references
     from adadex.eval.evaluate import evaluate, format_summary
+    from adadex.errors import from_known_keys
     from adadex.modules.tracker import Tracker
     from adadex.train.config import CollectorConfig, PolicyConfig, PPOConfig, TrainConfig
     from adadex.train.ppo import train
@@ -245,11 +254,28 @@ def main(argv=None) -> dict:
               f"turned it), holding {f['lost_frames_pct']:.0f} % of those classes' lost frames")
         return out
 
+    def score_with_reach(name, path, replay: dict) -> dict:
+        """The tracker at ``path`` with its anchor's reach set to ``--eval-anchor-reach``, on the same episodes."""
+        res = run(Tracker.load(path, anchor_reach=a.eval_anchor_reach).actor, randomize, keep_rollouts=True)
+        episodes = _episodes(res["rollouts"])
+        entry = {"anchor_reach": a.eval_anchor_reach, **_summary(res), "completion_by_offset": _by_offset(*episodes),
+                 "completion_gain_ci95": _paired_gain(episodes, per_episode["replay"])}
+        entry["completion_gain_points"] = entry["completion_pct"] - replay["completion_pct"]
+        print(f"{name} with the anchor's reach at {a.eval_anchor_reach} m: completion {entry['completion_pct']:.1f} % "
+              f"({entry['completion_gain_points']:+.1f} over replay, {_interval(entry['completion_gain_ci95'])}); by "
+              "displacement " + ", ".join(f"{k} {v['completion_pct']:.1f} %"
+                                          for k, v in entry["completion_by_offset"].items()))
+        return entry
+
     try:
         reward = {k: float(v) for k, v in (kv.split("=", 1) for kv in a.reward)}
         randomization = {k: float(v) for k, v in (kv.split("=", 1) for kv in a.randomization)}
+        ppo = {k: float(v) for k, v in (kv.split("=", 1) for kv in a.ppo)}
     except ValueError:
-        p.error(f"--reward and --randomization take KEY=NUMBER, got {a.reward + a.randomization}")
+        p.error(f"--reward, --randomization and --ppo take KEY=NUMBER, got {a.reward + a.randomization + a.ppo}")
+    kinds = {f.name: f.type for f in dataclasses.fields(PPOConfig)}      # "int", "bool", "float"
+    ppo = {k: {"int": int, "bool": bool}.get(kinds.get(k), float)(v) for k, v in ppo.items()}
+    ppo_config = from_known_keys(PPOConfig, {**ppo, "total_frames": a.frames})
     randomize = TrainConfig(dataset="", out="", randomization=randomization).randomization_config()
     chosen = {"residual": a.residual, "init_scale": a.init_scale, "loc_bound": a.loc_bound, "anchor": a.anchor,
               "anchor_reach": a.anchor_reach, "anchor_iterations": a.anchor_iterations}
@@ -257,20 +283,22 @@ def main(argv=None) -> dict:
     out = {"group": group, "references": len(refs), "repeats": a.repeats, "frames": a.frames, "seed": a.seed,
            "residual": policy.residual, "init_scale": policy.init_scale, "loc_bound": policy.loc_bound, "anchor": policy.anchor,
            "anchor_reach": policy.anchor_reach, "anchor_iterations": policy.anchor_iterations, "reward": reward,
-           "randomization": randomization}
+           "randomization": randomization, "ppo_settings": ppo}
     out["replay"] = score("replay", replay_policy())
     runs = {"specialist": TrainConfig(dataset=str(a.dataset), out=str(a.runs / f"specialist_{group}"), group=group,
-                                      seed=a.seed, resume=True, progress=False, ppo=PPOConfig(total_frames=a.frames),
+                                      seed=a.seed, resume=True, progress=False, ppo=ppo_config,
                                       collector=CollectorConfig(workers=a.workers), policy=policy,
                                       reward=reward, randomization=randomization)}
     if not a.skip_ppo:
         runs["ppo"] = TrainConfig(dataset=str(a.dataset), out=str(a.runs / "ppo"), seed=a.seed, resume=True,
-                                  progress=False, ppo=PPOConfig(total_frames=a.frames), collector=CollectorConfig(workers=a.workers),
+                                  progress=False, ppo=ppo_config, collector=CollectorConfig(workers=a.workers),
                                   policy=policy, reward=reward, randomization=randomization)
     for name, cfg in runs.items():
         t0 = time.perf_counter()
         res = train(cfg, run_name=name)
         out[name] = score(name, Tracker.load(res["tracker"]).actor)
+        if a.eval_anchor_reach is not None:
+            out[name]["eval_reach"] = score_with_reach(name, res["tracker"], out["replay"])
         out[name]["train_wall_s"] = time.perf_counter() - t0
         out[name]["train_frames"] = res["frames"]
         atomic_write_text(a.out, json.dumps(out, indent=1))

@@ -76,6 +76,9 @@ from adadex.sim.patch import EffectInstance, ModelPatch, patched_scene
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES, joint_limits
 from adadex.sim.scene import CONTROL_HZ, OBJECT_QPOS, resting_height
 
+#: spawn key of the per-step noise stream (``TrackingEnv._set_seed``)
+_STEP_STREAM = 1
+
 
 @dataclass(frozen=True)
 class TrackingConfig:
@@ -217,7 +220,7 @@ class TrackingEnv(EnvBase):
         self._offsets = np.asarray(REF_OFFSETS)[None]
         self._q_target = np.zeros((B, NUM_JOINTS))
         self.unstable_count = 0
-        self._rng = np.random.default_rng(seed)
+        self._set_seed(seed)
         first = self.dataset.entries[self.references[0]]["object"]
         objects = sorted({self.dataset.entries[i]["object"] for i in self.references})
         # Compile every scene once; the data shared by the worlds is sized for the largest.
@@ -305,7 +308,13 @@ class TrackingEnv(EnvBase):
             shape=B, device=self.device)
 
     def _set_seed(self, seed: int | None):
+        """Two streams: ``_rng`` draws what a (re)start sets (references, Table 3's per-episode draws,
+        the start's sensor noise), ``_step_rng`` the per-step action and sensor noise, always for every
+        world at once. So a world's episode never shifts another's noise: a world that ends early and
+        restarts draws only from the first stream, and two policies evaluated with the same seed meet
+        the same noise in every episode they share (paired comparisons stay paired)."""
         self._rng = np.random.default_rng(seed)
+        self._step_rng = np.random.default_rng(None if seed is None else [int(seed), _STEP_STREAM])
         return seed
 
     # -- references -------------------------------------------------------------------------------
@@ -369,7 +378,7 @@ class TrackingEnv(EnvBase):
             self._start_worlds(worlds)
         readout = self.sim.readout()
         self._object_start[worlds] = readout.object_pose[worlds]
-        out, _ = self._observe(readout)
+        out, _ = self._observe(readout, self._rng)
         B = self.batch_size
         out[PRIVILEGED].update({"unstable": torch.zeros(*B, 1, dtype=torch.bool),
                                 "reward_terms": self._td({k: torch.zeros(*B) for k in TERM_NAMES})})
@@ -380,7 +389,8 @@ class TrackingEnv(EnvBase):
         cfg = self.config
         action = check_array("action", tensordict.get("action").detach().cpu().numpy(), tuple(self.action_spec.shape))
         if self.randomize is not None:     # in units of the action bound, before it (as Isaac Gym's VecTask)
-            noise = self._action_offset + self._rng.normal(0, self.randomize.action_noise_uncorrelated, action.shape)
+            noise = self._action_offset + self._step_rng.normal(0, self.randomize.action_noise_uncorrelated,
+                                                                 action.shape)
             action = action + cfg.max_action * noise
         action = np.clip(action, -cfg.max_action, cfg.max_action)
         np.clip(self._q_target + action, self._lo, self._hi, out=self._q_target)
@@ -395,7 +405,7 @@ class TrackingEnv(EnvBase):
             self._put_at_start(worlds)          # no NaN leaves the env; the episode ends below
             readout = self.sim.readout()
             self._object_start[worlds] = readout.object_pose[worlds]
-        out, frame = self._observe(readout)
+        out, frame = self._observe(readout, self._step_rng)
         err = frame["errors"]
         reward, terms = tracking_reward(cfg.reward, **frame)
         terminated = unstable
@@ -438,7 +448,7 @@ class TrackingEnv(EnvBase):
             self._servo_cmd = cmd.copy()
         return cmd
 
-    def _observe(self, readout) -> tuple[dict, dict]:
+    def _observe(self, readout, rng: np.random.Generator) -> tuple[dict, dict]:
         """Entries of the structured and flat observation plus the frame errors, for the current frame
         of every world, and the true (not sensed) state with the current reference frame and errors
         as numpy arrays, the reward's arguments. Computed on numpy arrays, handed out as torch tensors
@@ -456,9 +466,9 @@ class TrackingEnv(EnvBase):
         seen_link = link_pose
         if self.randomize is not None and self.randomize.proprio_noise > 0:
             sigma = self.randomize.proprio_noise
-            seen_q = seen_q + self._rng.normal(0, sigma, seen_q.shape).astype(f32)
+            seen_q = seen_q + rng.normal(0, sigma, seen_q.shape).astype(f32)
             seen_link = seen_link.copy()
-            seen_link[..., :3] += self._rng.normal(0, sigma, seen_link[..., :3].shape).astype(f32)
+            seen_link[..., :3] += rng.normal(0, sigma, seen_link[..., :3].shape).astype(f32)
         latent = self._latent.copy()
         flat = flat_observation(seen_q, seen_link, object_pose, latent, ref_q, ref_obj)
         errors = frame_errors(object_pose, ref_obj[:, 0], link_pose[:, 0], ref_link[:, 0, 0], joint_pos, ref_q[:, 0])

@@ -21,6 +21,7 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 
+from adadex.errors import ConfigError
 from adadex.io import atomic_write
 
 
@@ -239,7 +240,9 @@ class ActorCritic(nn.Module):
             {"kind": self.kind, "config": self.config, "state_dict": self.state_dict()}, f))
 
     @classmethod
-    def load(cls, path):
+    def load(cls, path, **changes):
+        """The module saved at ``path``. ``changes``: constructor settings to take instead of the saved
+        ones, for settings that hold no weights, e.g. ``Tracker.load(p, anchor_reach=0.10)``."""
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no {cls.kind} checkpoint there")
@@ -250,7 +253,11 @@ class ActorCritic(nn.Module):
         kind = blob.get("kind") if isinstance(blob, dict) else None
         if kind != cls.kind:
             raise ValueError(f"{path}: not a {cls.kind} checkpoint (kind={kind!r})")
-        out = cls(**cls.upgrade_config(dict(blob["config"])))
+        config = cls.upgrade_config(dict(blob["config"]))
+        unknown = sorted(set(changes) - set(config))
+        if unknown:
+            raise ConfigError(f"{path}: a {cls.kind} has no settings {unknown}; it has {sorted(config)}")
+        out = cls(**{**config, **changes})
         out.load_state_dict(blob["state_dict"])
         return out
 

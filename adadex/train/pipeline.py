@@ -73,6 +73,10 @@ EVAL_SPLITS = ("unseen_trajectory", "unseen_object")
 #: for the same PPO without the anchor (README, "Table 1 in one command"). ``policy.anchor=0.05``
 #: restores it.
 POLICY_DEFAULTS = {"anchor": 0.0}
+#: PPO as Table 1 was measured: one torch thread for the updates (adadex.train.threads) and the constant
+#: learning rate (``PPOConfig.desired_kl``'s adaptive default was chosen on anchored specialists, which
+#: the pipeline does not train). ``ppo.desired_kl=0.016`` turns it on.
+PPO_DEFAULTS = {"update_threads": 1, "desired_kl": 0.0}
 
 
 @dataclass
@@ -99,8 +103,8 @@ class PipelineConfig:
     specialist_frames: int = 250_000
     modulator_frames: int = 250_000
     ppo_frames: int = 500_000                # the baselines (vanilla PPO, IL+RL) see all training references
-    #: PPOConfig overrides (frames_per_batch, lr, …); one torch thread for the updates (adadex.train.threads)
-    ppo: dict = field(default_factory=lambda: {"update_threads": 1})
+    #: PPOConfig overrides (frames_per_batch, lr, …), on top of :data:`PPO_DEFAULTS`
+    ppo: dict = field(default_factory=dict)
     #: PolicyConfig overrides of the trackers trained, on top of :data:`POLICY_DEFAULTS`
     policy: dict = field(default_factory=dict)
     rollout_episodes: int = 4                # randomized teacher episodes per reference
@@ -133,6 +137,7 @@ class PipelineConfig:
         for f in self.scaling_fractions:
             check_number("PipelineConfig.scaling_fractions[…]", f, high=1.0, strict_low=True)
         self.policy = {**POLICY_DEFAULTS, **(self.policy or {})}
+        self.ppo = {**PPO_DEFAULTS, **(self.ppo or {})}
         for name, cls in (("ppo", PPOConfig), ("policy", PolicyConfig)):
             cls(**getattr(self, name))       # a bad key or value fails here, before any stage runs
         self.randomization = dict(self.randomization or {})

@@ -163,6 +163,8 @@ class PPOTrainer:
         stats: dict[str, list] = {}
         steps = max(1, flat.numel() // self.ppo.minibatch_size)
         skipped = 0
+        if self.ppo.anneal_lr:
+            self._set_lr(self.ppo.annealed_lr(self.frames))
         for _ in range(self.ppo.epochs):
             for _ in range(steps):
                 batch = buffer.sample()
@@ -223,6 +225,9 @@ class PPOTrainer:
             lr = max(lr / 1.5, c.lr_min)
         elif kl < 0.5 * c.desired_kl:
             lr = min(lr * 1.5, c.lr_max)
+        self._set_lr(lr)
+
+    def _set_lr(self, lr: float) -> None:
         for g in self.optim.param_groups:
             g["lr"] = lr
 

@@ -104,6 +104,26 @@ def test_same_seed_same_rollout(dataset):
     assert torch.equal(outs[0]["next", "observation"], outs[1]["next", "observation"])
 
 
+def test_a_world_that_ends_early_leaves_the_others_noise_alone(dataset):
+    """Two rollouts with one seed, under Table 3's noise, differing only in world 0, which the
+    second drives away until it terminates and restarts: the other worlds see the same noisy
+    observations at every step (per-step noise has its own stream; a restart draws from the other)."""
+    def away(td):
+        td = replay_policy()(td)
+        td["action"][0] = torch.where(torch.arange(22) < 6, 0.5, 0.0)       # the arm's joints, all one way
+        return td
+
+    outs = []
+    for policy in (replay_policy(), away):
+        env = TrackingEnv(dataset, num_worlds=3, split=None, seed=11, randomize=Randomization())
+        outs.append(env.rollout(40, policy, break_when_any_done=False))
+        env.close()
+    replay, pushed = outs
+    assert pushed["next", "terminated"][0].any() and not replay["next", "terminated"][0].any()
+    assert torch.equal(replay["next", "observation"][1:], pushed["next", "observation"][1:])
+    assert not torch.equal(replay["next", "observation"][0], pushed["next", "observation"][0])
+
+
 def test_step_output_is_complete_without_torchrl_completion(dataset):
     """The env skips TorchRL's reshape-and-fill pass over each step's output: with ``run_type_checks``
     (which runs that pass and TorchRL's type checks) the rollout is the same, key for key."""

@@ -138,6 +138,12 @@ def test_untrained_anchored_tracker_is_shifted_replay_and_round_trips(tiny_datas
     del old["config"]["anchor_iterations"]                       # saved before the anchor iterated
     torch.save(old, tmp_path / "old.pt")
     assert Tracker.load(tmp_path / "old.pt").actor._sampling_parts[1].module.anchor.iterations == 1
+    # a weightless setting taken differently at load time: the same network, another reach
+    wider = Tracker.load(tmp_path / "r.pt", anchor_reach=0.10)
+    assert wider.actor._sampling_parts[1].module.anchor.reach == 0.10 and wider.config["anchor_reach"] == 0.10
+    assert all(torch.equal(a, b) for a, b in zip(wider.state_dict().values(), reaching.state_dict().values()))
+    with pytest.raises(ConfigError, match=r"no settings \['anchor_rech'\]"):
+        Tracker.load(tmp_path / "r.pt", anchor_rech=0.10)
     assert set(loaded.actor.in_keys) >= {OBJECT_START, REF_OBJECT_START}
     pickle.loads(pickle.dumps(copy.deepcopy(loaded.sampling_policy())))    # what a collector worker gets
 

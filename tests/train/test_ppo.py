@@ -407,6 +407,18 @@ def test_kl_adaptive_learning_rate_is_logged_and_checkpointed(tiny_dataset, tmp_
     assert load_checkpoint(tmp_path / "run")["optimizer"]["param_groups"][0]["lr"] == pytest.approx(lrs[-1])
 
 
+def test_annealed_learning_rate_falls_linearly_with_the_frames(tiny_dataset, tmp_path):
+    cfg = _config(tiny_dataset, tmp_path / "run", frames=768)
+    cfg.ppo = PPOConfig(total_frames=768, frames_per_batch=256, minibatch_size=128, epochs=1, lr=1e-3,
+                        lr_min=1e-4, anneal_lr=True, desired_kl=0.0)
+    train(cfg)
+    lrs = [float(r["lr"]) for r in _rows(tmp_path / "run") if r.get("lr")]
+    # each iteration's rate is set from the frames collected before it: 0, 256, 512 of 768
+    assert lrs == pytest.approx([1e-3, 1e-3 - 0.9e-3 / 3, 1e-3 - 0.9e-3 * 2 / 3])
+    with pytest.raises(ConfigError, match="anneal_lr and desired_kl"):
+        PPOConfig(anneal_lr=True, desired_kl=0.01)
+
+
 def test_bad_learning_rate_bounds_are_refused():
     with pytest.raises(ConfigError, match="lr_min"):
         PPOConfig(lr=1e-3, lr_min=1e-2)

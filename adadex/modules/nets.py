@@ -130,7 +130,7 @@ def stored_bounds_actor(actor: ProbabilisticActor) -> ProbabilisticActor:
     The bounds are a function of the observation alone, with no parameters, so a batch already holds
     them, exactly as the action was sampled between them. For a residual tracker with the object
     anchor, recomputing them costs its Jacobians on every minibatch: on the specialist benchmark's
-    batches the update took 0.41 instead of 0.53 s per 4096 frames (medians over a 1 M-frame run),
+    batches the update took 0.42 instead of 0.53 s per 4096 frames (medians over a 1 M-frame run),
     with the same losses to the last bit. The returned actor shares ``actor``'s parameters and has its
     state-dict keys (the bounds module holds no state), so a loss built on it saves and loads the same
     checkpoints as one built on ``actor``.

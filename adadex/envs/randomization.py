@@ -21,7 +21,7 @@ Table 3's observation and per-step action noise are the numbers of IsaacGymEnvs'
 randomization configs, whose ``VecTask.step`` adds the action noise to the policy's normalized
 action (in [−1, 1]) before clipping and scaling it. Read in radians instead, N(0, 0.05) per step
 shakes the palm by about 2.5 cm at 12 Hz and kinematic replay loses the grasp of a mug it otherwise
-lifts (README, "Quality").
+lifts (docs/training-log.md).
 
 Every range is a config value; :meth:`Randomization.off` turns everything off.
 

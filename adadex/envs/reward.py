@@ -30,7 +30,7 @@ displacement, in all without randomization). Relative to the object, grasping it
 costs nothing; the object terms then pull it back onto its reference path. It is what the
 object-anchored feed-forward (:mod:`adadex.modules.anchor`, on by default) does, so the two agree:
 with the anchor, a specialist trained to 3 M frames kept T_o at 0.55 × replay's with it and drifted
-to 0.83 × without (one seed each; README, "Quality on references that hold the object"). Without
+to 0.83 × without (one seed each; docs/training-log.md). Without
 the anchor it did not make a specialist carry the object more often; ``object_frame=0`` restores
 the world frame.
 

@@ -2,7 +2,7 @@
 
 Table 3 displaces the object at each reset (x, y + N(0, 5 cm)), and a tracker whose feed-forward is
 kinematic replay closes the hand where the *reference* object is: under the displacement alone,
-replay lifts a mug in about a fifth of the episodes (README, "Quality"). :class:`ObjectAnchor` turns
+replay lifts a mug in about a fifth of the episodes (docs/training-log.md). :class:`ObjectAnchor` turns
 the feed-forward into replay of a reference shifted onto the observed object:
 
 * ``Δ`` — the horizontal offset between where the object started this episode (the pose the env
@@ -22,14 +22,14 @@ the feed-forward into replay of a reference shifted onto the observed object:
   turned by up to 6°, on the specialist benchmark's references; three steps leave 0.01 / 0.05 cm.
   That miss was where grasps failed: the untrained anchored feed-forward completed 82.5 % of the
   benchmark's frames with one step and 87.4 % with three, 77.2 → 91.9 % on objects displaced
-  7–10 cm (README, "Quality");
+  7–10 cm (docs/training-log.md);
 * ``reach`` (optional) — objects displaced by ``|Δ| ≥ reach`` are left where they are (no shift).
   The paper's success thresholds hold a frame to 0.5·T_o + 0.5·T_h ≤ 10 cm: a hand holding an object
   displaced by ``|Δ|`` is ``|Δ|`` off the reference palm while the object is ``|Δ|`` off its reference,
   so past 10 cm every frame from the reach to the return fails, where replay passes every frame
   until the reference carries the object away. On the specialist benchmark's episodes the
   feed-forward alone completed 33.8 % of the frames of objects displaced ≥ 10 cm anchored, and
-  56.4 % with ``reach = 0.09`` (replay 58.8 %; README, "Quality").
+  56.4 % with ``reach = 0.09`` (replay 58.8 %; docs/training-log.md).
 
 It is a function of what the policy observes, so a tracker using it is still one TensorDictModule
 over the observation (distillation clones it as it is).

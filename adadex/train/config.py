@@ -41,7 +41,7 @@ class PPOConfig:
     #: above 2×, ×1.5 below ½×, within [lr_min, lr_max]), the schedule of large-batch dexterous PPO;
     #: 0: a constant ``lr``. The default since 2026-11-26: anchored specialists trained with it beat
     #: the constant 3e-4 on each of 3 seeds (completion 90.6–91.2 against 89.8–90.3 %, T_o 0.38–0.40
-    #: against 0.45–0.46 × replay's; README, "Quality"), the rate settling near 1e-5
+    #: against 0.45–0.46 × replay's; docs/training-log.md), the rate settling near 1e-5
     desired_kl: float = 0.016
     lr_min: float = 1e-6
     lr_max: float = 1e-2
@@ -121,7 +121,7 @@ class PolicyConfig:
     #: pre-tanh exploration scale of the correction. 0.05 (±0.0125 rad at residual 0.25) with the
     #: object anchor: sampled at 0.5 (±0.12 rad) the palm shakes a grasped object loose (an anchored
     #: tracker lifts a mug in 22 % of the episodes sampled at 0.5, 70 % at 0.05) and PPO learns to leave
-    #: it (README, "Quality"). Without the anchor, 0.5 trained better specialists than 0.15 (completion
+    #: it (docs/training-log.md). Without the anchor, 0.5 trained better specialists than 0.15 (completion
     #: 67.0 / 68.9 % vs 60.4 / 62.6 %, seeds 0 / 1, replay 57.2 %, action noise then in radians)
     init_scale: float = 0.05
     #: bound of the pre-tanh mean (TorchRL's tanh_loc; 0: none). Unbounded, a specialist's mean ran
@@ -140,7 +140,7 @@ class PolicyConfig:
     #: Gauss–Newton steps placing the anchored palm (Tracker ``anchor_iterations``). One, the
     #: linearization alone, misses by 1.1 cm at an 8 cm shift and 1.7 cm at 10; three by under 0.1 cm
     #: on average, and the untrained anchored feed-forward completes 87.4 instead of 82.5 % of the
-    #: specialist benchmark's frames (README, "Quality")
+    #: specialist benchmark's frames (docs/training-log.md)
     anchor_iterations: int = 3
 
     def __post_init__(self):

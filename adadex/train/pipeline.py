@@ -70,7 +70,7 @@ EVAL_SPLITS = ("unseen_trajectory", "unseen_object")
 #: not object-anchored ones (``PolicyConfig.anchor``, which the specialist recipes keep): on Table 1's
 #: randomized unseen-trajectory evaluation (47 references × 4 draws, seed 0) the anchored feed-forward
 #: alone completed 68.7 % against replay's 82.2 %, and vanilla PPO trained on it 67.9 % against 81.3 %
-#: for the same PPO without the anchor (README, "Table 1 in one command"). ``policy.anchor=0.05``
+#: for the same PPO without the anchor (docs/training-log.md, Table 1). ``policy.anchor=0.05``
 #: restores it.
 POLICY_DEFAULTS = {"anchor": 0.0}
 #: PPO as Table 1 was measured: one torch thread for the updates (adadex.train.threads) and the constant

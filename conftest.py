@@ -16,6 +16,18 @@ def _one_torch_thread():
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
 
+#: files whose tests take minutes on 2 cores, collected first so the two test processes
+#: (pytest-xdist with ``--dist loadfile``, set in pyproject.toml) start them at once and the many
+#: short files fill in around them, instead of one long file running alone at the end
+LONG_FILES = ("tests/train/test_pipeline.py", "tests/train/test_ppo.py", "tests/sysid/test_hidden_effects.py",
+              "tests/packaging/test_wheel.py", "tests/train/test_distill.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {f: i for i, f in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))     # stable: the rest keep their order
+
+
 TINY_SEED = 4   # a seed whose tiny build keeps references on seen and held-out objects
 
 

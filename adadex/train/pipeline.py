@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from adadex.data.reference import ReferenceDataset
+from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset
 from adadex.envs.randomization import Randomization
 from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import ConfigError, check_number, from_known_keys
@@ -98,6 +98,9 @@ class PipelineConfig:
     seed_workers: int = 1
     specialists: int = 4                     # specialists, each on a block of the semantic groups
     worlds: int = 64
+    #: frames per episode, in every training stage, the teacher rollouts and the evaluations
+    #: (``TrackingConfig.window``; only references that long take part); the tiny preset shortens it
+    window: int = WINDOW_FRAMES
     env_threads: int = 2
     workers: int = 1
     specialist_frames: int = 250_000
@@ -134,6 +137,10 @@ class PipelineConfig:
                   "eval_repeats", "smoothness_samples"):
             check_number(f"PipelineConfig.{k}", getattr(self, k), low=1, integer=True)
         check_number("PipelineConfig.imitation_coef", self.imitation_coef, strict_low=True)
+        try:
+            TrackingConfig(window=self.window)
+        except ValueError as e:
+            raise ConfigError(f"PipelineConfig.window: {e}") from None
         for f in self.scaling_fractions:
             check_number("PipelineConfig.scaling_fractions[…]", f, high=1.0, strict_low=True)
         self.policy = {**POLICY_DEFAULTS, **(self.policy or {})}
@@ -194,9 +201,17 @@ def specialist_blocks(dataset: ReferenceDataset, k: int, window: int) -> list[li
 class Pipeline:
     """The stages of :func:`run_pipeline` (see the module docstring)."""
 
-    def __init__(self, cfg: PipelineConfig, env_config: TrackingConfig = TrackingConfig()):
-        self.cfg, self.env_config = cfg, env_config
+    def __init__(self, cfg: PipelineConfig, env_config: TrackingConfig | None = None):
+        self.cfg, self.env_config = cfg, env_config or TrackingConfig(window=cfg.window)
         self.out = Path(cfg.out)
+
+    def _stage(self, folder: Path, settings: dict, fn, *, label: str) -> dict:
+        """:func:`run_stage` with the episode window among the settings when it is not the default
+        (stages run before the window was a setting still match, and a stage is never reused across
+        windows)."""
+        if self.env_config.window != WINDOW_FRAMES:
+            settings = {**settings, "window": self.env_config.window}
+        return run_stage(folder, settings, fn, label=label, log=self.log)
 
     def log(self, msg: str) -> None:
         print(msg, flush=True)
@@ -247,7 +262,7 @@ class Pipeline:
             r = PPOTrainer(tc, env_config=self.env_config, run_name=label, teacher=table).train()
             return {"policy": str(r["policy"]), "frames": r["frames"], "eval": r["eval"]}
 
-        return run_stage(Path(tc.out), settings, fit, label=label, log=self.log)
+        return self._stage(Path(tc.out), settings, fit, label=label)
 
     # -- per seed ------------------------------------------------------------------------------
     def specialists(self, seed: int, root: Path) -> dict[str, list[int]]:
@@ -275,7 +290,7 @@ class Pipeline:
                                     config=self.env_config, nthread=c.env_threads, progress=c.progress)
             return {k: info[k] for k in ("episodes_tried", "episodes_kept", "success_pct", "frames")}
 
-        run_stage(out, settings, fit, label=f"seed {seed} teacher rollouts", log=self.log)
+        self._stage(out, settings, fit, label=f"seed {seed} teacher rollouts")
         return str(out / "data")
 
     def distill(self, seed: int, out: Path, rollouts: str, fraction: float = 1.0) -> str:
@@ -289,8 +304,8 @@ class Pipeline:
         settings = {k: v for k, v in dataclasses.asdict(dc).items()
                     if k not in ("resume", "wandb", "progress", "out", "threads")}
         label = f"seed {seed} distill" + (f" ({fraction:g} of the references)" if fraction < 1 else "")
-        r = run_stage(out, settings, lambda: {"tracker": str(distill(dc, run_name=label)["tracker"])},
-                      label=label, log=self.log)
+        r = self._stage(out, settings, lambda: {"tracker": str(distill(dc, run_name=label)["tracker"])},
+                        label=label)
         return r["tracker"]
 
     def modulators(self, seed: int, root: Path, tracker: str) -> dict[str, str]:
@@ -357,9 +372,8 @@ class Pipeline:
                         r = self.evaluate(self.policy(row, paths), split, condition, 20_000 + seed)
                         return {"summary": r["summary"], "per_reference": r["per_reference"]}
 
-                    results[(split, condition, row)] = run_stage(
-                        folder, settings, run, label=f"seed {seed} evaluate {row} on {split}, {condition}",
-                        log=self.log)["summary"]
+                    results[(split, condition, row)] = self._stage(
+                        folder, settings, run, label=f"seed {seed} evaluate {row} on {split}, {condition}")["summary"]
         return results
 
     def scaling(self, seed: int, root: Path, rollouts: str, tracker: str) -> dict:
@@ -370,9 +384,9 @@ class Pipeline:
             path = tracker if f == 1.0 else self.distill(seed, root / "scaling" / f"frac_{f:g}", rollouts, f)
             folder = root / "scaling" / f"frac_{f:g}" / "eval"
             settings = {"tracker": path, "repeats": self.cfg.eval_repeats, "seed": seed}
-            out[f] = run_stage(folder, settings, lambda p=path: {"summary": self.evaluate(
+            out[f] = self._stage(folder, settings, lambda p=path: {"summary": self.evaluate(
                 self.policy("tracker", {"tracker": p}), "unseen_trajectory", "randomized", 20_000 + seed)["summary"]},
-                label=f"seed {seed} evaluate the {f:g}-fraction generalist", log=self.log)["summary"]
+                label=f"seed {seed} evaluate the {f:g}-fraction generalist")["summary"]
         return out
 
     # -- all of it ------------------------------------------------------------------------------

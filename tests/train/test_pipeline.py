@@ -78,6 +78,9 @@ def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
         assert (seed0 / stage / "metrics.csv").is_file(), stage
         assert (seed0 / stage / "stage.json").is_file(), stage
     assert any((seed0 / "baselines" / "ppo" / "wandb").iterdir())
+    # the preset's short episodes reach every stage, and are part of what a stage was run with
+    marker = json.loads((seed0 / "eval" / "unseen_trajectory" / "randomized" / "tracker" / "stage.json").read_text())
+    assert marker["settings"]["window"] == 60
     assert Tracker.load(seed0 / "generalist" / "tracker.pt").config["residual"] == 0.25
     # the IL+RL baseline trained with the imitation term, vanilla PPO without
     il = (seed0 / "baselines" / "il_rl" / "metrics.csv").read_text().splitlines()[0]
@@ -119,6 +122,8 @@ def test_bad_settings_are_one_line_errors(tiny_dataset, tmp_path):
         PipelineConfig(out="o", randomization={"object_xy": 0.02})
     with pytest.raises(ConfigError, match="PipelineConfig.randomization"):
         PipelineConfig(out="o", randomization={"object_xy_std": -1.0})
+    with pytest.raises(ConfigError, match="PipelineConfig.window: window must be at least"):
+        PipelineConfig(out="o", window=5)
 
 
 def test_randomization_changes_reach_training_rollouts_and_evaluation(tiny_dataset, tmp_path, monkeypatch):

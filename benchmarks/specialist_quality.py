@@ -267,14 +267,15 @@ def main(argv=None) -> dict:
                                           for k, v in entry["completion_by_offset"].items()))
         return entry
 
+    kinds = {f.name: f.type for f in dataclasses.fields(PPOConfig)}      # "int", "bool", "float", "str"
     try:
         reward = {k: float(v) for k, v in (kv.split("=", 1) for kv in a.reward)}
         randomization = {k: float(v) for k, v in (kv.split("=", 1) for kv in a.randomization)}
-        ppo = {k: float(v) for k, v in (kv.split("=", 1) for kv in a.ppo)}
+        ppo = {k: v if kinds.get(k) == "str" else float(v) for k, v in (kv.split("=", 1) for kv in a.ppo)}
     except ValueError:
-        p.error(f"--reward, --randomization and --ppo take KEY=NUMBER, got {a.reward + a.randomization + a.ppo}")
-    kinds = {f.name: f.type for f in dataclasses.fields(PPOConfig)}      # "int", "bool", "float"
-    ppo = {k: {"int": int, "bool": bool}.get(kinds.get(k), float)(v) for k, v in ppo.items()}
+        p.error(f"--reward, --randomization and --ppo take KEY=NUMBER (--ppo also KEY=TEXT for a text setting "
+                f"such as obs_norm), got {a.reward + a.randomization + a.ppo}")
+    ppo = {k: {"int": int, "bool": bool}.get(kinds.get(k), lambda x: x)(v) for k, v in ppo.items()}
     ppo_config = from_known_keys(PPOConfig, {**ppo, "total_frames": a.frames})
     randomize = TrainConfig(dataset="", out="", randomization=randomization).randomization_config()
     chosen = {"residual": a.residual, "init_scale": a.init_scale, "loc_bound": a.loc_bound, "anchor": a.anchor,

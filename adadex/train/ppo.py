@@ -8,8 +8,10 @@ advantages with GAE, run ``epochs`` passes of minibatch updates (a minibatch who
 is non-finite is skipped and counted as ``skipped_minibatches``; an iteration with nothing but such
 minibatches raises :class:`TrainingDiverged`), push the new weights to the collector's workers, log,
 and every ``checkpoint_every`` iterations write a checkpoint (:mod:`adadex.train.checkpoint`). The
-observation normalizers are fitted once, on the first batch (before any update), and then travel
-inside the modules' state. The loss reads a residual tracker's action bounds from the batch, where the
+observation normalizers are fitted on the first batch (before any update); with ``ppo.obs_norm =
+"running"`` every later batch is merged into their statistics after its update, so the next collection
+and the next update normalize alike (:class:`~adadex.modules.nets.ObservationMoments`, kept in the
+checkpoint). The statistics travel inside the modules' state. The loss reads a residual tracker's action bounds from the batch, where the
 collecting policy wrote them (:func:`~adadex.modules.nets.stored_bounds_actor`), rather than computing
 its object anchor again for every minibatch.
 
@@ -45,7 +47,7 @@ from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import AdadexError, ConfigError
 from adadex.eval.evaluate import evaluate
 from adadex.eval.metrics import ERROR_NAMES, frame_success
-from adadex.modules.nets import fit_normalizers, stored_bounds_actor
+from adadex.modules.nets import Normalizer, ObservationMoments, stored_bounds_actor
 from adadex.modules.channels import ModulationConfig
 from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
@@ -123,6 +125,8 @@ class PPOTrainer:
         #: ``tracker.pt`` or ``modulator.pt``: loads with ``Tracker.load`` / ``Modulator.load``
         self.policy_path = self.out / f"{self.policy.kind}.pt"
         self.fitted = False
+        #: every observation collected so far (or the first batch alone: ``ppo.obs_norm``)
+        self.moments = ObservationMoments()
         self.buffer: TensorDictReplayBuffer | None = None
 
     # -- pieces -----------------------------------------------------------------------------------
@@ -140,12 +144,20 @@ class PPOTrainer:
         self.optim.load_state_dict(blob["optimizer"])
         self.iteration, self.frames = blob["iteration"], blob["frames"]
         set_rng_state(blob["rng"])
+        moments = blob.get("extra", {}).get("obs_moments")
+        if moments is not None:
+            self.moments.load_state_dict(moments)
+        else:                       # a checkpoint from before the running statistics: its fit, as one batch
+            norm = next(m for m in self.policy.modules() if isinstance(m, Normalizer))
+            self.moments.load_state_dict({"count": self.ppo.frames_per_batch, "mean": norm.loc.double(),
+                                          "m2": norm.scale.double() ** 2 * (self.ppo.frames_per_batch - 1)})
         self.fitted = True
         return True
 
     def _checkpoint(self) -> None:
         save_checkpoint(self.out, module=self.loss, optimizer=self.optim, iteration=self.iteration,
-                        frames=self.frames, config=self.cfg.to_dict())
+                        frames=self.frames, config=self.cfg.to_dict(),
+                        extra={"obs_moments": self.moments.state_dict()})
         self.policy.save(self.policy_path)
 
     def _update(self, data: TensorDictBase) -> dict:
@@ -312,12 +324,17 @@ class PPOTrainer:
                 for data in collector:
                     t_collected = time.perf_counter()
                     data = data.reshape(-1, data.shape[-1])          # [worlds (of all workers), T]
-                    if not self.fitted:
-                        fit_normalizers(self.policy, data["observation"])
+                    first = not self.fitted
+                    if first:
+                        self.moments.update(data["observation"])
+                        self.moments.apply(self.policy)
                         self.fitted = True
                     stats = self.batch_metrics(data)
                     with torch_threads(self.ppo.update_threads or os.cpu_count() or 1):
                         stats.update(self._update(data))
+                    if not first and self.ppo.obs_norm == "running":
+                        self.moments.update(data["observation"])
+                        self.moments.apply(self.policy)
                     collector.update_policy_weights_()
                     n = data.numel()
                     self.frames += n

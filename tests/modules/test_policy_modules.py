@@ -7,7 +7,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adadex.modules.channels import ModulationConfig, ModulationLayout, parse_channels
 from adadex.modules.modulator import Modulator
-from adadex.modules.nets import Normalizer, fit_normalizers
+from adadex.modules.nets import Normalizer, ObservationMoments, fit_normalizers
 from adadex.modules.tracker import Tracker
 
 
@@ -181,6 +181,35 @@ def test_normalizer_fit_and_clip():
     assert n(torch.full((1, 4), 1e6)).max() == n.clip
     with pytest.raises(ValueError, match="finite"):
         n.fit(torch.full((3, 4), float("nan")))
+
+
+def test_observation_moments_merge_batches_into_the_whole_sample():
+    torch.manual_seed(0)
+    batches = [torch.randn(n, 3) * s + m for n, s, m in ((50, 1.0, 0.0), (7, 4.0, 10.0), (300, 0.1, -2.0))]
+    m = ObservationMoments()
+    for b in batches:
+        m.update(b)
+    whole = torch.cat(batches)
+    assert m.count == len(whole)
+    torch.testing.assert_close(m.mean, whole.double().mean(0))
+    torch.testing.assert_close(m.std, whole.double().std(0))
+    tracker = Tracker(hidden=(16,), residual=0.25)
+    obs = torch.cat([torch.randn(40, 273), torch.full((40, 273), 3.0)])        # the last half constant at 3
+    obs[:, 200:] = 3.0
+    m = ObservationMoments()
+    m.update(obs[:40]), m.update(obs[40:])
+    m.apply(tracker)
+    norms = [mod for mod in tracker.modules() if isinstance(mod, Normalizer)]
+    assert len(norms) == 2                                          # actor and critic
+    fitted = Normalizer(273).fit(obs)                               # the same as fitting on everything
+    for n in norms:
+        torch.testing.assert_close(n.loc, fitted.loc)
+        torch.testing.assert_close(n.scale, fitted.scale)
+        assert torch.equal(n.scale[200:], torch.ones(73))           # constant entries keep scale 1
+    with pytest.raises(ValueError, match="non-finite"):
+        m.update(torch.full((2, 273), float("nan")))
+    with pytest.raises(ValueError, match="≥ 2 samples"):
+        ObservationMoments().apply(tracker)
 
 
 @pytest.mark.parametrize("channels, dim", [("R+O+T", 198), ("R", 112), ("O", 64), ("T", 22), ("R+T", 134),

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from adadex.modules.nets import Normalizer
 from adadex.modules.tracker import Tracker
 from adadex.errors import ConfigError
 from adadex.train.checkpoint import load_checkpoint
@@ -57,6 +58,36 @@ def test_in_process_run_writes_a_loadable_tracker_and_metrics(tiny_dataset, tmp_
     # the observation normalizers were fitted on the first batch and travel in the checkpoint
     norm = {k: v for k, v in ck["module"].items() if k.endswith("norm.scale")}
     assert norm and all(not torch.equal(v, torch.ones_like(v)) for v in norm.values())
+
+
+@pytest.mark.parametrize("obs_norm", ["running", "first_batch"])
+def test_observation_statistics_follow_the_collection(tiny_dataset, tmp_path, obs_norm):
+    """first_batch (the default): the normalizers hold the statistics of the first batch; running: those
+    of every batch collected (merged after each update), which the checkpoint keeps for a resumed run."""
+    cfg = _config(tiny_dataset, tmp_path / "run", frames=768)
+    cfg.ppo = dataclasses.replace(cfg.ppo, obs_norm=obs_norm)
+    trainer = PPOTrainer(cfg)
+    batches = []
+    fit = trainer._update
+    trainer._update = lambda data: (batches.append(data["observation"].clone()), fit(data))[1]
+    trainer.train()
+    assert len(batches) == 3
+    seen = torch.cat(batches if obs_norm == "running" else batches[:1]).reshape(-1, 273)
+    expected = Normalizer(273).fit(seen)
+    for n in (m for m in trainer.policy.modules() if isinstance(m, Normalizer)):
+        torch.testing.assert_close(n.loc, expected.loc, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(n.scale, expected.scale, rtol=1e-5, atol=1e-5)
+    moments = load_checkpoint(tmp_path / "run")["extra"]["obs_moments"]
+    assert moments["count"] == len(seen)
+    resumed = PPOTrainer(dataclasses.replace(cfg, resume=True))
+    assert resumed._resume() and resumed.moments.count == len(seen)
+    torch.testing.assert_close(resumed.moments.mean, moments["mean"])
+    # the collector's weight sync carries the statistics to its workers (they are module buffers)
+    from tensordict import TensorDict
+    keys = {".".join(k) for k in TensorDict.from_module(trainer.policy.sampling_policy()).keys(True, True)}
+    assert any(k.endswith("norm.loc") for k in keys) and any(k.endswith("norm.scale") for k in keys)
+    with pytest.raises(ConfigError, match="obs_norm"):
+        PPOConfig(obs_norm="batch")
 
 
 def test_training_changes_the_policy(tiny_dataset, tmp_path):

@@ -11,9 +11,10 @@ and every ``checkpoint_every`` iterations write a checkpoint (:mod:`adadex.train
 observation normalizers are fitted on the first batch (before any update); with ``ppo.obs_norm =
 "running"`` every later batch is merged into their statistics after its update, so the next collection
 and the next update normalize alike (:class:`~adadex.modules.nets.ObservationMoments`, kept in the
-checkpoint). The statistics travel inside the modules' state. The loss reads a residual tracker's action bounds from the batch, where the
-collecting policy wrote them (:func:`~adadex.modules.nets.stored_bounds_actor`), rather than computing
-its object anchor again for every minibatch.
+checkpoint). The statistics travel inside the modules' state. The loss reads a residual tracker's
+action bounds from the batch, where the collecting policy wrote them
+(:func:`~adadex.modules.nets.stored_bounds_actor`), rather than computing its object anchor again
+for every minibatch.
 
 Example (a few iterations on a tiny dataset)::
 
@@ -47,7 +48,7 @@ from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import AdadexError, ConfigError
 from adadex.eval.evaluate import evaluate
 from adadex.eval.metrics import ERROR_NAMES, frame_success
-from adadex.modules.nets import Normalizer, ObservationMoments, stored_bounds_actor
+from adadex.modules.nets import Normalizer, ObservationMoments, fit_normalizers, stored_bounds_actor
 from adadex.modules.channels import ModulationConfig
 from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
@@ -326,8 +327,8 @@ class PPOTrainer:
                     data = data.reshape(-1, data.shape[-1])          # [worlds (of all workers), T]
                     first = not self.fitted
                     if first:
+                        fit_normalizers(self.policy, data["observation"])    # as every run before obs_norm
                         self.moments.update(data["observation"])
-                        self.moments.apply(self.policy)
                         self.fitted = True
                     stats = self.batch_metrics(data)
                     with torch_threads(self.ppo.update_threads or os.cpu_count() or 1):

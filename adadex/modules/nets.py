@@ -44,8 +44,13 @@ class Normalizer(nn.Module):
         x = samples.reshape(-1, samples.shape[-1]).to(self.loc.dtype)
         if x.shape[0] < 2 or not torch.isfinite(x).all():
             raise ValueError(f"Normalizer.fit needs ≥ 2 finite samples, got shape {tuple(samples.shape)}")
-        std = x.std(0)
-        self.loc.copy_(x.mean(0))
+        return self.set_statistics(x.mean(0), x.std(0))
+
+    @torch.no_grad()
+    def set_statistics(self, mean: torch.Tensor, std: torch.Tensor) -> Normalizer:
+        """Normalize with ``mean`` and ``std`` ((dim,)); entries with ``std`` below ``eps`` get scale 1."""
+        std = std.to(self.scale.dtype)
+        self.loc.copy_(mean.to(self.loc.dtype))
         self.scale.copy_(torch.where(std > self.eps, std, torch.ones_like(std)))
         return self
 
@@ -323,9 +328,7 @@ class ObservationMoments:
             raise ValueError(f"ObservationMoments.apply needs ≥ 2 samples, got {self.count}")
         for m in module.modules():
             if isinstance(m, Normalizer):
-                std = self.std.to(m.scale.dtype)
-                m.loc.copy_(self.mean.to(m.loc.dtype))
-                m.scale.copy_(torch.where(std > m.eps, std, torch.ones_like(std)))
+                m.set_statistics(self.mean, self.std)
 
     def state_dict(self) -> dict:
         return {"count": self.count, "mean": self.mean, "m2": self._m2}

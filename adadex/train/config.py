@@ -236,7 +236,7 @@ class TrainConfig:
     checkpoint_every: int = 5             # iterations
     eval_every: int = 0                   # iterations (0: only at the end)
     eval_split: tuple[str, str] | None = None   # default: the training references themselves
-    eval_max_references: int = 64
+    eval_max_references: int = 64         # 0: no evaluation (periodic or final)
     wandb: bool = True                    # offline unless WANDB_MODE says otherwise
     progress: bool = True
 
@@ -255,7 +255,7 @@ class TrainConfig:
             check_number("TrainConfig.group", self.group, integer=True)
         check_number("TrainConfig.checkpoint_every", self.checkpoint_every, low=1, integer=True)
         check_number("TrainConfig.eval_every", self.eval_every, integer=True)
-        check_number("TrainConfig.eval_max_references", self.eval_max_references, low=1, integer=True)
+        check_number("TrainConfig.eval_max_references", self.eval_max_references, integer=True)
         for name, sub in (("ppo", PPOConfig), ("collector", CollectorConfig), ("policy", PolicyConfig),
                           ("modulator", ModulatorSettings)):
             v = getattr(self, name)

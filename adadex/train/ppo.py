@@ -288,6 +288,9 @@ class PPOTrainer:
         return out
 
     def evaluate(self, references=None) -> dict:
+        """``eval_*`` metrics of the current policy on up to ``eval_max_references`` references (none: {})."""
+        if self.cfg.eval_max_references == 0:
+            return {}
         refs = references if references is not None else self.references
         eval_refs = (episode_references(self.dataset, self.cfg.eval_split, self.env_config.window)
                      if self.cfg.eval_split is not None else refs)[: self.cfg.eval_max_references]
@@ -355,7 +358,8 @@ class PPOTrainer:
                 collector.shutdown()
         self._checkpoint()
         final = self.evaluate()
-        log.log(self.iteration, {**final, "frames": self.frames})
+        if final:
+            log.log(self.iteration, {**final, "frames": self.frames})
         log.close()
         return self._result(resumed, final)
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import os
 import re
 import signal
@@ -28,10 +29,12 @@ from adadex.train.ppo import PPOTrainer, train
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def _config(dataset, out, *, workers=1, backend="local", frames=1024, **kw) -> TrainConfig:
-    return TrainConfig(dataset=str(dataset), out=str(out), wandb=False, progress=False, eval_max_references=2,
+def _config(dataset, out, *, workers=1, backend="local", frames=1024, evaluate=False, **kw) -> TrainConfig:
+    """A toy run; ``evaluate``: with the final evaluation on 2 references (most tests score something else)."""
+    return TrainConfig(dataset=str(dataset), out=str(out), wandb=False, progress=False,
+                       eval_max_references=2 if evaluate else 0,
                        ppo=PPOConfig(total_frames=frames, frames_per_batch=256 * workers, minibatch_size=128,
-                                     epochs=2),
+                                     epochs=2, update_threads=1),
                        collector=CollectorConfig(worlds=8, workers=workers, backend=backend, env_threads=1),
                        policy=PolicyConfig(hidden=(32, 32)), **kw)
 
@@ -42,7 +45,7 @@ def _rows(out) -> list[dict]:
 
 
 def test_in_process_run_writes_a_loadable_tracker_and_metrics(tiny_dataset, tmp_path):
-    res = train(_config(tiny_dataset, tmp_path / "run", frames=768, checkpoint_every=2))
+    res = train(_config(tiny_dataset, tmp_path / "run", frames=768, checkpoint_every=2, evaluate=True))
     assert res["frames"] == 768 and res["iterations"] == 3
     tracker = Tracker.load(res["tracker"])
     assert tracker.config["residual"] == PolicyConfig().residual > 0
@@ -70,7 +73,6 @@ def test_observation_statistics_follow_the_collection(tiny_dataset, tmp_path, ob
     batches = []
     fit = trainer._update
     trainer._update = lambda data: (batches.append(data["observation"].clone()), fit(data))[1]
-    trainer.evaluate = lambda *_, **__: {}                  # not what this test is about
     trainer.train()
     assert len(batches) == 3
     seen = torch.cat(batches if obs_norm == "running" else batches[:1]).reshape(-1, 273)
@@ -102,6 +104,10 @@ def test_training_changes_the_policy(tiny_dataset, tmp_path):
 def test_two_worker_multisync_collector(tiny_dataset, tmp_path):
     res = train(_config(tiny_dataset, tmp_path / "ms", workers=2, frames=1024))
     assert res["frames"] == 1024 and res["iterations"] == 2
+    # eval_max_references=0: no evaluation, so no evaluation row after the iterations' rows
+    assert res["eval"] == {} and [int(r["iteration"]) for r in _rows(tmp_path / "ms")] == [1, 2]
+    with pytest.raises(ConfigError, match="TrainConfig.eval_max_references"):
+        TrainConfig(dataset="d", out="o", eval_max_references=-1)
     assert Tracker.load(res["tracker"])
 
 
@@ -133,7 +139,8 @@ def test_object_anchored_tracker_trains_in_workers(tiny_dataset, tmp_path):
     res = train(cfg)
     tracker = Tracker.load(res["tracker"])
     assert tracker.config["anchor"] == 0.05 and ("object", "start_pose") in tracker.actor.in_keys
-    assert all(float(r["loss_objective"]) == float(r["loss_objective"]) for r in _rows(tmp_path / "anchor")[:-1])
+    rows = _rows(tmp_path / "anchor")
+    assert len(rows) == res["iterations"] and all(float(r["loss_objective"]) == float(r["loss_objective"]) for r in rows)
 
 
 @pytest.mark.parametrize("method, preloaded", [("forkserver", True), ("spawn", False)])
@@ -252,7 +259,7 @@ def test_each_worker_draws_its_own_references(tiny_dataset):
 def test_kill_9_then_resume_continues_from_the_checkpoint(tiny_dataset, tmp_path):
     out = tmp_path / "killed"
     args = [sys.executable, str(ROOT / "recipes" / "train_ppo.py"), f"dataset={tiny_dataset}", f"out={out}",
-            "ppo.frames_per_batch=256", "ppo.minibatch_size=128", "ppo.epochs=1", "collector.worlds=8",
+            "ppo.frames_per_batch=256", "ppo.minibatch_size=128", "ppo.epochs=1", "ppo.update_threads=1", "collector.worlds=8",
             "collector.env_threads=1", "policy.hidden=[32,32]", "checkpoint_every=1", "wandb=false",
             "progress=false", "eval_max_references=2"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -291,18 +298,20 @@ def _residual_mean(batch) -> float:
     return float((batch["action"] - ff).mean())
 
 
-@pytest.mark.parametrize("backend", ["local", "ray"])
-def test_updated_weights_reach_the_workers(tiny_dataset, backend, request):
+@pytest.mark.parametrize("backend, workers", [("local", 2), ("ray", 1)])
+def test_updated_weights_reach_the_workers(tiny_dataset, backend, workers, request):
     """After update_policy_weights_(), the workers act with the new weights: the learned correction
-    pushed to +residual everywhere (tanh(20 ± noise) = 1) shows up in the next batch's actions."""
+    pushed to +residual everywhere (tanh(20 ± noise) = 1) shows up in the next batch's actions. One
+    Ray worker: the two-worker Ray run is test_two_worker_ray_collector, and each Ray worker is a new
+    interpreter importing torch and TorchRL (several seconds of CPU)."""
     if backend == "ray":
         request.getfixturevalue("ray_cluster")
     from adadex.train.collectors import make_collector
 
     tracker = Tracker(hidden=(16,), residual=0.05)
     factory = TrackingEnvFactory(str(tiny_dataset), (1, 2, 5), num_worlds=4, seed=0, nthread=1)
-    col = make_collector(factory, tracker.actor, CollectorConfig(workers=2, backend=backend, worlds=4),
-                         frames_per_batch=64, total_frames=64 * 4)
+    col = make_collector(factory, tracker.actor, CollectorConfig(workers=workers, backend=backend, worlds=4),
+                         frames_per_batch=32 * workers, total_frames=32 * workers * 4)
     if backend == "ray":
         assert all("RayWorkerCollector" in repr(actor) for actor in col.remote_collectors)
     try:
@@ -326,7 +335,7 @@ def test_modulator_rl_around_a_frozen_tracker(tiny_dataset, tmp_path, channels):
     generalist = Tracker(hidden=(32, 32), residual=0.25)
     path = generalist.save(tmp_path / "generalist.pt")
     before = {k: v.clone() for k, v in generalist.state_dict().items()}
-    cfg = _config(tiny_dataset, tmp_path / "mod", frames=512,
+    cfg = _config(tiny_dataset, tmp_path / "mod", frames=512, evaluate=True,
                   modulator=ModulatorSettings(tracker=str(path), channels=channels, hidden=(32, 32)))
     res = train(cfg)
     assert res["policy"].name == "modulator.pt" and res["iterations"] == 2
@@ -366,7 +375,7 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
         # 16 epochs: with 4 (64 updates), on the residual tracker this test used before, whether the loss
         # on the fixed rollout fell was a coin toss
         cfg.ppo = PPOConfig(total_frames=2048, frames_per_batch=256, minibatch_size=128, epochs=16, imitation_coef=coef,
-                            lr=1e-3, max_grad_norm=100.0)
+                            lr=1e-3, max_grad_norm=100.0, update_threads=1)
         torch.manual_seed(0)
         trainer = PPOTrainer(cfg, teacher=teacher if coef else None)
         if fixed is None:
@@ -380,7 +389,6 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
         with torch.no_grad():
             before = float(trainer._imitation(fixed))
         trainer.teacher = teacher if coef else None
-        trainer.evaluate = lambda *_, **__: {}              # the imitation loss is scored below, not the metrics
         trainer.train()
         trainer.teacher = teacher
         with torch.no_grad():
@@ -392,22 +400,45 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
         PPOTrainer(_config(tiny_dataset, tmp_path / "x"), teacher=teacher)
 
 
-@pytest.mark.parametrize("recipe, args, fragment", [
+REFUSALS = [   # (recipe, arguments, what its one line of stderr says)
     ("train_modulator.py", ["tracker=/nonexistent/generalist.pt"], "no tracker checkpoint"),
     ("train_specialist.py", ["group=999"], "semantic group 999"),
     ("train_ppo.py", ["collector.backend=slurm"], "backend must be 'local' or 'ray'"),
     ("train_ppo.py", ["+reward.w_alvie=1.0"], "RewardConfig: unknown keys ['w_alvie']"),
     ("train_ppo.py", ["+randomization.object_mass=[1.3,0.7]"], "object_mass must be a range"),
-])
-def test_recipes_refuse_bad_input_in_one_line(tiny_dataset, tmp_path, recipe, args, fragment):
-    out = tmp_path / "run"
-    res = subprocess.run([sys.executable, str(ROOT / "recipes" / recipe), f"dataset={tiny_dataset}", f"out={out}",
-                          "wandb=false", "progress=false", *args], capture_output=True, text=True, timeout=300,
-                         env={**os.environ, "OMP_NUM_THREADS": "1"})
-    assert res.returncode == 2, res.stderr[-2000:]
-    lines = [l for l in res.stderr.splitlines() if l.strip()]
-    assert len(lines) == 1 and fragment in lines[0] and "Traceback" not in res.stderr, res.stderr[-2000:]
-    assert not (out / "checkpoint.pt").exists()
+]
+
+#: runs each recipe as ``python recipes/<recipe> …`` would (``__main__``, its arguments in sys.argv), one
+#: after the other in one interpreter, and prints [exit code, stderr] of each: one import of torch and
+#: TorchRL for all the cases instead of one each
+_RUN_RECIPES = """
+import contextlib, io, json, runpy, sys
+results = []
+for script, args in json.loads(sys.argv[1]):
+    err, code = io.StringIO(), 0
+    sys.argv = [script, *args]
+    with contextlib.redirect_stderr(err):
+        try:
+            runpy.run_path(script, run_name="__main__")
+        except SystemExit as e:
+            code = e.code
+    results.append([code, err.getvalue()])
+print(json.dumps(results))
+"""
+
+
+def test_recipes_refuse_bad_input_in_one_line(tiny_dataset, tmp_path):
+    cases = [[str(ROOT / "recipes" / recipe), [f"dataset={tiny_dataset}", f"out={tmp_path / str(i)}", "wandb=false",
+                                              "progress=false", *args]]
+             for i, (recipe, args, _) in enumerate(REFUSALS)]
+    res = subprocess.run([sys.executable, "-c", _RUN_RECIPES, json.dumps(cases)], capture_output=True, text=True,
+                         timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert res.returncode == 0 and res.stderr == "", res.stderr[-2000:]      # nothing else on the process's stderr
+    for i, ((recipe, _, fragment), (code, err)) in enumerate(zip(REFUSALS, json.loads(res.stdout.splitlines()[-1]))):
+        lines = [line for line in err.splitlines() if line.strip()]
+        assert code == 2, (recipe, err[-2000:])
+        assert len(lines) == 1 and fragment in lines[0] and "Traceback" not in err, (recipe, err[-2000:])
+        assert not (tmp_path / str(i) / "checkpoint.pt").exists()
 
 
 def test_kl_adaptive_learning_rate_rule(tiny_dataset, tmp_path):
@@ -432,7 +463,7 @@ def test_kl_adaptive_learning_rate_rule(tiny_dataset, tmp_path):
 def test_kl_adaptive_learning_rate_is_logged_and_checkpointed(tiny_dataset, tmp_path):
     cfg = _config(tiny_dataset, tmp_path / "run", frames=512)
     cfg.ppo = PPOConfig(total_frames=512, frames_per_batch=256, minibatch_size=128, epochs=2, lr=1e-3,
-                        desired_kl=1e-3, lr_min=1e-5, lr_max=0.1)
+                        desired_kl=1e-3, lr_min=1e-5, lr_max=0.1, update_threads=1)
     train(cfg)
     lrs = [float(r["lr"]) for r in _rows(tmp_path / "run") if r.get("lr")]
     assert len(lrs) == 2 and all(1e-5 <= v <= 0.1 for v in lrs)
@@ -443,7 +474,7 @@ def test_kl_adaptive_learning_rate_is_logged_and_checkpointed(tiny_dataset, tmp_
 def test_annealed_learning_rate_falls_linearly_with_the_frames(tiny_dataset, tmp_path):
     cfg = _config(tiny_dataset, tmp_path / "run", frames=768)
     cfg.ppo = PPOConfig(total_frames=768, frames_per_batch=256, minibatch_size=128, epochs=1, lr=1e-3,
-                        lr_min=1e-4, anneal_lr=True, desired_kl=0.0)
+                        lr_min=1e-4, anneal_lr=True, desired_kl=0.0, update_threads=1)
     train(cfg)
     lrs = [float(r["lr"]) for r in _rows(tmp_path / "run") if r.get("lr")]
     # each iteration's rate is set from the frames collected before it: 0, 256, 512 of 768

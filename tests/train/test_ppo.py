@@ -140,7 +140,8 @@ def test_object_anchored_tracker_trains_in_workers(tiny_dataset, tmp_path):
     tracker = Tracker.load(res["tracker"])
     assert tracker.config["anchor"] == 0.05 and ("object", "start_pose") in tracker.actor.in_keys
     rows = _rows(tmp_path / "anchor")
-    assert len(rows) == res["iterations"] and all(float(r["loss_objective"]) == float(r["loss_objective"]) for r in rows)
+    assert len(rows) == res["iterations"]
+    assert all(float(r["loss_objective"]) == float(r["loss_objective"]) for r in rows)
 
 
 @pytest.mark.parametrize("method, preloaded", [("forkserver", True), ("spawn", False)])
@@ -259,9 +260,9 @@ def test_each_worker_draws_its_own_references(tiny_dataset):
 def test_kill_9_then_resume_continues_from_the_checkpoint(tiny_dataset, tmp_path):
     out = tmp_path / "killed"
     args = [sys.executable, str(ROOT / "recipes" / "train_ppo.py"), f"dataset={tiny_dataset}", f"out={out}",
-            "ppo.frames_per_batch=256", "ppo.minibatch_size=128", "ppo.epochs=1", "ppo.update_threads=1", "collector.worlds=8",
-            "collector.env_threads=1", "policy.hidden=[32,32]", "checkpoint_every=1", "wandb=false",
-            "progress=false", "eval_max_references=2"]
+            "ppo.frames_per_batch=256", "ppo.minibatch_size=128", "ppo.epochs=1", "ppo.update_threads=1",
+            "collector.worlds=8", "collector.env_threads=1", "policy.hidden=[32,32]", "checkpoint_every=1",
+            "wandb=false", "progress=false", "eval_max_references=2"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(args + ["total_frames=100000"], env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)

@@ -28,7 +28,8 @@ less than 10 cm that failed and why, plus the training wall times) and keeps the
 (checkpoints, metrics.csv) under ``--runs``; rerunning resumes them. ``--ppo KEY=VALUE`` changes a
 PPO setting of both runs (``--ppo desired_kl=0``: the constant learning rate); ``--eval-anchor-reach M``
 also evaluates each trained tracker with its anchor's reach set to M, the weights as trained (its
-``eval_reach`` entry). Run it in the background:
+``eval_reach`` entry), and with ``--eval-anchor-release R`` its release set to R as well (the
+anchor's ``release``, ``policy.anchor``). Run it in the background:
 
     nohup python benchmarks/specialist_quality.py --dataset data/small > specialist.log 2>&1 &
 """
@@ -192,6 +193,9 @@ def main(argv=None) -> dict:
     p.add_argument("--eval-anchor-reach", type=float, default=None, metavar="M",
                    help="also evaluate each trained tracker with its anchor's reach set to M (m), its weights "
                         "as trained (``eval_reach`` in its entry)")
+    p.add_argument("--eval-anchor-release", type=float, default=None, metavar="R",
+                   help="with --eval-anchor-reach: in that evaluation also fade the anchor out over R m of the "
+                        "reference object's travel (its release, policy.anchor) instead of the trained tracker's")
     p.add_argument("--seed", type=int, default=0, help="training seed of both runs")
     p.add_argument("--reward", action="append", default=[], metavar="KEY=VALUE",
                    help="a RewardConfig setting for both runs, e.g. object_frame=1 (repeatable)")
@@ -202,6 +206,8 @@ def main(argv=None) -> dict:
                    help="a PPOConfig setting for both runs, e.g. desired_kl=0.016 (repeatable)")
     p.add_argument("--out", type=Path, default=RESULTS / "specialist_quality.json")
     a = p.parse_args(argv)
+    if a.eval_anchor_release is not None and (a.eval_anchor_reach is None or not a.eval_anchor_release > 0):
+        p.error(f"--eval-anchor-release {a.eval_anchor_release} needs --eval-anchor-reach and a release > 0 (m)")
     torch.set_num_threads(1)
 
     from adadex.data.build import build_dataset
@@ -255,13 +261,20 @@ def main(argv=None) -> dict:
         return out
 
     def score_with_reach(name, path, replay: dict) -> dict:
-        """The tracker at ``path`` with its anchor's reach set to ``--eval-anchor-reach``, on the same episodes."""
-        res = run(Tracker.load(path, anchor_reach=a.eval_anchor_reach).actor, randomize, keep_rollouts=True)
+        """The tracker at ``path`` with its anchor's reach set to ``--eval-anchor-reach`` (and its release to
+        ``--eval-anchor-release``), on the same episodes."""
+        changes = {"anchor_reach": a.eval_anchor_reach}
+        if a.eval_anchor_release is not None:
+            changes["anchor"] = a.eval_anchor_release
+        res = run(Tracker.load(path, **changes).actor, randomize, keep_rollouts=True)
         episodes = _episodes(res["rollouts"])
-        entry = {"anchor_reach": a.eval_anchor_reach, **_summary(res), "completion_by_offset": _by_offset(*episodes),
+        entry = {"anchor_reach": a.eval_anchor_reach, "anchor_release": a.eval_anchor_release, **_summary(res),
+                 "completion_by_offset": _by_offset(*episodes),
                  "completion_gain_ci95": _paired_gain(episodes, per_episode["replay"])}
         entry["completion_gain_points"] = entry["completion_pct"] - replay["completion_pct"]
-        print(f"{name} with the anchor's reach at {a.eval_anchor_reach} m: completion {entry['completion_pct']:.1f} % "
+        release = "" if a.eval_anchor_release is None else f" and its release over {a.eval_anchor_release} m"
+        print(f"{name} with the anchor's reach at {a.eval_anchor_reach} m{release}: completion "
+              f"{entry['completion_pct']:.1f} % "
               f"({entry['completion_gain_points']:+.1f} over replay, {_interval(entry['completion_gain_ci95'])}); by "
               "displacement " + ", ".join(f"{k} {v['completion_pct']:.1f} %"
                                           for k, v in entry["completion_by_offset"].items()))

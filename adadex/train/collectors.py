@@ -21,6 +21,7 @@ no data between steps.
 from __future__ import annotations
 
 import multiprocessing
+from datetime import timedelta
 from multiprocessing import forkserver
 
 import torch
@@ -33,6 +34,14 @@ from adadex.train.envs import TrackingEnvFactory
 
 #: what a local worker imports before it builds its env; the fork server imports them once
 WORKER_PRELOAD = ("torch", "tensordict", "torchrl.collectors", "torchrl.envs", "mujoco", "adadex.train.envs")
+
+
+#: how long the driver waits for its Ray workers to join TorchRL's weight-sync process group (and, after
+#: that, for a weight transfer). TorchRL's own 60 s (``torchrl.weight_update._ray._DIST_TIMEOUT``, read
+#: when the group is made) also covers starting the Ray worker process of its rendezvous actor, which
+#: imports torch and TorchRL: on 2 cores under 3 × load that took over 60 s and the first weight sync
+#: failed (``DistStoreError: wait timeout after 60000ms``, measured 2026-11-27).
+RAY_SYNC_TIMEOUT = timedelta(minutes=10)
 
 
 def start_worker_server(method: str = "forkserver") -> None:
@@ -148,7 +157,10 @@ def _ray_collector(factory, policy, cfg: CollectorConfig, frames_per_batch: int,
         from torchrl.collectors.distributed import RayCollector
     except ImportError as e:
         raise ConfigError("collector.backend=ray needs Ray: pip install -e '.[ray]'") from e
+    import torchrl.weight_update._ray as ray_sync
+
     connect_ray(cfg)
+    ray_sync._DIST_TIMEOUT = max(ray_sync._DIST_TIMEOUT, RAY_SYNC_TIMEOUT)
     return RayCollector(factory.for_workers(cfg.workers), policy, frames_per_batch=frames_per_batch,
                         total_frames=total, collector_class=RayWorkerCollector, sync=True,
                         collector_kwargs={"auto_register_policy_transforms": False}, **collector_devices(policy),

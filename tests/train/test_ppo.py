@@ -323,6 +323,10 @@ def test_updated_weights_reach_the_workers(tiny_dataset, backend, workers, reque
             head.bias[:22] = 20.0                                     # loc → tanh = 1: correction = +residual
         col.update_policy_weights_()
         after = _residual_mean(next(it))
+        if backend == "ray":              # TorchRL's weight sync waits as long as we set, not its own 60 s
+            from adadex.train.collectors import RAY_SYNC_TIMEOUT
+
+            assert col._weight_sync_schemes["policy"]._store.timeout == RAY_SYNC_TIMEOUT
     finally:
         col.shutdown()
     assert abs(before) < 0.01 and after == pytest.approx(0.05, abs=2e-3), (before, after)

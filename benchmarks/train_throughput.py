@@ -33,7 +33,10 @@ Measured in one run, on the same dataset and references:
   (``CollectorConfig.start_method``, ``--start-method``): with ``forkserver``, the default, the fork
   server is started just before the 1-worker collector, whose start-up therefore holds the server's
   imports; the 2-worker collector after it forks both workers from the running server. With
-  ``spawn`` every worker imports torch, TorchRL and MuJoCo itself.
+  ``spawn`` every worker imports torch, TorchRL and MuJoCo itself. Before its first batch each
+  multi-worker collector runs its first ``update_policy_weights_()``, as the trainer does; that
+  sync's seconds are ``*_first_sync_s``, outside the start-up (for Ray, TorchRL starts one more
+  actor process there, its weight sync's rendezvous).
 
 ``multisync_2_over_physics``: the 2-worker collection (2 processes of B worlds, one thread each)
 over ``physics`` (one env of B worlds on 2 threads): what the machine's two cores deliver when one
@@ -188,15 +191,22 @@ class _Timer:
         delattr(self.obj, self.name)
 
 
-def _collector_fps(make, frames_per_batch: int, batches: int, recorders=()):
+def _collector_fps(make, frames_per_batch: int, batches: int, recorders=(), first_sync: dict | None = None):
     """(frames/s over ``batches`` batches after the first, start-up s: first batch minus one batch).
     ``recorders`` (:class:`_PhysicsRecorder` or :class:`_Timer`, filled when ``make`` builds its envs)
-    time the physics, or their method, during the timed batches."""
+    time the physics, or their method, during the timed batches. With ``first_sync`` (a dict), the
+    collector's first ``update_policy_weights_()`` runs before its first batch, as the trainer runs it,
+    and its seconds go to ``first_sync["s"]``, not into the start-up."""
     t0 = time.perf_counter()
     col = make()
+    sync = 0.0
+    if first_sync is not None:
+        ts = time.perf_counter()
+        col.update_policy_weights_()
+        sync = first_sync["s"] = time.perf_counter() - ts
     it = iter(col)
     next(it)
-    first = time.perf_counter() - t0
+    first = time.perf_counter() - t0 - sync
     for r in recorders:
         r.timing = True
     t1 = time.perf_counter()
@@ -375,11 +385,13 @@ def main(argv=None) -> dict:
         res["start_method"] = a.start_method
         start_worker_server(a.start_method)
         for n in (1, 2):
+            sync = {}
             res[f"multisync_{n}_fps"], res[f"multisync_{n}_startup_s"] = _collector_fps(
                 lambda n=n: MultiSyncCollector(w1.for_workers(n), policy, frames_per_batch=fpb * n, total_frames=-1,
                                                cat_results="stack", num_sub_threads=1,
                                                auto_register_policy_transforms=False,
-                                               **collector_devices(policy)), fpb * n, batches)
+                                               **collector_devices(policy)), fpb * n, batches, first_sync=sync)
+            res[f"multisync_{n}_first_sync_s"] = sync["s"]
         split = CollectorConfig(workers=2, worlds=B // 2, env_threads=0, start_method=a.start_method)
         half = dataclasses.replace(one, num_worlds=B // 2, nthread=split.env_threads)
         res["collection_split_fps"], res["collection_split_startup_s"] = _collector_fps(
@@ -401,10 +413,12 @@ def main(argv=None) -> dict:
                 ray = None
             if ray is not None:              # as the trainer makes them: the second joins the first's cluster
                 for n in (1, 2):
+                    sync = {}
                     res[f"ray_{n}_fps"], res[f"ray_{n}_startup_s"] = _collector_fps(
                         lambda n=n: make_collector(w1, policy, CollectorConfig(workers=n, backend="ray", worlds=B),
                                                    frames_per_batch=fpb * n, total_frames=fpb * n * (batches + 2)),
-                        fpb * n, batches)
+                        fpb * n, batches, first_sync=sync)
+                    res[f"ray_{n}_first_sync_s"] = sync["s"]
                 ray.shutdown()
 
     res["collection_over_physics"] = res["collection_fps"] / res["physics_fps"]
@@ -450,7 +464,8 @@ def main(argv=None) -> dict:
     if "ray_2_fps" in res:
         print(f"Ray 1 worker {res['ray_1_fps']:.0f}, 2 workers {res['ray_2_fps']:.0f} frames/s: "
               f"{res['ray_two_workers_over_one']:.2f} ×; start-up {res['ray_1_startup_s']:.1f} / "
-              f"{res['ray_2_startup_s']:.1f} s")
+              f"{res['ray_2_startup_s']:.1f} s, then the first weight sync {res['ray_1_first_sync_s']:.1f} / "
+              f"{res['ray_2_first_sync_s']:.1f} s (TorchRL starts its rendezvous actor)")
     print(f"TorchRL's floor (the trainer's collector and policy on an env doing no work): "
           f"{res['collector_floor_ms']:.2f} ms per step of {res['worlds']} worlds, "
           f"{res['collector_floor_half_ms']:.2f} of {res['worlds'] // 2}; were TrackingEnv free and physics as fast "

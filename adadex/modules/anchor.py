@@ -17,7 +17,8 @@ the feed-forward into replay of a reference shifted onto the observed object:
   as the reference carries the object, returns to the reference path and brings the object onto it;
 * ``Δq`` — the arm-joint change that moves the palm by ``w·Δ`` without turning it, at the next
   reference joints: ``iterations`` Gauss–Newton steps of damped least squares on the palm's pose and
-  Jacobian (pytorch-kinematics, from the robot's MJCF). One step, the linearization alone, leaves
+  Jacobian (pytorch-kinematics' chain from the robot's MJCF, folded to its six joints:
+  :class:`~adadex.sim.kinematics.RevoluteChainJacobian`). One step, the linearization alone, leaves
   the palm 1.1 cm off its target on average at an 8 cm shift (up to 2.2 cm) and 1.7 cm at 10 cm,
   turned by up to 6°, on the specialist benchmark's references; three steps leave 0.01 / 0.05 cm.
   That miss was where grasps failed: the untrained anchored feed-forward completed 82.5 % of the
@@ -53,7 +54,7 @@ from torch import nn
 
 from adadex.envs.observation import LAYOUT, NEXT_REF_JOINTS as _NEXT_REF
 from adadex.errors import check_number
-from adadex.sim.kinematics import RobotKinematics
+from adadex.sim.kinematics import RevoluteChainJacobian, RobotKinematics
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 
 ARM_JOINTS = 6
@@ -81,11 +82,11 @@ class ObjectAnchor(nn.Module):
         self.damping = float(check_number("ObjectAnchor.damping", damping, strict_low=True))
         self.reach = float(check_number("ObjectAnchor.reach", reach))
         self.iterations = int(check_number("ObjectAnchor.iterations", iterations, low=1, integer=True))
-        chain = RobotKinematics(dtype=torch.float32).chain
-        self._palm = pk.SerialChain(chain, TRACKED_SITES[0])
-        names = self._palm.get_joint_parameter_names()
+        palm = pk.SerialChain(RobotKinematics(dtype=torch.float32).chain, TRACKED_SITES[0])
+        names = palm.get_joint_parameter_names()
         if len(names) != ARM_JOINTS:
             raise ValueError(f"the palm's chain should hold the {ARM_JOINTS} arm joints, got {names}")
+        self._palm = RevoluteChainJacobian(palm)     # no nn.Module: its tensors stay out of the state dict
 
     def weight(self, observation: torch.Tensor, ref_object_start: torch.Tensor) -> torch.Tensor:
         """(…,) anchor weight: 1 while the reference object is at rest, 0 once it travelled
@@ -107,8 +108,8 @@ class ObjectAnchor(nn.Module):
         out = torch.zeros(obs.shape[0], NUM_JOINTS, dtype=obs.dtype, device=obs.device)
         rows = shift.any(dim=1).nonzero()[:, 0]      # the Jacobian only where there is a shift
         if len(rows):
-            if torch.device(self._palm.device) != obs.device:   # the chain is no nn.Module: .to() does not move it
-                self._palm = self._palm.to(device=obs.device)
+            if self._palm.folds.device != obs.device:   # the chain is no nn.Module: .to() does not move it
+                self._palm.to(device=obs.device)
             q = obs[rows, _NEXT_REF][:, :ARM_JOINTS].float()
             out[rows, :ARM_JOINTS] = self._solve(q, shift[rows].float()).to(obs.dtype)
         return out.reshape(*lead, NUM_JOINTS)
@@ -120,7 +121,7 @@ class ObjectAnchor(nn.Module):
         eye = torch.eye(6, dtype=q.dtype, device=q.device)
         x, error, target = q, shift, None
         for _ in range(self.iterations):
-            jac, pose = self._palm.jacobian(x, ret_eef_pose=True)           # (n, 6, 6), (n, 4, 4) in the base frame
+            jac, pose = self._palm(x)                                        # (n, 6, 6), (n, 4, 4) in the base frame
             if target is None:                                              # at q the error is the shift itself
                 target = pose[:, :3, 3] + shift[:, :3], pose[:, :3, :3]
             else:

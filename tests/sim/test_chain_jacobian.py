@@ -19,6 +19,8 @@ def test_palm_jacobian_and_pose_equal_pytorch_kinematics(dtype, tol):
     assert jac.shape == (200, 6, len(ARM_JOINTS)) and pose.shape == (200, 4, 4)
     assert (jac - want_jac).abs().max() < tol
     assert (pose - want_pose).abs().max() < tol
+    with pytest.raises(ValueError, match="size 6"):
+        RevoluteChainJacobian(palm)(q[:, :5])
 
 
 def test_the_jacobian_is_the_derivative_of_the_pose():

@@ -9,6 +9,17 @@ for all 22 joints. Further ranges (:class:`EffectRange`) randomize any model-sta
 joint; :meth:`Randomization.from_patch` builds them around a fitted patch's 95 % intervals (the
 paper sets its randomization from system identification).
 
+A patch and randomization compose (:meth:`Randomization.world_patch`): the draws randomize *around
+the patched robot*. A range's draw acts on top of the env's patch as the effect's parameters say
+(:meth:`~adadex.sim.patch.ModelPatch.composed`): scale effects multiply (a patch's ``kp_scale`` 0.3
+under a Table 3 draw of 1.05 gives 0.315, an arm_j1 gain of 1500 · 0.315), offset effects add (a
+patch's ``damping`` plus a drawn ``damping``), each result clipped to the effect's bounds. Ranges
+marked ``absolute`` — those :meth:`Randomization.from_patch` builds — draw the value itself (the
+fit's interval is of the value): their draw replaces the patch's value on that effect and joint, so
+a patch that also carries the fit (``TrackingEnv(patch=fit, randomize=Randomization.from_patch(fit))``)
+is not applied twice. Structure-, command- and sensor-stage effects (delays, lags, backlash, encoder
+offsets) are not drawn per world: they act at the patch's values in every world.
+
 The object: mass and friction scaled by U[0.7, 1.3]; restitution +U[0, 0.4] (MuJoCo contacts are
 not bouncy by default; a restitution e is obtained with the contact damping ratio
 −ln e / √(π² + ln² e)); size scaled by U[0.95, 1.05], quantized to ``object_scale_levels`` values
@@ -63,6 +74,11 @@ class EffectRange:
     ``low``/``high`` broadcast to (len(joints), n_params) and lie inside the effect's bounds.
     ``shared``: one uniform draw per world moves every joint's value alike (Table 3's global
     scales); otherwise each joint and parameter is drawn independently.
+
+    ``absolute``: how a draw meets the env's patch on the same effect and joint. ``False`` (the
+    default, Table 3): the draw acts on top of the patched value — a scale multiplies it, an
+    offset adds to it (:meth:`~adadex.sim.patch.ModelPatch.composed`). ``True``
+    (:meth:`Randomization.from_patch`): the draw *is* the value and replaces the patch's.
     """
 
     effect: str
@@ -70,6 +86,7 @@ class EffectRange:
     low: np.ndarray
     high: np.ndarray
     shared: bool = False
+    absolute: bool = False
 
     def __post_init__(self):
         eff = get_effect(self.effect)
@@ -92,7 +109,7 @@ class EffectRange:
         if not keep:
             return None
         return EffectRange(self.effect, tuple(self.joints[i] for i in keep), self.low[keep], self.high[keep],
-                           self.shared)
+                           self.shared, self.absolute)
 
     def sample(self, rng: np.random.Generator) -> EffectInstance:
         u = rng.uniform() if self.shared else rng.uniform(size=self.low.shape)
@@ -105,9 +122,10 @@ class Randomization:
     """Ranges of the per-world randomization (see the module docstring).
 
     ``effects`` are further per-joint ranges; on an (effect, joint) they replace the Table 3
-    range. ``patch`` holds effects every world carries at fixed values (the ranges' draws replace
-    its values on the same effect and joint); :class:`~adadex.envs.tracking.TrackingEnv` adds it
-    to its own patch.
+    range. ``patch`` holds effects every world carries (:meth:`from_patch` puts the fit there);
+    :class:`~adadex.envs.tracking.TrackingEnv` puts its own patch over it (the env's entries replace
+    its entries on the same effect and joint), and each world's draw then composes with the result
+    (:meth:`world_patch`: relative ranges on top of the patched values, absolute ones replacing them).
     """
 
     robot_mass: tuple[float, float] = (0.9, 1.1)
@@ -163,10 +181,13 @@ class Randomization:
         Each model-stage effect of the patch is drawn per world and joint from its fit's 95 %
         interval (``ci95`` in the patch) widened ``widen``-fold about the fitted value; where the
         patch has no interval, from value ± ``fraction`` · |value|; clipped to the effect's bounds.
-        Every other setting comes from ``base`` (default: Table 3, whose robot scales still apply
-        to the effects and joints the patch does not name). The patch's other effects
-        (structure, command and sensor stages: delays, lags, backlash, encoder offsets) act at
-        their fitted values in every world, through ``patch``.
+        These ranges are ``absolute``: a draw is the effect's value on that joint and replaces the
+        value of the env's patch there (which, from ``patch``, is the fitted value itself — it is
+        not applied a second time on top of the draw). Every other setting comes from ``base``
+        (default: Table 3, whose robot scales still apply to the effects and joints the patch
+        does not name, composing with the patch's values as :meth:`world_patch` says). The patch's
+        other effects (structure, command and sensor stages: delays, lags, backlash, encoder
+        offsets) act at their fitted values in every world, through ``patch``.
         """
         patch = patch if isinstance(patch, ModelPatch) else ModelPatch.load(patch)
         check_number("Randomization.from_patch widen", widen)
@@ -180,7 +201,8 @@ class Randomization:
             else:
                 lo, hi = v - fraction * np.abs(v), v + fraction * np.abs(v)
             blo, bhi = get_effect(e.effect).bounds(e.joints)
-            ranges.append(EffectRange(e.effect, e.joints, np.clip(lo, blo, bhi), np.clip(hi, blo, bhi)))
+            ranges.append(EffectRange(e.effect, e.joints, np.clip(lo, blo, bhi), np.clip(hi, blo, bhi),
+                                      absolute=True))
         kept = base.patch.updated(patch) if base.patch is not None else patch
         return cls(**{f.name: getattr(base, f.name) for f in fields(base) if f.name not in ("effects", "patch")},
                    effects=base.effects + tuple(ranges), patch=kept)
@@ -188,7 +210,7 @@ class Randomization:
     def as_dict(self) -> dict:
         d = asdict(self)
         d["effects"] = [{"effect": r.effect, "joints": list(r.joints), "low": r.low.tolist(), "high": r.high.tolist(),
-                         "shared": r.shared} for r in self.effects]
+                         "shared": r.shared, "absolute": r.absolute} for r in self.effects]
         d["patch"] = None if self.patch is None else self.patch.to_dict()
         return d
 
@@ -210,9 +232,22 @@ class Randomization:
         return tuple(r for r in out if not r.is_constant_absent())
 
     def sample_patch(self, rng: np.random.Generator, ranges: tuple[EffectRange, ...] | None = None) -> ModelPatch:
-        """One world's draw of the robot-physics effects (``ranges``: :meth:`effect_ranges`, precomputed)."""
+        """One world's raw draw of the robot-physics effects (``ranges``: :meth:`effect_ranges`,
+        precomputed), before it meets a patch (:meth:`world_patch`)."""
         ranges = self.effect_ranges() if ranges is None else ranges
         return ModelPatch(tuple(r.sample(rng) for r in ranges))
+
+    def world_patch(self, patch: ModelPatch, rng: np.random.Generator,
+                    ranges: tuple[EffectRange, ...] | None = None) -> ModelPatch:
+        """One world's robot: ``patch`` with a draw of the ranges around it (the same draws, from
+        the same ``rng`` state, as :meth:`sample_patch`). A relative range's draw composes with the
+        patch's value on its effect and joint (:meth:`ModelPatch.composed`: scales multiply,
+        offsets add, clipped to the bounds); an absolute range's draw (:meth:`from_patch`) replaces it."""
+        ranges = self.effect_ranges() if ranges is None else ranges
+        draws = [(r.absolute, r.sample(rng)) for r in ranges]
+        relative = ModelPatch(tuple(d for absolute, d in draws if not absolute))
+        absolute = ModelPatch(tuple(d for absolute, d in draws if absolute))
+        return patch.composed(relative).updated(absolute)
 
 
 class ModelRandomizer:

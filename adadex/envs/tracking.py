@@ -36,7 +36,12 @@ its physics alone (``benchmarks/env_throughput.py``).
 
 Physics randomization (:class:`~adadex.envs.randomization.Randomization`) draws an effect patch per
 world at each reset — Table 3's scales, or ranges around a fitted patch:
-``TrackingEnv(ds, randomize=Randomization.from_patch(ModelPatch.load("patch.json")))``.
+``TrackingEnv(ds, randomize=Randomization.from_patch(ModelPatch.load("patch.json")))``. A patch and
+randomization compose: each world's draw randomizes *around the patched robot*
+(:meth:`Randomization.world_patch <adadex.envs.randomization.Randomization.world_patch>`) — a
+drawn scale multiplies the patch's (``patch`` kp_scale 0.3 on arm_j1 under Table 3: a gain of
+1500 · 0.3 · draw), a drawn offset adds to it, clipped to the effect's bounds; the ranges of
+``Randomization.from_patch`` draw the fitted value itself and replace the patch's there.
 
 Example
 -------
@@ -152,8 +157,10 @@ class TrackingEnv(EnvBase):
         latent_fn: object name → (64,) latent.
         randomize: per-world domain randomization (:class:`Randomization`), or ``None``; e.g.
             ``Randomization.from_patch(ModelPatch.load("patch.json"))`` around a fitted patch.
-        patch: a model patch (file or :class:`ModelPatch`) applied to every world (on top of
-            ``randomize.patch``; randomized effects draw their values per world).
+        patch: a model patch (file or :class:`ModelPatch`) applied to every world (its entries
+            replace ``randomize.patch``'s on the same effect and joint); under randomization each
+            world's draw composes with it (see the module docstring: scales multiply, offsets add;
+            ``from_patch``'s ranges draw the value itself).
         effects: effects applied to every world, as ``EffectInstance`` or ``(effect, joints, values)``.
         nthread: rollout threads.
         seed: seeds the reference draws.
@@ -250,14 +257,15 @@ class TrackingEnv(EnvBase):
     def _randomized_scene(self, object_name: str, scale: float, rng: np.random.Generator
                           ) -> tuple[mujoco.MjModel, ModelPatch]:
         """A world's own model: the scene compiled with the patch's structure only (nominal parameters),
-        copied, its object randomized, then the env's patch with this world's draw applied by the effects."""
+        copied, its object randomized, then the env's patch with this world's draw composed on it
+        (:meth:`Randomization.world_patch`) applied by the effects."""
         key = (object_name, scale)
         if key not in self._nominal:
             m = self._compiled(object_name, scale, self.patch.stage("structure"))
             self._nominal[key] = (m, ModelBase.of(m))
         nominal, base = self._nominal[key]
         model = self._randomizer.apply(nominal, self.randomize, rng)
-        patch = self.patch.updated(self.randomize.sample_patch(rng, self._ranges))
+        patch = self.randomize.world_patch(self.patch, rng, self._ranges)
         patch.apply_model(model, base)
         return model, patch
 

@@ -88,6 +88,19 @@ class Param:
         g, r = sizing(joint, robot, self.scales_with)
         return self.nominal[g] * r
 
+    @property
+    def composition(self) -> str:
+        """How two values of this parameter compose (a draw of domain randomization on top of a
+        patch, :meth:`adadex.sim.patch.ModelPatch.composed`), read off the absent value: absent 1
+        is a *scale* (``"scale"``: the values multiply — kp 0.3 × a draw of 1.05 is 0.315), absent 0
+        an *offset* (``"offset"``: they add — damping, armature, payload, delays, encoder offsets)."""
+        if self.absent == 1.0:
+            return "scale"
+        if self.absent == 0.0:
+            return "offset"
+        raise EffectError(f"parameter {self.name}: absent value {self.absent:g} is neither 1 (a scale) nor 0 "
+                          f"(an offset); say how its values compose")
+
 
 def sizing(joint: str, robot, scales_with: str | None) -> tuple[str, float]:
     """(built-in group, size ratio) of ``joint`` on ``robot`` (None or the built-in: its own group, 1)."""
@@ -246,6 +259,11 @@ class Effect:
 
     def absent_values(self) -> np.ndarray:
         return np.array([p.absent for p in self.params])
+
+    @property
+    def compositions(self) -> tuple[str, ...]:
+        """Per parameter, ``"scale"`` or ``"offset"`` (:attr:`Param.composition`)."""
+        return tuple(p.composition for p in self.params)
 
     def nominal_values(self, joints, robot=None) -> np.ndarray:
         return np.array([[p.nominal_for(j, robot) for p in self.params] for j in joints])

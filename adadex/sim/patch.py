@@ -186,7 +186,11 @@ class ModelPatch:
         return ModelPatch(self.effects + other.effects, self.robot if self.robot is not None else other.robot)
 
     def updated(self, other: "ModelPatch") -> "ModelPatch":
-        """This patch with ``other``'s (effect, joint) entries replacing its own, ``other``'s effects last."""
+        """This patch with ``other``'s (effect, joint) entries replacing its own, ``other``'s effects last.
+
+        Replacing, not composing: ``other``'s values are the values (a fit's new estimate, a
+        patch file's entry over another's). To put ``other`` *on top of* this patch — a
+        randomization draw around a patched robot — use :meth:`composed`."""
         taken: dict[str, set[str]] = {}
         for e in other.effects:
             taken.setdefault(e.effect, set()).update(e.joints)
@@ -196,6 +200,39 @@ class ModelPatch:
             if rest is not None:
                 kept.append(rest)
         return ModelPatch(tuple(kept) + other.effects, self.robot if self.robot is not None else other.robot)
+
+    def composed(self, other: "ModelPatch") -> "ModelPatch":
+        """``other`` acting on top of this patch: on an (effect, joint) both carry, the values
+        compose as the effect's parameters say (:attr:`~adadex.sim.effects.Param.composition`) —
+        scales multiply (``kp_scale`` 0.3 composed with 1.05 is 0.315; ``mass_scale``,
+        ``damping_scale``, ``torque_limit`` likewise), offsets add (``damping`` 0.2 composed with
+        0.05 is 0.25; ``armature``, ``payload_mass``, delays, lags, encoder offsets likewise) — and
+        the result is clipped to the effect's bounds on that joint. Entries only one side carries
+        keep their value. Effect order as :meth:`updated` (``other``'s effects last); a composed
+        entry loses its ``ci95`` (the interval was of one side's value alone).
+
+        This is how :class:`~adadex.envs.tracking.TrackingEnv` puts a world's randomization draw on
+        its patch (:meth:`adadex.envs.randomization.Randomization.world_patch`).
+        """
+        if self.effects and other.effects:
+            other.check_model(self.model_id)
+        robot = self.robot if self.robot is not None else other.robot
+        mine = {(e.effect, j): (e, i) for e in self.effects for i, j in enumerate(e.joints)}
+        composed = []
+        for e in other.effects:
+            hit = [i for i, j in enumerate(e.joints) if (e.effect, j) in mine]
+            if not hit:
+                composed.append(e)
+                continue
+            values = e.values.copy()
+            for i in hit:
+                own, k = mine[(e.effect, e.joints[i])]
+                for p, how in enumerate(e.spec.compositions):
+                    a, b = own.values[k, p], e.values[i, p]
+                    values[i, p] = a * b if how == "scale" else a + b
+            lo, hi = e.spec.bounds(e.joints, robot)
+            composed.append(EffectInstance(e.effect, e.joints, np.clip(values, lo, hi), None, robot))
+        return self.updated(ModelPatch(tuple(composed), robot))
 
     def stage(self, *stages: str) -> "ModelPatch":
         """The effects acting at ``stages`` (``"model"``, ``"structure"``, ``"command"``, ``"sensor"``)."""

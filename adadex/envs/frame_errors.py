@@ -4,6 +4,11 @@ They are the paper's metrics (Sec. 4.1) at one frame, defined here, at the env's
 never imports evaluation code; :mod:`adadex.eval.metrics` builds trajectory means and success
 rates on them (and re-exports these names). :func:`frame_success` is the paper's per-frame success
 test (:class:`Thresholds`): the frames completion success counts, and the reward's ``success`` term.
+:func:`object_success` is the object-centric test reported beside it: the paper's test *and* the
+object within ``Thresholds.object_position`` (5 cm) of its reference. The paper's test averages the
+object and palm errors, so a frame with the palm on its reference passes with the object up to
+~19 cm off (0.5·T_o + 0.5·T_h ≤ 10 cm): it cannot tell a hand that carries the object from one that
+leaves it on the table; the object-centric test can.
 
 ``T_o`` object position error and ``T_h`` wrist (palm) position error in m, ``R_o`` and ``R_h``
 their rotation errors in rad (angle of :func:`adadex.quat.quat_diff`, so q ≡ −q), ``E_finger`` the
@@ -17,6 +22,9 @@ Example
 >>> err = frame_errors(pose + [0.03, 0, 0, 0, 0, 0, 0], pose, pose, pose, q + 0.1, q)
 >>> sorted(err) == sorted(ERROR_NAMES), round(float(err["T_o"]), 3), round(float(err["E_finger"]), 3)
 (True, 0.03, 0.1)
+>>> far = frame_errors(pose + [0.15, 0, 0, 0, 0, 0, 0], pose, pose, pose, q, q)    # object 15 cm off
+>>> bool(frame_success(far)), bool(object_success(far)), bool(object_success(err))
+(True, False, True)
 """
 
 from __future__ import annotations
@@ -51,17 +59,36 @@ def frame_errors(object_pose: torch.Tensor, ref_object_pose: torch.Tensor, palm_
 
 @dataclass(frozen=True)
 class Thresholds:
-    """Success thresholds (SI units): position in m, rotations in rad."""
+    """Success thresholds (SI units): positions and distances in m, rotations in rad.
+
+    The paper's (Sec. 4.1): ``position`` bounds 0.5·T_o + 0.5·T_h, ``rotation`` 0.5·R_o + 0.5·R_h,
+    ``finger`` E_finger (:func:`frame_success`).
+
+    The object-centric ones reported beside them (not the paper's):
+
+    * ``object_position`` (5 cm): bounds T_o alone in :func:`object_success` (a frame that meets the
+      paper's thresholds with the object within 5 cm of its reference) and in ``carried``;
+    * ``carry_motion`` (3 cm) and ``carry_fraction`` (0.8), the trajectory test ``carried``
+      (:func:`adadex.eval.metrics.trajectory_metrics`): over the frames where the *reference* object
+      is more than ``carry_motion`` from its start position, T_o ≤ ``object_position`` on at least
+      ``carry_fraction`` of them (frames never reached count as failures); a trajectory whose
+      reference object never moves that far is carried iff its object completion ≥ ``carry_fraction``.
+    """
 
     position: float = 0.10
     rotation: float = math.radians(60.0)
     finger: float = math.radians(40.0)
+    object_position: float = 0.05
+    carry_motion: float = 0.03
+    carry_fraction: float = 0.8
 
     def __post_init__(self):
-        for k in ("position", "rotation", "finger"):
+        for k in ("position", "rotation", "finger", "object_position", "carry_motion", "carry_fraction"):
             v = getattr(self, k)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"Thresholds.{k} must be a positive number, got {v}")
+        if self.carry_fraction > 1:
+            raise ValueError(f"Thresholds.carry_fraction must be in (0, 1], got {self.carry_fraction}")
 
 
 def frame_success(errors: dict, thresholds: Thresholds = Thresholds()):
@@ -70,3 +97,9 @@ def frame_success(errors: dict, thresholds: Thresholds = Thresholds()):
     th = thresholds
     return ((0.5 * errors["T_o"] + 0.5 * errors["T_h"] <= th.position)
             & (0.5 * errors["R_o"] + 0.5 * errors["R_h"] <= th.rotation) & (errors["E_finger"] <= th.finger))
+
+
+def object_success(errors: dict, thresholds: Thresholds = Thresholds()):
+    """The object-centric per-frame test: :func:`frame_success` and T_o ≤ ``object_position`` (bool,
+    the errors' shape; torch or numpy). Not the paper's; reported beside it (module docstring)."""
+    return frame_success(errors, thresholds) & (errors["T_o"] <= thresholds.object_position)

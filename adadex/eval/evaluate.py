@@ -7,7 +7,18 @@ errors the environment writes — no physics is recomputed. A trajectory that en
 or palm beyond the termination errors, unstable physics) counts its missing frames as failures.
 Each chunk's environment draws with its own seed (the first with ``seed``, chunk k with one derived
 from ``(seed, k)``), so a reference listed again beyond ``max_worlds`` meets new randomization
-draws, not a copy of its first episode.
+draws, not a copy of its first episode. Two policies evaluated on the same ``references`` list with
+the same ``seed`` and ``max_worlds`` meet the same draws in every episode (the env draws start
+states from one stream and per-step noise from another, neither depending on the actions), so
+their per-episode results pair up (:mod:`adadex.eval.paired`).
+
+Besides the summary, the result keeps every episode (``per_episode``: the reference's dataset index
+and name, its repeat — how many times the reference appeared before it in the list —, completion,
+mean-error success, object completion, carried, the mean errors, the return) and, when the rollouts
+hold rewards, ``return_completion_spearman``: the per-episode rank correlation of the return with
+completion and object completion (:mod:`adadex.eval.reward_check`). ``carried`` is measured against
+the reference object's motion as the dataset gives it (:func:`reference_motion`; a modulated
+rollout's reference entries show the edited reference).
 
 Example::
 
@@ -32,6 +43,11 @@ from tqdm.auto import tqdm
 from adadex.data.reference import ReferenceDataset
 from adadex.envs.tracking import TrackingConfig, TrackingEnv, episode_references
 from adadex.eval.metrics import ERROR_NAMES, Thresholds, from_rollout, summarize
+from adadex.eval.reward_check import episode_returns, spearman_by_episode
+
+#: per-episode values kept in ``per_episode`` (besides reference, name, repeat and return)
+EPISODE_FIELDS = ("completion", "success_mean_error", "object_completion", "carried", "frames", "ended_early",
+                  *ERROR_NAMES)
 
 
 def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajectory", "test"), *,
@@ -46,8 +62,12 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
         env_transform: called once per chunk, returns a transform to append to the env (a primer …).
         env_kwargs: passed to :class:`TrackingEnv` (``randomize``, ``patch``, ``latent_fn``, ``seed`` …).
 
-    Returns ``{"summary": {…}, "per_reference": {name: {…}}, "references": n, "wall_s": s}`` and,
-    with ``keep_rollouts``, the rollouts (one TensorDict per chunk) under ``"rollouts"``.
+    Returns ``{"summary": {…}, "per_reference": {name: {…}}, "per_episode": {field: [one value per
+    episode]}, "return_completion_spearman": {…} | None, "references": n, "wall_s": s}`` and, with
+    ``keep_rollouts``, the rollouts (one TensorDict per chunk) under ``"rollouts"``.
+    ``per_reference`` holds one entry per reference *name*: a reference listed several times shows
+    its last episode there; ``per_episode`` holds them all, in the order of the references list
+    (fields: ``reference``, ``name``, ``repeat`` and :data:`EPISODE_FIELDS`, plus ``return``).
     """
     if max_worlds < 1:
         raise ValueError(f"max_worlds must be ≥ 1, got {max_worlds}")
@@ -66,7 +86,7 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
         raise ValueError(f"{ds.path}: no reference in split {split} has a {config.window}-frame episode window")
     steps = config.window - 1
     chunks = [refs[i:i + max_worlds] for i in range(0, len(refs), max_worlds)]
-    per_chunks, names, rollouts = [], [], []
+    per_chunks, names, rollouts, returns = [], [], [], []
     seed = env_kwargs.pop("seed", 0)
     bar = tqdm(total=len(refs) * steps, unit="frame", desc="evaluate", disable=not progress)
     t0 = time.perf_counter()
@@ -80,7 +100,9 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
             names += [ds.entries[i]["name"] for i in chunk]
             td = env.rollout(steps, policy, tensordict=td, auto_reset=False, break_when_any_done=False,
                              callback=lambda *_: bar.update(len(chunk)))
-        per_chunks.append(from_rollout(td, lengths=torch.full((len(chunk),), steps), thresholds=thresholds))
+        per_chunks.append(from_rollout(td, lengths=torch.full((len(chunk),), steps), thresholds=thresholds,
+                                       reference_motion=reference_motion(ds, chunk, steps)))
+        returns.append(episode_returns(td))
         if keep_rollouts:
             rollouts.append(td)
         env.close()
@@ -92,9 +114,36 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
                                     "completion": float(per["completion"][i]), "frames": int(per["frames"][i]),
                                     **{k: float(per[k][i]) for k in ERROR_NAMES}}
                              for i, name in enumerate(names)}}
+    seen: dict[int, int] = {}
+    repeat = []
+    for r in refs:                      # the how-manieth time this reference is tracked
+        repeat.append(seen.get(r, 0))
+        seen[r] = repeat[-1] + 1
+    episodes = {"reference": list(refs), "name": names, "repeat": repeat}
+    for k in EPISODE_FIELDS:
+        v = per[k]
+        episodes[k] = [bool(x) for x in v.tolist()] if v.dtype == torch.bool else \
+            [int(x) for x in v.tolist()] if not v.is_floating_point() else [float(x) for x in v.tolist()]
+    spearman = None
+    if all(r is not None for r in returns):
+        episodes["return"] = [float(x) for x in torch.cat(returns).tolist()]
+        spearman = spearman_by_episode(episodes["return"], episodes)
+    out["per_episode"] = episodes
+    out["return_completion_spearman"] = spearman
     if keep_rollouts:
         out["rollouts"] = rollouts
     return out
+
+
+def reference_motion(dataset: ReferenceDataset, references, steps: int) -> torch.Tensor:
+    """(len(references), steps) float64: the reference object's distance from its start position (m)
+    at each frame an episode of ``steps`` steps records — step k (k = 1 … steps) tracks frame k of
+    the episode window, frame 0 being its start — as the dataset gives it (the unedited reference)."""
+    pose = dataset.frames["object_pose"]
+    base = torch.as_tensor([dataset.entries[r]["offset"] + dataset.entries[r]["window_start"] for r in references])
+    frames = base[:, None] + torch.arange(steps + 1)[None]
+    pos = torch.as_tensor(pose[frames.reshape(-1)])[..., :3].to(torch.float64).reshape(len(references), steps + 1, 3)
+    return torch.linalg.vector_norm(pos[:, 1:] - pos[:, :1], dim=-1)
 
 
 def chunk_seed(seed: int | None, chunk: int) -> int | None:
@@ -107,7 +156,9 @@ def chunk_seed(seed: int | None, chunk: int) -> int | None:
 
 
 def format_summary(summary: dict) -> str:
-    """Two lines for a terminal: success both ways and the mean errors."""
+    """Three lines for a terminal: success both ways, the object-centric measures and the mean errors."""
     return (f"success: mean-error {summary['success_mean_error_pct']:.1f} %, completion {summary['completion_pct']:.1f} %"
+            f"\nobject-centric: object completion {summary.get('object_completion_pct', float('nan')):.1f} %, "
+            f"carried {summary.get('carried_pct', float('nan')):.1f} %"
             f"\nT_o {summary['T_o']:.1f} cm, R_o {summary['R_o']:.2f} rad, T_h {summary['T_h']:.1f} cm, "
             f"R_h {summary['R_h']:.2f} rad, E_finger {summary['E_finger']:.3f} rad")

@@ -13,6 +13,20 @@ Success, two ways (:class:`Thresholds`, the paper's values by default):
 *completion*  per trajectory, the fraction of its frames meeting the same thresholds (frames it
               never reached count as failures), averaged over trajectories.
 
+The paper's metrics are the headline. Beside them, object-centric measures (not the paper's; the
+thresholds are :class:`Thresholds` fields) that tell a policy that carries the object from one that
+leaves it on the table, which the paper's averaged position test cannot (it passes a frame with the
+palm on its reference and the object up to ~19 cm off):
+
+*object completion*  per trajectory, the fraction of its frames meeting :func:`object_success` (the
+              paper's thresholds and T_o ≤ ``object_position`` = 5 cm), counted like completion;
+*carried*     per trajectory (bool): over its *moving* frames — where the reference object is more
+              than ``carry_motion`` = 3 cm from its start position — T_o ≤ ``object_position`` on at
+              least ``carry_fraction`` = 80 % of them (frames never reached count as failures); a
+              trajectory whose reference object never moves that far is carried iff its object
+              completion ≥ ``carry_fraction``. It needs the reference object's distance from its
+              start at each frame (``reference_motion``); without it ``carried`` is left out.
+
 :func:`from_rollout` reads the per-frame errors a tracking environment writes into each step's
 output (``("next", "privileged", "errors", name)``) from a TorchRL rollout of batch shape ``[B, T]``, so
 evaluation never recomputes physics. Each row is one trajectory, up to and including its first
@@ -26,6 +40,10 @@ Example
 >>> m = trajectory_metrics(err)
 >>> m["success_mean_error"].tolist(), m["completion"].tolist()
 ([True, False], [1.0, 0.0])
+>>> err["T_o"][1] = 0.15                                 # 15 cm: the paper's test passes, the object's fails
+>>> m = trajectory_metrics(err, reference_motion=torch.tensor([[0.0, 0.05, 0.1]] * 2))
+>>> m["completion"].tolist(), m["object_completion"].tolist(), m["carried"].tolist()
+([1.0, 1.0], [1.0, 0.0], [True, False])
 """
 
 from __future__ import annotations
@@ -34,10 +52,10 @@ import math
 
 import torch
 
-from adadex.envs.frame_errors import ERROR_NAMES, Thresholds, frame_errors, frame_success
+from adadex.envs.frame_errors import ERROR_NAMES, Thresholds, frame_errors, frame_success, object_success
 
-__all__ = ["ERROR_NAMES", "Thresholds", "frame_errors", "frame_success", "from_rollout", "summarize",
-           "trajectory_metrics"]
+__all__ = ["ERROR_NAMES", "Thresholds", "frame_errors", "frame_success", "from_rollout", "object_success",
+           "reference_motion_from_rollout", "summarize", "trajectory_metrics"]
 
 
 def _check(errors: dict) -> tuple[int, int]:
@@ -52,16 +70,21 @@ def _check(errors: dict) -> tuple[int, int]:
 
 def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | None = None,
                        lengths: torch.Tensor | None = None,
-                       thresholds: Thresholds = Thresholds()) -> dict[str, torch.Tensor]:
+                       thresholds: Thresholds = Thresholds(),
+                       reference_motion: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Per-trajectory means and both success measures from (B, T) per-frame errors.
 
     Args:
         valid: (B, T) bool, the frames each trajectory actually tracked (default: all).
         lengths: (B,) frames each trajectory should have tracked (default: its valid frames); a
             trajectory with fewer valid frames ended early.
+        reference_motion: (B, T) the reference object's distance from its start position at each
+            frame, in m (valid or not: it is the reference's); needed for ``carried``.
 
     Returns (B,) tensors: the mean of each error (NaN for an empty trajectory), ``frames``,
-    ``ended_early``, ``success_mean_error`` (bool), ``completion`` (fraction), ``empty`` (bool).
+    ``ended_early``, ``success_mean_error`` (bool), ``completion`` (fraction), ``empty`` (bool),
+    ``object_completion`` (fraction) and, with ``reference_motion``, ``carried`` (bool) and
+    ``moving_frames`` (how many frames the carry test looked at; 0: it used object completion).
     """
     B, T = _check(errors)
     valid = torch.ones(B, T, dtype=torch.bool) if valid is None else valid.to(torch.bool)
@@ -79,6 +102,20 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
     out["ended_early"] = n < target
     out["success_mean_error"] = (~out["empty"]) & (~out["ended_early"]) & frame_success(out, thresholds)
     out["completion"] = torch.where(target > 0, good.sum(1) / target.clamp(min=1), 0.0).to(torch.float64)
+    held = object_success(errors, thresholds) & valid
+    out["object_completion"] = torch.where(target > 0, held.sum(1).to(torch.float64) / target.clamp(min=1), 0.0)
+    if reference_motion is not None:
+        motion = torch.as_tensor(reference_motion)
+        if tuple(motion.shape) != (B, T):
+            raise ValueError(f"reference_motion must have the errors' shape {(B, T)}, got {tuple(motion.shape)}")
+        moving = motion > thresholds.carry_motion
+        near = valid & (errors["T_o"] <= thresholds.object_position)
+        m = moving.sum(1)
+        followed = (moving & near).sum(1)
+        carried = torch.where(m > 0, followed >= thresholds.carry_fraction * m,
+                              out["object_completion"] >= thresholds.carry_fraction)
+        out["carried"] = carried & ~out["empty"]
+        out["moving_frames"] = m
     return out
 
 
@@ -89,23 +126,54 @@ def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
     n = int(keep.sum())
     out = {"trajectories": n, "empty": int(per_traj["empty"].sum())}
     if n == 0:
-        return out | {k: math.nan for k in (*ERROR_NAMES, "success_mean_error_pct", "completion_pct")}
+        return out | {k: math.nan for k in (*ERROR_NAMES, "success_mean_error_pct", "completion_pct",
+                                            "object_completion_pct", "carried_pct")}
     for k in ERROR_NAMES:
         scale = 100.0 if k in ("T_o", "T_h") else 1.0
         out[k] = float(per_traj[k][keep].mean()) * scale
     out["success_mean_error_pct"] = 100.0 * float(per_traj["success_mean_error"][keep].double().mean())
     out["completion_pct"] = 100.0 * float(per_traj["completion"][keep].mean())
+    out["object_completion_pct"] = 100.0 * float(per_traj["object_completion"][keep].mean())
+    out["carried_pct"] = (100.0 * float(per_traj["carried"][keep].double().mean()) if "carried" in per_traj
+                          else math.nan)
     return out
 
 
+#: what :func:`reference_motion_from_rollout` reads: the current reference frame (offset 0 of the
+#: env's reference window) and the reference object's pose at the episode's first frame
+REF_OBJECT_POSE_KEY = ("next", "reference", "object_pose")
+REF_OBJECT_START_KEY = ("next", "object", "reference_start")
+
+
+def reference_motion_from_rollout(td) -> torch.Tensor | None:
+    """(…, T) the reference object's distance from its start position at each frame of a tracking
+    env's rollout (``[…, T]``), from the entries the env writes: ``("next", "reference",
+    "object_pose")`` at offset 0 against ``("next", "object", "reference_start")``; ``None`` when
+    the rollout lacks them or holds a modulation (channel R shows the *edited* reference in those
+    entries, so the original's motion must come from the dataset, as
+    :func:`adadex.eval.evaluate.evaluate` does)."""
+    keys = set(td.keys(include_nested=True))
+    if REF_OBJECT_POSE_KEY not in keys or REF_OBJECT_START_KEY not in keys or ("next", "modulation") in keys \
+            or "modulation" in keys:
+        return None
+    ref = td.get(REF_OBJECT_POSE_KEY)[..., 0, :3]
+    start = td.get(REF_OBJECT_START_KEY)[..., :3]
+    return torch.linalg.vector_norm(ref.to(torch.float64) - start.to(torch.float64), dim=-1)
+
+
 def from_rollout(td, *, errors_key=("next", "privileged", "errors"), lengths: torch.Tensor | None = None,
-                 thresholds: Thresholds = Thresholds()) -> dict[str, torch.Tensor]:
+                 thresholds: Thresholds = Thresholds(),
+                 reference_motion: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """:func:`trajectory_metrics` of a TorchRL rollout TensorDict of batch shape ``[..., T]`` (time
     last): ``[B, T]`` from one env, ``[workers, B, T]`` from a multi-process collector, … — every
     leading index is one trajectory, in row-major order.
 
     A trajectory's frames run up to and including its first ``("next", "done")``; frames after
     it (an auto-reset next episode) are not counted.
+
+    ``reference_motion`` (the rollout's batch shape, m) is what ``carried`` needs; by default it is
+    read from the rollout (:func:`reference_motion_from_rollout`), and ``carried`` is left out
+    where that is not possible.
     """
     if td.batch_dims < 2:
         raise ValueError(f"expected a rollout of batch shape [..., T] with time last, got {list(td.batch_size)}")
@@ -115,4 +183,8 @@ def from_rollout(td, *, errors_key=("next", "privileged", "errors"), lengths: to
     errors = {k: errs.get(k).reshape(td.batch_size) for k in ERROR_NAMES}
     done = td.get(("next", "done")).reshape(td.batch_size).to(torch.bool)
     after_done = torch.cumsum(done.int(), dim=1) - done.int() > 0
-    return trajectory_metrics(errors, valid=~after_done, lengths=lengths, thresholds=thresholds)
+    motion = reference_motion_from_rollout(td) if reference_motion is None else torch.as_tensor(reference_motion)
+    if motion is not None:
+        motion = motion.reshape(td.batch_size)
+    return trajectory_metrics(errors, valid=~after_done, lengths=lengths, thresholds=thresholds,
+                              reference_motion=motion)

@@ -1,22 +1,32 @@
 """Result tables and plots over several evaluations (the paper's Table 1 layout).
 
 :func:`results_table` turns ``{name: summary}`` (summaries from :func:`adadex.eval.evaluate.evaluate`)
-into a Markdown table — success (mean-error / completion, %), T_o and T_h (cm), R_o and R_h (rad),
-E_finger (rad) — and :func:`plot_results` draws the success rates side by side.
+into a Markdown table — success (mean-error / completion, %, the paper's), the object-centric object
+completion and carried (%, :mod:`adadex.eval.metrics`; "—" for a summary stored without them), T_o
+and T_h (cm), R_o and R_h (rad), E_finger (rad) — and :func:`plot_results` draws the success rates
+side by side.
 
 Example
 -------
 >>> row = {"success_mean_error_pct": 50.0, "completion_pct": 60.0, "T_o": 3.0, "R_o": 0.2, "T_h": 2.0,
-...        "R_h": 0.1, "E_finger": 0.05, "trajectories": 10}
+...        "R_h": 0.1, "E_finger": 0.05, "trajectories": 10, "object_completion_pct": 40.0, "carried_pct": 30.0}
 >>> print(results_table({"tracker": row}).splitlines()[2])
-| tracker | 10 | 50.0 / 60.0 | 3.00 | 0.200 | 2.00 | 0.100 | 0.050 |
+| tracker | 10 | 50.0 / 60.0 | 40.0 / 30.0 | 3.00 | 0.200 | 2.00 | 0.100 | 0.050 |
 """
 
 from __future__ import annotations
 
+import math
+
 from adadex.io import atomic_write
 
-_COLUMNS = ("policy", "refs", "success % (mean-err / compl.)", "T_o cm", "R_o rad", "T_h cm", "R_h rad", "E_finger rad")
+_COLUMNS = ("policy", "refs", "success % (mean-err / compl.)", "object % (compl. / carried)", "T_o cm", "R_o rad",
+            "T_h cm", "R_h rad", "E_finger rad")
+
+
+def _pct(s: dict, key: str) -> str:
+    v = s.get(key)
+    return "—" if v is None or not math.isfinite(v) else f"{v:.1f}"
 
 
 def results_table(results: dict[str, dict]) -> str:
@@ -24,7 +34,8 @@ def results_table(results: dict[str, dict]) -> str:
     lines = ["| " + " | ".join(_COLUMNS) + " |", "|" + "---|" * len(_COLUMNS)]
     for name, s in results.items():
         lines.append(f"| {name} | {s['trajectories']} | {s['success_mean_error_pct']:.1f} / {s['completion_pct']:.1f} | "
-                     f"{s['T_o']:.2f} | {s['R_o']:.3f} | {s['T_h']:.2f} | {s['R_h']:.3f} | {s['E_finger']:.3f} |")
+                     f"{_pct(s, 'object_completion_pct')} / {_pct(s, 'carried_pct')} | {s['T_o']:.2f} | "
+                     f"{s['R_o']:.3f} | {s['T_h']:.2f} | {s['R_h']:.3f} | {s['E_finger']:.3f} |")
     return "\n".join(lines)
 
 

@@ -12,14 +12,17 @@ Per training seed (``seed_<s>/`` under ``out``):
 ``baselines/ppo``          vanilla PPO on all training references (paper B.2)
 ``baselines/il_rl``        DexTrack-style IL+RL: PPO + imitation of the logged teacher actions (B.2.1)
 ``scaling/frac_<f>``       generalists distilled from a fraction of the references (Fig. 6)
-``eval/<split>/<cond>/``   one ``<row>.json`` per row: the evaluation summary and per-reference results
+``eval/<split>/<cond>/``   one ``<row>/stage.json`` per row: the evaluation summary, per-reference and
+                           per-episode results, and the return–completion rank correlation
 =========================  ==========================================================================
 
 then, over all seeds, ``table1.json`` (``{split: {condition: {row: {metric: mean, metric_ci95:
-[lo, hi]}}}}``, :mod:`adadex.eval.table1`), ``table1.md`` and ``figures/``: the ablation bars, Fig. 4
-(original, modulated and executed object path), Fig. 5 (the modulated latent decoded against the
-object), Fig. 6 (data scaling), Fig. 12 (latent smoothness ρ), and how much each modulator uses each
-of its channels (``channel_usage.png`` / ``.json``: mean |action| per entry).
+[lo, hi], diff_vs_tracker: {metric: d}, diff_vs_tracker_ci95: {metric: [lo, hi]}}}}}``: intervals
+bootstrapped over test references pooled across seeds, differences paired per episode, as every row
+of a seed meets the same draws; :mod:`adadex.eval.table1`), ``table1.md`` and ``figures/``: the
+ablation bars, Fig. 4 (original, modulated and executed object path), Fig. 5 (the modulated latent
+decoded against the object), Fig. 6 (data scaling), Fig. 12 (latent smoothness ρ), and how much each
+modulator uses each of its channels (``channel_usage.png`` / ``.json``: mean |action| per entry).
 
 **Seeds side by side.** ``seed_workers=2`` runs each seed's chain in its own process (the table
 and figures are made in the main one). On 2 cores this fills the core that one seed leaves idle while it
@@ -358,8 +361,11 @@ class Pipeline:
                         nthread=self.cfg.env_threads, keep_rollouts=keep_rollouts)
 
     def evaluations(self, seed: int, root: Path, paths: dict) -> dict:
-        """Every row on both splits, nominal and randomized; the same environment seed for every row of
-        a seed (common random numbers: rows differ by their policy, not their draws)."""
+        """Every row on both splits, nominal and randomized; the same environment seed, references and
+        repeats for every row of a seed (common random numbers: rows differ by their policy, not their
+        draws, so their episodes pair up). Returns each row's stored result by (split, condition,
+        row): ``summary`` and, for evaluations run since they were kept, ``per_episode`` and
+        ``return_completion_spearman`` (a stage stored by an older run has neither)."""
         results = {}
         for split in EVAL_SPLITS:
             for condition in ("nominal", "randomized"):
@@ -370,10 +376,11 @@ class Pipeline:
 
                     def run(row=row, split=split, condition=condition):
                         r = self.evaluate(self.policy(row, paths), split, condition, 20_000 + seed)
-                        return {"summary": r["summary"], "per_reference": r["per_reference"]}
+                        return {k: r[k] for k in ("summary", "per_reference", "per_episode",
+                                                  "return_completion_spearman")}
 
                     results[(split, condition, row)] = self._stage(
-                        folder, settings, run, label=f"seed {seed} evaluate {row} on {split}, {condition}")["summary"]
+                        folder, settings, run, label=f"seed {seed} evaluate {row} on {split}, {condition}")
         return results
 
     def scaling(self, seed: int, root: Path, rollouts: str, tracker: str) -> dict:
@@ -391,8 +398,8 @@ class Pipeline:
 
     # -- all of it ------------------------------------------------------------------------------
     def chain(self, seed: int) -> tuple[dict, dict, dict]:
-        """One training seed, start to end: (policy paths by row, evaluation summaries by (split,
-        condition, row), Fig. 6 summaries by fraction)."""
+        """One training seed, start to end: (policy paths by row, evaluation results by (split,
+        condition, row) as :meth:`evaluations` returns them, Fig. 6 summaries by fraction)."""
         root = self.out / f"seed_{seed}"
         teachers = self.specialists(seed, root)
         rollouts = self.rollouts(seed, root, teachers)
@@ -415,15 +422,17 @@ class Pipeline:
         else:
             chains = [self.chain(s) for s in seeds]
         summaries: dict = {}
+        episodes: dict = {}        # per key, one per_episode record (or None: an older stage) per seed, in seed order
         scaling: dict = {}
         paths_by_seed = {}
         for seed, (paths, evaluations, fractions) in zip(seeds, chains):
             paths_by_seed[seed] = paths
-            for key, s in evaluations.items():
-                summaries.setdefault(key, []).append(s)
+            for key, r in evaluations.items():
+                summaries.setdefault(key, []).append(r["summary"])
+                episodes.setdefault(key, []).append(r.get("per_episode"))
             for f, s in fractions.items():
                 scaling.setdefault(f, []).append(s)
-        table = aggregate(summaries)
+        table = aggregate(summaries, episodes)
         atomic_write_text(self.out / "table1.json", json.dumps(table, indent=1))
         atomic_write_text(self.out / "table1.md", table_markdown(table) + "\n")
         figures = self.figures(table, scaling, paths_by_seed[self.cfg.seeds[0]], self.cfg.seeds[0])

@@ -94,3 +94,54 @@ def test_chunks_beyond_max_worlds_meet_new_draws(tiny_dataset):
     assert not torch.allclose(starts[0], starts[1])
     one = evaluate(replay_policy(), tiny_dataset, references=idx[:1], max_worlds=1, **kw)
     assert torch.equal(one["rollouts"][0][OBJECT_START][0, 0], starts[0])
+
+
+def test_per_episode_results_pair_up_and_carry_the_object_measures(tiny_dataset):
+    """Every episode is kept (a reference listed twice: repeats 0 and 1), with the object-centric
+    measures and the return; the reference motion ``carried`` is measured on is the dataset's, the
+    same the env writes into the rollout; the return–completion rank correlation is reported."""
+    from adadex.data.reference import ReferenceDataset
+    from adadex.envs.randomization import Randomization
+    from adadex.envs.tracking import episode_references
+    from adadex.eval.evaluate import EPISODE_FIELDS, reference_motion
+    from adadex.eval.metrics import reference_motion_from_rollout
+
+    ds = ReferenceDataset(tiny_dataset)
+    refs = episode_references(ds, None, CFG.window)[:3] * 2
+    kw = dict(config=CFG, progress=False, randomize=Randomization(), seed=2, keep_rollouts=True, max_worlds=4)
+    res = evaluate(replay_policy(), tiny_dataset, references=refs, **kw)
+    ep = res["per_episode"]
+    assert ep["reference"] == refs and ep["repeat"] == [0, 0, 0, 1, 1, 1]
+    assert set(EPISODE_FIELDS) <= set(ep) and "return" in ep
+    assert all(len(v) == len(refs) for v in ep.values())
+    assert res["summary"]["completion_pct"] == pytest.approx(100 * sum(ep["completion"]) / len(refs))
+    assert res["summary"]["object_completion_pct"] == pytest.approx(100 * sum(ep["object_completion"]) / len(refs))
+    assert res["summary"]["carried_pct"] == pytest.approx(100 * sum(ep["carried"]) / len(refs))
+    assert all(o <= c for o, c in zip(ep["object_completion"], ep["completion"]))
+    rho = res["return_completion_spearman"]
+    assert rho["episodes"] == len(refs) and set(rho) == {"completion", "object_completion", "episodes"}
+    for k, td in enumerate(res["rollouts"]):
+        chunk = refs[4 * k: 4 * (k + 1)]
+        assert torch.allclose(reference_motion(ds, chunk, CFG.window - 1), reference_motion_from_rollout(td))
+
+
+def test_two_policies_meet_the_same_draws(tiny_dataset):
+    """Table rows are compared episode by episode: with the same seed and reference list, a policy that
+    acts otherwise meets the same start displacements (the env draws starts and per-step noise from
+    two streams the actions do not touch)."""
+    from adadex.data.reference import ReferenceDataset
+    from adadex.envs.observation import OBJECT_START
+    from adadex.envs.randomization import Randomization
+    from adadex.envs.tracking import episode_references
+
+    refs = episode_references(ReferenceDataset(tiny_dataset), None, CFG.window)[:2] * 2
+    kw = dict(config=CFG, progress=False, randomize=Randomization(), seed=9, keep_rollouts=True, max_worlds=3,
+              references=refs)
+    drift = TensorDictModule(lambda q: torch.full_like(q, 0.05), in_keys=[("proprio", "joint_pos")],
+                             out_keys=["action"])
+    a = evaluate(replay_policy(), tiny_dataset, **kw)
+    b = evaluate(drift, tiny_dataset, **kw)
+    assert a["per_episode"]["completion"] != b["per_episode"]["completion"] or \
+        a["per_episode"]["E_finger"] != b["per_episode"]["E_finger"]
+    for ta, tb in zip(a["rollouts"], b["rollouts"]):
+        assert torch.equal(ta[OBJECT_START][:, 0], tb[OBJECT_START][:, 0])

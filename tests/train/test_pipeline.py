@@ -62,6 +62,16 @@ def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
                     lo, hi = entry[f"{m}_ci95"]
                     assert lo <= entry[m] <= hi
                 assert 0 <= entry["completion_pct"] <= 100
+                # intervals over references from the per-episode results; each row paired with the tracker
+                assert entry["ci"] == "bootstrap" and entry["episodes"] > 0
+                if row == "tracker":
+                    assert "diff_vs_tracker" not in entry
+                else:
+                    assert set(entry["diff_vs_tracker"]) == set(METRICS) == set(entry["diff_vs_tracker_ci95"])
+                    for m in METRICS:
+                        lo, hi = entry["diff_vs_tracker_ci95"][m]
+                        assert lo <= entry["diff_vs_tracker"][m] <= hi
+                        assert entry["diff_vs_tracker"][m] == pytest.approx(entry[m] - rows["tracker"][m], abs=1e-9)
     md = (out / "table1.md").read_text()
     for label in ("kinematic replay", "IL+RL", "+R+O+T", "O only", "unseen object, randomized"):
         assert label in md
@@ -81,6 +91,9 @@ def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
     # the preset's short episodes reach every stage, and are part of what a stage was run with
     marker = json.loads((seed0 / "eval" / "unseen_trajectory" / "randomized" / "tracker" / "stage.json").read_text())
     assert marker["settings"]["window"] == 60
+    episodes = marker["result"]["per_episode"]
+    assert len(episodes["completion"]) == marker["result"]["summary"]["trajectories"] and "carried" in episodes
+    assert "Difference to the tracker" in md
     assert Tracker.load(seed0 / "generalist" / "tracker.pt").config["residual"] == 0.25
     # the IL+RL baseline trained with the imitation term, vanilla PPO without
     il = (seed0 / "baselines" / "il_rl" / "metrics.csv").read_text().splitlines()[0]

@@ -146,12 +146,18 @@ class EffectInstance:
 @dataclass(frozen=True)
 class ModelPatch:
     """An ordered set of effects; the same (effect, joint) pair may appear only once. ``robot``: the
-    joint table of the user model the patch belongs to (None: the built-in robot)."""
+    joint table of the user model the patch belongs to (None: the model of the effects — a user
+    model's effects carry its table — else the built-in robot)."""
 
     effects: tuple[EffectInstance, ...] = ()
     robot: object = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
+        if self.robot is None:   # effects of a user's model keep their model: identity travels with them
+            owners = {e.robot.model_id: e.robot for e in self.effects if e.robot is not None}
+            if len(owners) > 1:
+                raise PatchError(f"the effects belong to different models: {', '.join(sorted(owners))}")
+            object.__setattr__(self, "robot", next(iter(owners.values()), None))
         if self.robot is not None and self.robot.builtin:
             object.__setattr__(self, "robot", None)
         object.__setattr__(self, "effects", tuple(
@@ -191,6 +197,8 @@ class ModelPatch:
         Replacing, not composing: ``other``'s values are the values (a fit's new estimate, a
         patch file's entry over another's). To put ``other`` *on top of* this patch — a
         randomization draw around a patched robot — use :meth:`composed`."""
+        if self.effects and other.effects:
+            other.check_model(self.model_id)
         taken: dict[str, set[str]] = {}
         for e in other.effects:
             taken.setdefault(e.effect, set()).update(e.joints)

@@ -31,7 +31,7 @@ FAIL_RATIO = 3.0
 FAIL_ABS = 2e-3
 
 
-@dataclass
+@dataclass(kw_only=True)
 class Comparison:
     """Model vs measurement for one recording under one patch (arrays are (S, T, J))."""
 
@@ -112,7 +112,7 @@ def compare(recording, patch: ModelPatch | None = None, *, replayer=None, nthrea
 
     rep = replayer if replayer is not None else Replayer(recording, nthread=nthread)
     patch = patch if patch is not None else ModelPatch(robot=rep.robot)
-    return Comparison(recording, patch, rep.simulate(patch))
+    return Comparison(recording=recording, patch=patch, simulated=rep.simulate(patch))
 
 
 def reversal_mask(command: np.ndarray, dt: float, window_s: float = REVERSAL_WINDOW_S) -> np.ndarray:
@@ -127,7 +127,7 @@ def reversal_mask(command: np.ndarray, dt: float, window_s: float = REVERSAL_WIN
     return out
 
 
-@dataclass
+@dataclass(kw_only=True)
 class Localization:
     """Where the model fails: machine-readable findings plus the same in sentences."""
 
@@ -223,4 +223,5 @@ def localize(cmp: Comparison, *, window_s: float = 0.25, top_windows: int = 5) -
     for d in windows[:top_windows]:
         sentences.append(f"Worst window: {d['joint']} in {d['sequence']}, t = {d['t_start']:.2f}–{d['t_end']:.2f} s "
                          f"(RMS {np.degrees(d['rms_rad']):.2f}°).")
-    return Localization(failing, joints, windows[:top_windows], sentences)
+    return Localization(failing_joints=failing, joints=joints, worst_windows=windows[:top_windows],
+                        sentences=sentences)

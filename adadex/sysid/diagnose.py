@@ -80,7 +80,7 @@ class DiagnosisError(AdadexError, ValueError):
     """A diagnosis file that cannot be read."""
 
 
-@dataclass
+@dataclass(kw_only=True)
 class Candidate:
     effect: str
     joint: str
@@ -92,7 +92,7 @@ class Candidate:
     alternatives: list[str] = field(default_factory=list)
 
 
-@dataclass
+@dataclass(kw_only=True)
 class Diagnosis:
     verdict: str
     baseline_error: dict
@@ -112,9 +112,9 @@ class Diagnosis:
             pname = get_effect(h["effect"]).param_names[0]
             values = np.array(h["params"][pname])[:, None]
             ci = h.get("ci95", {}).get(pname)
-            p = p + ModelPatch((EffectInstance(h["effect"], tuple(h["joints"]), values,
-                                               None if not ci else np.array(ci, dtype=float)[:, None],
-                                               robot=robot),), robot)
+            effect = EffectInstance(effect=h["effect"], joints=tuple(h["joints"]), values=values,
+                                    ci95=None if not ci else np.array(ci, dtype=float)[:, None], robot=robot)
+            p = p + ModelPatch(effects=(effect,), robot=robot)
         return p
 
     def to_dict(self) -> dict:
@@ -132,13 +132,22 @@ class Diagnosis:
         p = Path(directory_or_file)
         p = p / "diagnosis.json" if p.is_dir() else p
         try:
-            d = cls(**json.loads(p.read_text(encoding="utf-8")))
+            fields = json.loads(p.read_text(encoding="utf-8"))
+            if (isinstance(fields, dict) and fields.get("verdict") == "nothing_missing"
+                    and isinstance(fields.get("train_only_joints"), str) and isinstance(fields.get("model"), dict)):
+                # an earlier adadex built a nothing-missing Diagnosis positionally: the model id landed in
+                # train_only_joints and the stage times in model (read such a file as it was meant)
+                fields = {**fields, "train_only_joints": [], "model": fields["train_only_joints"],
+                          "stage_times_s": fields["model"]}
+            d = cls(**fields)
         except FileNotFoundError:
             raise DiagnosisError(f"{p}: no such diagnosis (write one with `adadex sysid diagnose … --out DIR`)") from None
         except (OSError, ValueError, TypeError) as e:   # bad UTF-8 or JSON, missing or unknown fields
             raise DiagnosisError(f"{p}: not a readable diagnosis ({type(e).__name__}: {e})") from None
-        if not (isinstance(d.verdict, str) and isinstance(d.selected, list) and isinstance(d.hypotheses, list)):
-            raise DiagnosisError(f"{p}: not a readable diagnosis (verdict, selected or hypotheses of the wrong type)")
+        if not (isinstance(d.verdict, str) and isinstance(d.selected, list) and isinstance(d.hypotheses, list)
+                and isinstance(d.model, str) and isinstance(d.train_only_joints, list)):
+            raise DiagnosisError(f"{p}: not a readable diagnosis (verdict, selected, hypotheses, model or "
+                                 "train_only_joints of the wrong type)")
         return d
 
 
@@ -172,7 +181,7 @@ def _patch_of(selected_per_joint: dict, base: ModelPatch) -> ModelPatch:
     return p
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class _Setting:
     """What every step of a diagnosis reads: the replayer, the starting patch, the noise floors and
     which sequences train and which score each joint."""
@@ -222,11 +231,14 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     if joints is not None:
         failing = list(joints)
     if not failing:
-        return Diagnosis("nothing_missing", baseline, [], [], {}, findings, time.perf_counter() - t0,
-                         rep.robot.model_id, times)
+        return Diagnosis(verdict="nothing_missing", baseline_error=baseline, hypotheses=[], selected=[],
+                         explained_fraction={}, findings=findings, wall_time_s=time.perf_counter() - t0,
+                         train_only_joints=[], model=rep.robot.model_id,
+                         stage_times_s={k: round(v, 3) for k, v in times.items()})
 
     seq_meta = list(recording.meta.get("sequences") or [{} for _ in range(recording.num_sequences)])
-    setting = _Setting(rep, base_patch, list(recording.joint_names), noise, seq_meta, heldout_mask(recording))
+    setting = _Setting(replayer=rep, base_patch=base_patch, joint_names=list(recording.joint_names), noise=noise,
+                       seq_meta=seq_meta, holdout=heldout_mask(recording))
     first_rounds: dict[str, list[Candidate]] = {}
     selected_per_joint: dict[str, list[Candidate]] = {}
     explained: dict[str, float] = {}
@@ -293,9 +305,10 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     if train_only:
         sentences.insert(0, f"Too few sequences to hold any out on {', '.join(train_only)} (at least 3 of a "
                             f"joint's own are needed): scored on the training sequences only, no held-out figure.")
-    return Diagnosis(verdict, baseline, hypotheses, selected, explained, findings + sentences,
-                     time.perf_counter() - t0, train_only, rep.robot.model_id,
-                     {k: round(v, 3) for k, v in times.items()})
+    return Diagnosis(verdict=verdict, baseline_error=baseline, hypotheses=hypotheses, selected=selected,
+                     explained_fraction=explained, findings=findings + sentences,
+                     wall_time_s=time.perf_counter() - t0, train_only_joints=train_only, model=rep.robot.model_id,
+                     stage_times_s={k: round(v, 3) for k, v in times.items()})
 
 
 def _mark_train_only(hypotheses: list[dict], selected: list[dict], train_only: list[str]) -> None:
@@ -392,8 +405,9 @@ def _fit_and_score_candidates(setting: _Setting, joint: str, names: list[str], p
         red_tr = _reduction(train_before, after, n2)
         red_ho = _reduction(held_before, held_after, n2)
         gain = red_ho - _reduction(held_before, cur_held, n2)
-        return Candidate(name, joint, value, ci, red_tr, red_ho,
-                         gain - COMPLEXITY_PENALTY * len(get_effect(name).params))
+        return Candidate(effect=name, joint=joint, value=value, ci95=ci, train_error_reduction=red_tr,
+                         heldout_error_reduction=red_ho,
+                         score=gain - COMPLEXITY_PENALTY * len(get_effect(name).params))
 
     cands = []
     grids, ranked = _screen_on_grid(fitter, names)
@@ -529,7 +543,8 @@ def _single_load_alternative(setting: _Setting, selected_per_joint: dict, explai
     lo, hi = (float(b[0, 0]) for b in eff.bounds([k], setting.replayer.robot))
     ci = _load_ci95(lambda v: cost(k, v), x, lo, hi)
     red = float(np.mean(reds))
-    return Candidate("payload_mass", k, x, ci, red, red, red - COMPLEXITY_PENALTY), affected
+    return Candidate(effect="payload_mass", joint=k, value=x, ci95=ci, train_error_reduction=red,
+                     heldout_error_reduction=red, score=red - COMPLEXITY_PENALTY), affected
 
 
 def _load_ci95(cost, x: float, lo: float, hi: float) -> tuple[float, float]:
@@ -582,9 +597,10 @@ def _refit_jointly(setting: _Setting, selected_per_joint: dict, passes: int, ski
     for _ in range(passes):
         for joint, chosen in selected_per_joint.items():
             for c in ([] if joint in skip else chosen):
-                others = ModelPatch(tuple(
-                    e for e in _patch_of(selected_per_joint, setting.base_patch).effects
-                    if not (e.joints == (joint,) and e.effect == c.effect)))
+                full = _patch_of(selected_per_joint, setting.base_patch)
+                others = ModelPatch(effects=tuple(e for e in full.effects
+                                                  if not (e.joints == (joint,) and e.effect == c.effect)),
+                                    robot=full.robot)   # the model's identity: a user model's joints stay its own
                 train, _ = setting.sequences(joint)
                 if moves.get(joint):
                     cols = [joint] + list(moves[joint])

@@ -48,7 +48,7 @@ class ExcitationError(AdadexError, ValueError):
     """Bad excitation parameters (unknown joint, kind or pose, non-positive rate or duration)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ExcitationPlan:
     """Commands to send: ``command`` (S, T, J) for ``joint_names`` at ``time`` (T,), from ``initial_qpos``."""
 
@@ -80,8 +80,8 @@ class ExcitationPlan:
     @classmethod
     def from_recording(cls, rec) -> "ExcitationPlan":
         seqs = rec.meta.get("sequences") or [{"label": lab} for lab in rec.sequence_labels]
-        return cls(rec.time, tuple(rec.joint_names), rec.command, rec.initial_qpos, tuple(seqs),
-                   getattr(rec, "robot", None))
+        return cls(time=rec.time, joint_names=tuple(rec.joint_names), command=rec.command,
+                   initial_qpos=rec.initial_qpos, sequences=tuple(seqs), robot=getattr(rec, "robot", None))
 
     @classmethod
     def load(cls, path, *, robot=None) -> "ExcitationPlan":

@@ -23,7 +23,7 @@ from adadex.sim.effects import get_effect
 from adadex.sim.patch import EffectInstance, ModelPatch
 
 
-@dataclass
+@dataclass(kw_only=True)
 class FitResult:
     effect: str
     joint: str
@@ -113,7 +113,8 @@ class JointFitter:
                 best_x, best_c = _compass(cost, best_x, best_c, a, b, 100 * xtol_frac * (hi - lo),
                                           xtol_frac * (hi - lo))
         ci = self._ci95(effect, best_x, lo, hi)
-        return FitResult(effect, self.joint, best_x, ci, before, best_c, self.evaluations - start)
+        return FitResult(effect=effect, joint=self.joint, value=best_x, ci95=ci, mse_before=before, mse_after=best_c,
+                         evaluations=self.evaluations - start)
 
     def _ci95(self, effect: str, x: float, lo: float, hi: float) -> tuple[float, float]:
         h = 1e-3 * (hi - lo)
@@ -195,8 +196,9 @@ def fit_patch(recording, additions, *, base_patch: ModelPatch | None = None, nth
             r = JointFitter(rep, j, sequences_moving(recording, j), base + added).fit(effect)
             values.append([r.value])
             intervals.append([list(r.ci95)])
-        added = added + ModelPatch((EffectInstance(effect, tuple(joints), np.array(values), np.array(intervals),
-                                                   robot=rep.robot),), rep.robot)
+        fitted = EffectInstance(effect=effect, joints=tuple(joints), values=np.array(values),
+                                ci95=np.array(intervals), robot=rep.robot)
+        added = added + ModelPatch(effects=(fitted,), robot=rep.robot)
     return added
 
 

@@ -19,7 +19,7 @@ from a snapshot), which is what makes fitting fast.
 Example::
 
     from adadex.sysid.replay import Replayer
-    sim = Replayer(recording).simulate(ModelPatch())
+    sim = Replayer(recording).simulate()   # the nominal model
     sim.shape == recording.joint_pos.shape
 """
 
@@ -142,7 +142,7 @@ class Replayer(RolloutPool):
         ``sequences`` restricts the replay to some sequence indices (fitting uses this to replay
         only the sequences that excite the joints being fitted).
         """
-        patch = patch if patch is not None else ModelPatch()
+        patch = patch if patch is not None else ModelPatch(robot=self.robot)
         model, _, datas = self.model_for(patch)
         idx = np.arange(self._command.shape[0]) if sequences is None else np.asarray(sequences, dtype=np.int64)
         cmd = patch.transform_command(self._command[idx], self.rec.dt)

@@ -23,7 +23,7 @@ from adadex.sysid import plots
 from adadex.sysid.compare import Comparison, heldout_mask, localize
 
 
-@dataclass
+@dataclass(kw_only=True)
 class Stages:
     names: list[str]
     patches: list[ModelPatch]
@@ -71,10 +71,10 @@ def error_stages(recording, patch: ModelPatch, *, replayer=None, nthread: int = 
     rep = replayer if replayer is not None else Replayer(recording, nthread=nthread)
     names, patches = ["baseline (nominal model)"], [ModelPatch(robot=rep.robot)]
     for e in patch.effects:
-        patches.append(ModelPatch(patches[-1].effects + (e,), rep.robot))
+        patches.append(ModelPatch(effects=patches[-1].effects + (e,), robot=rep.robot))
         names.append(f"+ {e.effect} on {','.join(e.joints)}")
-    comps = [Comparison(recording, p, rep.simulate(p)) for p in patches]
-    return Stages(names, patches, comps, heldout_mask(recording))
+    comps = [Comparison(recording=recording, patch=p, simulated=rep.simulate(p)) for p in patches]
+    return Stages(names=names, patches=patches, comparisons=comps, heldout=heldout_mask(recording))
 
 
 def _percent(x) -> str:

@@ -25,11 +25,13 @@ def test_an_interval_that_spans_the_bounds_is_not_identifiable_and_says_which_ex
     assert not identifiable("payload_mass", "arm_j6", (0.5 * (lo + hi), hi))   # reaches the upper bound
     mid = 0.3 * lo + 0.7 * hi
     assert identifiable("payload_mass", "arm_j6", (0.98 * mid, 1.02 * mid))
-    flat = Candidate("coulomb_friction", "if_pip", 0.2, _bounds("coulomb_friction", "if_pip"), 0.5, 0.5, 0.5)
+    flat = Candidate(effect="coulomb_friction", joint="if_pip", value=0.2, ci95=_bounds("coulomb_friction", "if_pip"),
+                     train_error_reduction=0.5, heldout_error_reduction=0.5, score=0.5)
     text = _describe(flat, None)
     assert "not identifiable from this recording" in text
     assert "adadex sysid excite --joints if_pip --freqs 0.25,0.5" in text
-    pinned = Candidate("coulomb_friction", "if_pip", 0.2, (0.19, 0.21), 0.5, 0.5, 0.5)
+    pinned = Candidate(effect="coulomb_friction", joint="if_pip", value=0.2, ci95=(0.19, 0.21),
+                       train_error_reduction=0.5, heldout_error_reduction=0.5, score=0.5)
     assert "not identifiable" not in _describe(pinned, None) and "N·m" in _describe(pinned, None)
 
 

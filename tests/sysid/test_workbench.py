@@ -110,3 +110,40 @@ def test_shipped_demo_recording_is_reproducible():
     assert isinstance(shipped, Recording)
     np.testing.assert_array_equal(shipped.joint_pos, again.joint_pos)
     np.testing.assert_array_equal(shipped.command, again.command)
+
+
+def test_nothing_missing_diagnosis_has_its_fields_and_accepting_it_adds_nothing(tmp_path, capsys):
+    d = tmp_path
+    assert main(["sysid", "excite", "--joints", "if_pip", "--freqs", "1", "--amps", "0.5", "--kinds", "sine",
+                 "--poses", "unloaded", "--duration", "1", "--out", str(d / "plan.npz")]) == 0
+    assert main(["sysid", "simulate", str(d / "plan.npz"), "--noise", "2e-4", "--out", str(d / "rec.npz")]) == 0
+    assert main(["sysid", "diagnose", str(d / "rec.npz"), "--out", str(d / "D")]) == 0
+    diag = json.loads((d / "D" / "diagnosis.json").read_text())
+    assert diag["verdict"] == "nothing_missing" and diag["selected"] == []
+    assert diag["model"] == "builtin" and diag["train_only_joints"] == []
+    assert set(diag["stage_times_s"]) >= {"localize"}
+
+    capsys.readouterr()
+    assert main(["sysid", "fit", str(d / "rec.npz"), "--accept", str(d / "D"), "--out", str(d / "patch.json")]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1 and "nothing to add" in out[0]
+    assert json.loads((d / "patch.json").read_text()) == {"version": 1, "model": "builtin", "effects": []}
+    # with a starting patch, the result is that patch unchanged
+    base = ModelPatch().with_effect("damping", ["if_pip"], 0.05)
+    base.save(d / "base.json")
+    assert main(["sysid", "fit", str(d / "rec.npz"), "--accept", str(d / "D"), "--patch", str(d / "base.json"),
+                 "--out", str(d / "patched.json")]) == 0
+    assert ModelPatch.load(d / "patched.json").to_dict() == base.to_dict()
+    assert "nothing to add" in capsys.readouterr().out
+
+    # a nothing-missing diagnosis written by the earlier, positional Diagnosis reads as it was meant
+    legacy = dict(diag, train_only_joints="builtin", model={"localize": 0.1}, stage_times_s={})
+    (d / "old").mkdir()
+    (d / "old" / "diagnosis.json").write_text(json.dumps(legacy))
+    assert main(["sysid", "fit", str(d / "rec.npz"), "--accept", str(d / "old"), "--out", str(d / "p2.json")]) == 0
+    assert "nothing to add" in capsys.readouterr().out
+    # a diagnosis whose model is not a model id is refused in one line, not with a traceback
+    (d / "bad").mkdir()
+    (d / "bad" / "diagnosis.json").write_text(json.dumps(dict(diag, model=["builtin"])))
+    assert main(["sysid", "fit", str(d / "rec.npz"), "--accept", str(d / "bad"), "--out", str(d / "p3.json")]) == 2
+    assert "not a readable diagnosis" in capsys.readouterr().err

@@ -1,7 +1,8 @@
 """The ``adadex`` command.
 
 ``adadex sim info [--json]``   the robot, timing and object registry
-``adadex sim export [--out P]`` write the nominal world (robot + table + options) as MJCF
+``adadex sim export [--out P]`` write the nominal world (robot + table + options) as MJCF (an existing P
+                               only if an earlier export, or with --force)
 ``adadex data …``              reference datasets: build, info, show, import
 ``adadex sysid …``             model vs measurement: excite, simulate, compare, diagnose, fit, report, demo
 ``adadex encoder …``           point-cloud encoder (object latent): train, eval
@@ -80,14 +81,21 @@ def _cmd_sim_info(args) -> int:
     return 0
 
 
+#: The kind of output ``sim export --out`` writes (its marker: :func:`adadex.io.output_file`).
+EXPORT_KIND = "sim export"
+
+
 def _cmd_sim_export(args) -> int:
+    from adadex.io import output_file
     from adadex.sim.model_source import export_world
     from adadex.sim.robot import ROBOT_MJCF, export_mjcf
 
-    if args.robot_only:
-        print(export_mjcf(args.out) if args.out else export_mjcf())
-    elif args.out:
-        print(export_world(args.out))
+    if args.out:                        # the user's path: replaced only if an earlier export, or --force
+        with output_file(args.out, EXPORT_KIND, force=args.force):
+            path = export_mjcf(args.out) if args.robot_only else export_world(args.out)
+        print(path)
+    elif args.robot_only:
+        print(export_mjcf())
     else:
         print(export_mjcf())
         print(export_world(ROBOT_MJCF.with_name("world.xml")))
@@ -119,6 +127,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "robot.xml (the robot alone, for kinematics tools) and assets/robot/world.xml.")
     exp.add_argument("--out", default=None, help="where to write the world (with --robot-only: the robot)")
     exp.add_argument("--robot-only", action="store_true", help="the robot alone, without table and options")
+    exp.add_argument("--force", action="store_true", help="replace --out even if it is not an earlier "
+                     "`adadex sim export` (an existing file is otherwise refused)")
     exp.set_defaults(func=_cmd_sim_export)
 
     from adadex.data import cli as data_cli

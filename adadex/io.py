@@ -10,6 +10,13 @@ folder is complete or absent and never mixes files of two runs. Each carries a s
 kind (a folder of the user's own files, a file) is refused unless ``force=True``, so no user data is
 replaced by mistake. Temporary folders left by a killed run are removed on the next write.
 
+An output *file* (an MJCF export, an excitation plan, a simulated recording) is guarded the same way
+(:func:`output_file`): it carries a marker beside it, ``.NAME`` + :data:`FILE_MARKER_SUFFIX`, naming
+its kind and the SHA-256 of the file as written. An existing file is replaced only when its marker
+names the same kind and its content is still what was written (a file the user wrote, or edited
+since, is refused), or with ``force=True``. Earlier outputs are recognized by the marker the command
+wrote, never by the shape of their content. A folder is never replaced by a file.
+
 Example
 -------
 >>> import tempfile, pathlib
@@ -36,6 +43,9 @@ from adadex.errors import AdadexError
 
 #: File inside every adadex output folder naming its kind: ``{"kind": "dataset"}``.
 OUTPUT_MARKER = ".adadex-output.json"
+
+#: Beside every adadex output file ``NAME``, ``.NAME.adadex-output.json``: ``{"kind": …, "sha256": …}``.
+FILE_MARKER_SUFFIX = ".adadex-output.json"
 
 
 class OutputExistsError(AdadexError, FileExistsError):
@@ -114,13 +124,90 @@ def _recognized(recognize: Callable[[Path], bool] | None, path: Path) -> bool:
         return False
 
 
+# ----------------------------------------------------------------------------------------------
+# Output files
+
+
+def file_marker(path) -> Path:
+    """Where the marker of the output file ``path`` lives: ``.NAME.adadex-output.json`` beside it."""
+    path = Path(path)
+    return path.parent / f".{path.name}{FILE_MARKER_SUFFIX}"
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def mark_file(path, kind: str) -> Path:
+    """Record the file ``path`` (as it is now) as an adadex output of ``kind``; returns the marker's path."""
+    path = Path(path)
+    return atomic_write_text(file_marker(path), json.dumps({"kind": kind, "file": path.name, "sha256": _sha256(path)}))
+
+
+def file_output_kind(path) -> str | None:
+    """The kind of adadex output the file ``path`` is, from its marker — ``None`` when it has none, or
+    when the file is no longer what was written (replaced or edited since)."""
+    path = Path(path)
+    try:
+        m = json.loads(file_marker(path).read_text(encoding="utf-8"))
+        if not path.is_file() or not isinstance(m, dict) or m.get("sha256") != _sha256(path):
+            return None
+        return m["kind"] if isinstance(m.get("kind"), str) else None
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def check_output_file(path, kind: str, *, force: bool = False, recognize: Callable[[Path], bool] | None = None,
+                      option: str = "--force") -> Path:
+    """:func:`check_output` for an output that is one file: also refuses a folder at ``path``, even with
+    ``force`` (a file never replaces a folder)."""
+    path = Path(path)
+    if path.is_dir():
+        raise OutputExistsError(f"{path} is a folder; give the path of the {kind} file to write (a folder is "
+                                f"never replaced by a file, even with {option})")
+    return check_output(path, kind, force=force, recognize=recognize, option=option)
+
+
+@contextlib.contextmanager
+def output_file(path, kind: str, *, force: bool = False, option: str = "--force") -> Iterator[Path]:
+    """Guard the output file ``path`` of ``kind``: checked on entry (:func:`check_output_file`, before any
+    work); the block writes ``path`` (atomically); when it ends without error, the marker is written, so
+    the next run of the same command may replace it.
+
+    >>> import tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "plan.txt"
+    >>> with output_file(p, "plan") as path:
+    ...     _ = atomic_write_text(path, "1")
+    >>> file_output_kind(p)
+    'plan'
+    >>> with output_file(p, "plan") as path:         # an earlier output of the same kind: replaced
+    ...     _ = atomic_write_text(path, "2")
+    >>> _ = p.write_text("edited by hand")           # no longer what adadex wrote: refused
+    >>> with output_file(p, "plan") as path:  # doctest: +ELLIPSIS
+    ...     pass
+    Traceback (most recent call last):
+    ...
+    adadex.io.OutputExistsError: ... exists and is a file that adadex did not write as a plan (or that changed since); ...
+    """
+    path = check_output_file(path, kind, force=force, option=option)
+    yield path
+    if path.is_file():
+        mark_file(path, kind)
+
+
 def check_output(path, kind: str, *, force: bool = False, recognize: Callable[[Path], bool] | None = None,
                  option: str = "--force") -> Path:
     """Refuse to replace ``path`` unless it is absent, an empty folder, or an adadex ``kind`` output.
 
-    A file at ``path`` is accepted when ``recognize(path)`` says it is one (single-file outputs).
-    ``force=True`` replaces anything. Raises :class:`OutputExistsError` naming the path, what is
-    there and ``option`` (how to force).
+    A file at ``path`` is accepted when its marker (:func:`mark_file`) names ``kind`` and it is unchanged
+    since, or when ``recognize(path)`` says it is one. ``force=True`` replaces anything. Raises
+    :class:`OutputExistsError` naming the path, what is there and ``option`` (how to force).
     """
     path = Path(path)
     if force or not (path.exists() or path.is_symlink()):
@@ -130,11 +217,16 @@ def check_output(path, kind: str, *, force: bool = False, recognize: Callable[[P
         if found == kind or not any(path.iterdir()):
             return path
         what = f"an adadex {found} output" if found else "a folder that is not an adadex output"
-    elif path.is_file() and _recognized(recognize, path):
-        return path                        # a single-file output of this kind (a patch, a report …)
+    elif path.is_file():
+        found = file_output_kind(path)
+        if found == kind or _recognized(recognize, path):
+            return path                    # a single-file output of this kind (a patch, a report …)
+        what = (f"a file, an adadex {found} output" if found else
+                f"a file that adadex did not write as a {kind} (or that changed since)")
     else:
-        what = "a file" if path.is_file() else "something that is not a folder"
-    raise OutputExistsError(f"{path} exists and is {what}; refusing to replace it with a {kind} "
+        what = "something that is not a folder"
+    article = "an" if kind[:1].lower() in "aeiou" else "a"
+    raise OutputExistsError(f"{path} exists and is {what}; refusing to replace it with {article} {kind} "
                             f"(choose another path, or pass {option} to replace it)")
 
 

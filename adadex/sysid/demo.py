@@ -4,6 +4,10 @@ compare → where it fails → diagnose → add the selected effects → the err
 kp/kd identification on the failing joints, for comparison → HTML report.
 The recording (``assets/recordings/demo.npz``) was made with hidden effects; nothing in it or in
 this code names them — the loop has to find them.
+
+The output folder is written as one unit (:func:`adadex.io.output_folder`, kind ``sysid-demo``): an
+existing ``out`` that is not an earlier demo output (a folder of the user's files, a file) is refused
+before any work unless ``force``.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from adadex.data.recording import load_recording
+from adadex.io import output_folder
 from adadex.sysid.compare import compare, localize
 from adadex.sysid.diagnose import diagnose
 from adadex.sysid.fit import identify_pd, sequences_moving
@@ -22,12 +27,24 @@ from adadex.sysid.replay import Replayer
 from adadex.sysid.report import error_stages, write_report
 
 
-def run_demo(recording, out="adadex_demo", nthread: int = 2, model=None) -> dict:
+DEMO_KIND = "sysid-demo"
+
+
+def run_demo(recording, out="adadex_demo", nthread: int = 2, model=None, force: bool = False) -> dict:
     """Walk the loop on ``recording`` (a path; ``adadex sysid demo`` passes the shipped demo recording),
     writing the diagnosis, the patch and the report under ``out``. The caller names the recording, so
-    this module needs nothing from the CLI (which imports it)."""
-    t0 = time.perf_counter()
+    this module needs nothing from the CLI (which imports it). ``out`` is replaced only when it is an
+    earlier demo output (its marker) or with ``force``; checked before any work."""
     out = Path(out)
+    with output_folder(out, DEMO_KIND, force=force) as tmp:
+        result = _run(recording, out, tmp, nthread, model)
+    print(f"\nreport: {out / 'report.html'}   ({result['seconds']:.0f} s)")
+    return result
+
+
+def _run(recording, out: Path, tmp: Path, nthread: int, model) -> dict:
+    """The loop; files go to ``tmp`` (renamed to ``out`` when complete), messages name ``out``."""
+    t0 = time.perf_counter()
     rec = load_recording(recording, robot=None if model is None else ModelSource(model).robot())
     print(f"adadex sysid demo: {rec.num_sequences} sequences × {rec.duration:.1f} s at {1 / rec.dt:.0f} Hz on "
           f"{len(rec.joint_names)} joints ({', '.join(rec.joint_names)})\n")
@@ -43,13 +60,13 @@ def run_demo(recording, out="adadex_demo", nthread: int = 2, model=None) -> dict
 
     print("\n3. diagnose: fit every candidate effect where it fails, rank on held-out sequences")
     d = diagnose(rec, nthread=nthread)
-    d.save(out / "diagnosis")
+    d.save(tmp / "diagnosis")
     for f in d.findings[-len(d.explained_fraction) - (d.verdict == "unexplained"):]:
         print("   " + f)
     print(f"   verdict: {d.verdict}")
 
     patch = d.patch(rep.robot)
-    patch.save(out / "patch.json")
+    patch.save(tmp / "patch.json")
     print(f"\n4. add: {patch.describe()}  → {out / 'patch.json'}")
 
     print("\n5. the error falls")
@@ -69,7 +86,6 @@ def run_demo(recording, out="adadex_demo", nthread: int = 2, model=None) -> dict
         print(f"   {r['joint']:<7} {r['method']:<4} kp×{r['kp_scale']:.3f} kd×{r['kd_scale']:.3f}  MSE "
               f"{r['mse_nominal']:.2e} → {r['mse']:.2e} rad²  ({r['evaluations']} replays, {r['seconds']:.1f} s)"
               + ("" if r.get("progress", True) else "  no progress: the nominal model is kept"))
-    report = write_report(rec, patch, out / "report.html", diagnosis=d, stages=st, pd_results=pd)
+    write_report(rec, patch, tmp / "report.html", diagnosis=d, stages=st, pd_results=pd)
     dt = time.perf_counter() - t0
-    print(f"\nreport: {report}   ({dt:.0f} s)")
     return {"verdict": d.verdict, "stages": st.to_dict(), "seconds": dt}

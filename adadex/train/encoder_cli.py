@@ -1,5 +1,11 @@
 """The ``adadex encoder train|eval`` command (registered by :mod:`adadex.cli`): argument handling
-and reports over :mod:`adadex.train.encoder`."""
+and reports over :mod:`adadex.train.encoder`.
+
+``eval --out DIR`` is written as one unit (:func:`adadex.io.output_folder`): an existing DIR that is
+not an earlier ``encoder eval`` output is refused before any work unless ``--force``. An earlier output
+is recognized by the marker the command writes into its ``eval.json`` (``"adadex_output":
+"encoder-eval"``), never by the folder's file names.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +14,8 @@ from pathlib import Path
 
 import torch
 
-from adadex.io import atomic_write_text
+from adadex.errors import AdadexError
+from adadex.io import atomic_write_text, check_output, output_folder
 from adadex.modules.encoder import load_encoder
 from adadex.train.encoder import (
     PLOT_OBJECTS,
@@ -48,20 +55,29 @@ def _cmd_train(a) -> int:
     return 0
 
 
+EVAL_KIND = "encoder-eval"
+
+
+def _is_eval_output(path: Path) -> bool:
+    """``path`` is a folder an ``encoder eval`` wrote: its ``eval.json`` carries the command's marker."""
+    d = json.loads((path / "eval.json").read_text(encoding="utf-8"))
+    return isinstance(d, dict) and d.get("adadex_output") == EVAL_KIND
+
+
 def _cmd_eval(a) -> int:
-    model, meta = load_encoder(a.checkpoint)
     out = Path(a.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out} exists and is not a folder")
+    check_output(out, EVAL_KIND, force=a.force, recognize=_is_eval_output)        # before any work
+    model, meta = load_encoder(a.checkpoint)
     per_object = evaluate_encoder(model)
     summary = summarize_evaluation(per_object)
     floor = summarize_evaluation(resampling_floor(points=model.config.points))
     trained = {k: meta.get(k) for k in ("seed", "steps", "batch_size", "lr")}
-    report = {"checkpoint": str(a.checkpoint), "trained": trained,
+    report = {"adadex_output": EVAL_KIND, "checkpoint": str(a.checkpoint), "trained": trained,
               "unit": "chamfer_cm2: Chamfer distance in cm²; rms_mm: RMS nearest-neighbour distance in mm",
               **summary, "resampling_floor": floor, "per_object": per_object}
-    atomic_write_text(out / "eval.json", json.dumps(report, indent=1, ensure_ascii=False))
-    plot_reconstructions(model, PLOT_OBJECTS, out / "reconstructions.png")
+    with output_folder(out, EVAL_KIND, force=a.force, recognize=_is_eval_output, marker=False) as tmp:
+        atomic_write_text(tmp / "eval.json", json.dumps(report, indent=1, ensure_ascii=False))
+        plot_reconstructions(model, PLOT_OBJECTS, tmp / "reconstructions.png")
     print(_summary_line(str(a.checkpoint), summary))
     print(_summary_line("resampling floor (two samples of the same surface)", floor))
     worst = sorted(per_object.items(), key=lambda kv: -kv[1]["rms_mm"])[:3]
@@ -95,6 +111,8 @@ def add_parser(sub) -> None:
                                      "reconstructions.png")
     e.add_argument("checkpoint", type=Path)
     e.add_argument("--out", default="outputs/encoder_eval", help="output folder (default outputs/encoder_eval)")
+    e.add_argument("--force", action="store_true", help="replace --out even if it is not an earlier output of "
+                   "`adadex encoder eval`")
     e.set_defaults(func=_cmd_eval)
 
 
@@ -104,7 +122,7 @@ def run(args) -> int:
 
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError, KeyError) as e:
+    except (AdadexError, ValueError, FileNotFoundError, KeyError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else e
         print(f"adadex encoder {args.encoder_command}: error: {msg}", file=sys.stderr)
         return 2

@@ -97,6 +97,9 @@ class Channel:
     * ``fields`` — its :class:`Field` s of :class:`ModulationConfig`;
     * ``edits`` — ``"observation"`` (what the tracker reads: runs before the tracker on the inverse
       path) or ``"action"`` (the tracker's output: runs after it);
+    * ``init_scale`` — the modulator's initial exploration scale (pre-tanh) on this channel's head:
+      sampling an untrained modulator must leave the tracker's success intact, so each channel's is
+      sized to what its edits cost (``python benchmarks/modulator_usage.py --init-check``);
     * :attr:`transform` — its transform class, bound by :mod:`adadex.transforms.modulation`.
     """
 
@@ -106,6 +109,7 @@ class Channel:
     fields: tuple[Field, ...]
     edits: str
     state: tuple[tuple[tuple[str, str], tuple[int, ...]], ...] = ()
+    init_scale: float = 0.5
 
     def __post_init__(self):
         if self.edits not in EDITS:

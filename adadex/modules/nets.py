@@ -60,10 +60,13 @@ class Normalizer(nn.Module):
 
 class GaussianHeads(nn.Module):
     """obs → (loc, scale): a shared trunk, then one linear head per output group, concatenated in
-    order. The last layers start small (``init_gain``) so the initial mean action is near 0."""
+    order. The last layers start small (``init_gain``) so the initial mean action is near 0.
+    ``init_scale`` is the initial exploration scale, one for all heads or one per head (the
+    modulator sizes each channel's own)."""
 
     def __init__(self, obs_dim: int, head_sizes: Sequence[int], hidden: Sequence[int], *,
-                 init_gain: float = 0.01, init_scale: float = 1.0, activation=nn.ELU, loc_bound: float = 0.0):
+                 init_gain: float = 0.01, init_scale: float | Sequence[float] = 1.0, activation=nn.ELU,
+                 loc_bound: float = 0.0):
         super().__init__()
         self.loc_bound = float(loc_bound)
         self.norm = Normalizer(obs_dim)
@@ -73,12 +76,16 @@ class GaussianHeads(nn.Module):
         for h in self.heads:
             nn.init.orthogonal_(h.weight, gain=init_gain)
             nn.init.zeros_(h.bias)
-        self.extract = NormalParamExtractor(scale_mapping=f"biased_softplus_{init_scale}")
+        scales = [init_scale] * len(head_sizes) if isinstance(init_scale, (int, float)) else list(init_scale)
+        if len(scales) != len(head_sizes):
+            raise ValueError(f"GaussianHeads: {len(scales)} initial scales for {len(head_sizes)} heads")
+        # parameter-free: the state dict is the same whatever the scales
+        self.extracts = [NormalParamExtractor(scale_mapping=f"biased_softplus_{float(s)}") for s in scales]
         self.head_sizes = tuple(head_sizes)
 
     def forward(self, obs: torch.Tensor):
         z = self.trunk(self.norm(obs))
-        locs, scales = zip(*(self.extract(h(z)) for h in self.heads))
+        locs, scales = zip(*(extract(h(z)) for extract, h in zip(self.extracts, self.heads)))
         loc = torch.cat(locs, -1)
         if self.loc_bound > 0:
             loc = self.loc_bound * torch.tanh(loc / self.loc_bound)
@@ -86,7 +93,7 @@ class GaussianHeads(nn.Module):
 
 
 def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, high: float, hidden: Sequence[int], *,
-               namespace: str, action_key="action", init_scale: float = 1.0,
+               namespace: str, action_key="action", init_scale: float | Sequence[float] = 1.0,
                bounds: TensorDictModule | None = None, loc_bound: float = 0.0,
                torchrl_tanh_loc: bool = False) -> ProbabilisticActor:
     """A TanhNormal actor reading ``obs_key`` (flat), writing ``action_key`` and its log-prob, with

@@ -12,6 +12,7 @@ adadex.errors.ConfigError: CollectorConfig.backend must be 'local' or 'ray', got
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -175,14 +176,32 @@ class ModulatorSettings:
     tracker: str
     channels: str = "R+O+T"
     hidden: tuple[int, ...] = (256, 256, 128)
-    init_scale: float = 0.5
+    #: initial exploration scale (pre-tanh): ``None`` — each channel's own, sized so that sampling an
+    #: untrained modulator leaves the tracker's success intact (``CHANNELS[c].init_scale``); a number
+    #: for all channels (0.5 until 2026-11-27: sampling then cost the tracker 11–20 completion points);
+    #: or ``{channel: scale}``
+    init_scale: float | dict | None = None
     loc_bound: float = 5.0          # bound of the pre-tanh mean, as PolicyConfig.loc_bound
     modulation: dict = field(default_factory=dict)
+    #: what the modulator reads: ``"view"`` (the tracker's observation plus the original reference, its
+    #: edit, servo lag, last action, phase and ``history`` previous frames) or ``"observation"``
+    inputs: str = "view"
+    history: int = 3
 
     def __post_init__(self):
+        from adadex.modules.modulator import INPUTS, ModulationLayout, channel_scales
+
         self.hidden = tuple(int(h) for h in self.hidden)
-        check_number("ModulatorSettings.init_scale", self.init_scale)
+        if isinstance(self.init_scale, Mapping):
+            self.init_scale = {str(k): v for k, v in self.init_scale.items()}
+        try:
+            channel_scales(ModulationLayout(self.channels), self.init_scale)
+        except ValueError as e:
+            raise ConfigError(f"ModulatorSettings: {e}") from None
         check_number("ModulatorSettings.loc_bound", self.loc_bound)
+        check_number("ModulatorSettings.history", self.history, integer=True)
+        if self.inputs not in INPUTS:
+            raise ConfigError(f"ModulatorSettings.inputs must be one of {INPUTS}, got {self.inputs!r}")
         if not Path(self.tracker).is_file():
             raise ConfigError(f"ModulatorSettings.tracker: no tracker checkpoint at {self.tracker!r} "
                               f"(train or distill one first)")

@@ -18,6 +18,7 @@ from torchrl.envs import RewardSum, TransformedEnv
 from adadex.envs.randomization import Randomization
 from adadex.envs.tracking import TrackingConfig, TrackingEnv, scene_pack
 from adadex.modules.channels import ModulationConfig
+from adadex.modules.modulator_view import ViewLayout
 from adadex.modules.tracker import Tracker
 from adadex.transforms.modulation import modulation
 
@@ -64,12 +65,15 @@ class TrackingEnvFactory:
 
 @dataclass(frozen=True)
 class ModulatedEnv:
-    """Picklable ``modulation(channels, tracker, config)`` factory: each worker loads the frozen tracker
-    from its checkpoint and builds the modulation transform (paper Sec. 3.2)."""
+    """Picklable ``modulation(channels, tracker, config, view)`` factory: each worker loads the frozen
+    tracker from its checkpoint and builds the modulation transform (paper Sec. 3.2); ``history``
+    (not None) adds the modulator's view with that many previous frames."""
 
     tracker: str
     channels: str = "R+O+T"
     config: ModulationConfig = field(default_factory=ModulationConfig)
+    history: int | None = None
 
     def __call__(self):
-        return modulation(self.channels, Tracker.load(self.tracker).freeze(), self.config)
+        view = None if self.history is None else ViewLayout(self.channels, self.history)
+        return modulation(self.channels, Tracker.load(self.tracker).freeze(), self.config, view=view)

@@ -43,7 +43,7 @@ from tqdm.auto import tqdm
 
 from adadex.data.reference import ReferenceDataset
 from adadex.envs.observation import ERRORS as ERRORS_KEY
-from adadex.envs.observation import REFERENCE_INDEX, REWARD_TERMS, STEP
+from adadex.envs.observation import OBSERVATION, REFERENCE_INDEX, REWARD_TERMS, STEP
 from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import AdadexError, ConfigError
 from adadex.eval.evaluate import evaluate
@@ -108,8 +108,10 @@ class PPOTrainer:
                                   anchor_reach=p.anchor_reach, anchor_iterations=p.anchor_iterations)
             self.transform = None
         else:
-            self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound)
-            self.transform = ModulatedEnv(m.tracker, m.channels, ModulationConfig(**m.modulation))
+            self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
+                                    inputs=m.inputs, history=m.history)
+            self.transform = ModulatedEnv(m.tracker, m.channels, ModulationConfig(**m.modulation),
+                                          history=m.history if m.inputs == "view" else None)
         self.ppo = cfg.ppo
         self.loss = ClipPPOLoss(stored_bounds_actor(self.policy.actor), self.policy.critic,
                                 clip_epsilon=self.ppo.clip_epsilon, entropy_coeff=self.ppo.entropy_coef,
@@ -117,6 +119,8 @@ class PPOTrainer:
         self.gae = GAE(gamma=self.ppo.gamma, lmbda=self.ppo.lmbda, value_network=self.policy.critic,
                        average_gae=False)
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=self.ppo.lr)
+        #: what the policy's normalizers read (the tracker's observation, or the modulator's view)
+        self.obs_key = getattr(self.policy, "obs_key", OBSERVATION)
         #: DexTrack-style imitation (paper B.2.1): (actions [references, window, 22], mask [references,
         #: window]) — the teacher's action for each dataset reference and step, where one was logged
         self.teacher = teacher
@@ -330,14 +334,14 @@ class PPOTrainer:
                     data = data.reshape(-1, data.shape[-1])          # [worlds (of all workers), T]
                     first = not self.fitted
                     if first:
-                        fit_normalizers(self.policy, data["observation"])    # as every run before obs_norm
-                        self.moments.update(data["observation"])
+                        fit_normalizers(self.policy, data[self.obs_key])    # as every run before obs_norm
+                        self.moments.update(data[self.obs_key])
                         self.fitted = True
                     stats = self.batch_metrics(data)
                     with torch_threads(self.ppo.update_threads or os.cpu_count() or 1):
                         stats.update(self._update(data))
                     if not first and self.ppo.obs_norm == "running":
-                        self.moments.update(data["observation"])
+                        self.moments.update(data[self.obs_key])
                         self.moments.apply(self.policy)
                     collector.update_policy_weights_()
                     n = data.numel()

@@ -19,6 +19,8 @@ input to the env's action spec (entries under ``"modulation"``, in [−1, 1]) an
   observation and writes its action; the env's own 22-D action leaves the outer action spec.
 * :class:`FlatModulationAction`: the outer action becomes one flat vector in [−1, 1]^D, split into
   the channels' entries, so a modulator can be trained with any TorchRL loss.
+* :class:`ModulatorView`: writes what the modulator sees, ``("modulator", "view")``
+  (:mod:`adadex.modules.modulator_view`), and carries its state (last action, steps, history).
 
 R and O edit the tracker's observation, T its action (the records' ``edits``), which places them
 on either side of the tracker. R and O edit the structured entries and reassemble
@@ -44,6 +46,7 @@ from adadex.envs.observation import OBJECT_LATENT, OBSERVATION, REF_JOINT_POS, R
     flat_from_tensordict
 from adadex.modules.channels import HAND_EDIT, MOD, OBJECT_EDIT, Channel, ModulationConfig, \
     ModulationLayout, bind_transform
+from adadex.modules.modulator_view import VIEW, ViewLayout, next_view_state, view_features
 from adadex.quat import quat_from_rotvec, quat_mul, rotvec_from_quat
 
 _FUTURE_ROWS = list(REF_OFFSETS[1:])      # rows of the 13-frame edit that the R action moves
@@ -335,6 +338,62 @@ class FlatModulationAction(Transform):
         return td
 
 
+class ModulatorView(Transform):
+    """Writes the modulator's view, ``("modulator", "view")`` (:mod:`adadex.modules.modulator_view`),
+    into every observation, and carries the state it needs — the modulator's last action, the steps
+    since the reset and the previous frames — zero for worlds that reset.
+
+    It follows the channels' state protocol (:meth:`state_shapes`, :meth:`next_state`), so
+    :func:`adadex.transforms.policy.make_policy` carries the same state on a plain env through its
+    primer. Outermost in :func:`modulation`: on the forward path it runs after R has shown its edit.
+    """
+
+    def __init__(self, layout: ViewLayout):
+        super().__init__(in_keys=[], out_keys=[VIEW])
+        self.layout = layout
+
+    def state_shapes(self) -> dict:
+        return self.layout.state_shapes()
+
+    def next_state(self, td: TensorDictBase) -> dict:
+        """The state for the next step, from this step's entries after the inverse path."""
+        return next_view_state(td, self.layout)
+
+    def _specs(self, spec: Composite, with_view: bool) -> Composite:
+        for key, shape in self.state_shapes().items():
+            spec[key] = Unbounded(shape=(*spec.shape, *shape), dtype=torch.float32, device=spec.device)
+        if with_view:
+            spec[VIEW] = Unbounded(shape=(*spec.shape, self.layout.dim), dtype=torch.float32, device=spec.device)
+        return spec
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        return self._specs(observation_spec, True)
+
+    def transform_state_spec(self, state_spec: Composite) -> Composite:
+        return self._specs(state_spec, False)
+
+    def _call(self, next_td: TensorDictBase) -> TensorDictBase:
+        next_td.set(VIEW, view_features(next_td, self.layout))
+        return next_td
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        next_tensordict.update(self.next_state(tensordict))
+        return self._call(next_tensordict)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        """Reset worlds start with zero state; with a partial reset the others keep theirs."""
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        B = tensordict_reset.batch_size
+        for key, shape in self.state_shapes().items():
+            value = torch.zeros(*B, *shape, device=tensordict_reset.device)
+            prev = None if tensordict is None else tensordict.get(key, None)
+            if mask is not None and prev is not None:
+                keep = ~mask.reshape(B).reshape(*B, *([1] * len(shape)))
+                value = torch.where(keep, prev, value)
+            tensordict_reset.set(key, value)
+        return self._call(tensordict_reset)
+
+
 def channel_transforms(channels, config: ModulationConfig = ModulationConfig()) -> list[ChannelTransform]:
     """The channel transforms for ``channels``, in inverse-path order: the channels that edit the
     tracker's observation, then those that edit its action, each group in registry order (R, O then T)."""
@@ -342,13 +401,15 @@ def channel_transforms(channels, config: ModulationConfig = ModulationConfig()) 
     return [c.transform(config) for edits in ("observation", "action") for c in records if c.edits == edits]
 
 
-def modulation(channels="R+O+T", tracker=None, config: ModulationConfig = ModulationConfig()) -> Compose:
+def modulation(channels="R+O+T", tracker=None, config: ModulationConfig = ModulationConfig(),
+               view: ViewLayout | None = None) -> Compose:
     """The modulator's env as one transform: ``TransformedEnv(TrackingEnv(…), modulation(channels, tracker))``.
 
     Inverse path (what the modulator's action goes through): split the flat action → the channels
     that edit the tracker's observation (R → O) → frozen tracker → those that edit its action (T)
     → env. Every subset of channels works, ``"none"`` included (the outer action is then empty and
-    the env runs the tracker alone).
+    the env runs the tracker alone). ``view`` (a modulator's :attr:`~adadex.modules.modulator.Modulator.view`)
+    adds :class:`ModulatorView`, which writes what that modulator reads.
 
     Example: the README's policy graph in miniature (the tiny dataset, two worlds, untrained nets).
 
@@ -357,10 +418,11 @@ def modulation(channels="R+O+T", tracker=None, config: ModulationConfig = Modula
     >>> from adadex.modules.modulator import Modulator
     >>> from adadex.modules.tracker import Tracker
     >>> tracker = Tracker(hidden=(32, 32)).freeze()
-    >>> env = TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None), modulation("R+O+T", tracker))
+    >>> modulator = Modulator("R+O+T", hidden=(32, 32))
+    >>> env = TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None),
+    ...                      modulation("R+O+T", tracker, view=modulator.view))
     >>> env.action_spec.shape            # the modulator's action: 4·22 + 4·6 (R), 64 (O), 22 (T)
     torch.Size([2, 198])
-    >>> modulator = Modulator("R+O+T", hidden=(32, 32))
     >>> td = env.rollout(3, modulator.actor)
     >>> td["action"].shape, td["modulation", "hand_edit"].shape     # R's persistent edit rides along
     (torch.Size([2, 3, 198]), torch.Size([2, 3, 13, 22]))
@@ -372,5 +434,8 @@ def modulation(channels="R+O+T", tracker=None, config: ModulationConfig = Modula
     chain = channel_transforms(layout.channels, config)
     before = [t for t in chain if t.channel.edits == "observation"]
     after = [t for t in chain if t.channel.edits == "action"]
+    if view is not None and view.channels.channels != layout.channels:
+        raise ValueError(f"the modulator's view is for channels {view.channels.name}, not {layout.name}")
     # Compose runs inverses last-to-first and specs first-to-last.
-    return Compose(*reversed(after), TrackerInTheLoop(tracker), *reversed(before), FlatModulationAction(layout))
+    return Compose(*reversed(after), TrackerInTheLoop(tracker), *reversed(before), FlatModulationAction(layout),
+                   *([ModulatorView(view)] if view is not None else []))

@@ -12,15 +12,18 @@ The policy writes:
 * ``("modulation", "sample")`` — the modulator's flat action (its ``"action_log_prob"`` and
   ``("modulator", "loc"/"scale")`` stay as the modulator wrote them);
 * with the persistent R channel, ``("next", "modulation", "hand_edit"/"object_edit")`` — the
-  reference edit carried to the next step (in general: the state of every channel that carries
-  one, see :meth:`adadex.transforms.modulation.ChannelTransform.state_shapes`). Like TorchRL's
+  reference edit carried to the next step, and for a modulator that reads its view
+  (:mod:`adadex.modules.modulator_view`) the view's state, ``("next", "modulation",
+  "last_action"/"steps"/"history")`` (in general: the state of every transform of the chain that
+  carries one, see :meth:`adadex.transforms.modulation.ChannelTransform.state_shapes`). Like TorchRL's
   recurrent modules, the env must carry that state: ``env.append_transform(policy.primer())`` (a
   ``TensorDictPrimer`` that zeroes it at reset); without it the policy raises instead of silently
   forgetting its edits.
 
 Before the modulator reads the observation, the policy shows it the carried edit (as the
 transformed env does), so ``"observation"`` and the reference entries in the tensordict are the
-edited ones; the tracker's own (further modulated) inputs live only inside the policy call.
+edited ones, and writes the modulator's view; the tracker's own (further modulated) inputs live
+only inside the policy call.
 
 Example::
 
@@ -40,28 +43,28 @@ from torchrl.envs import TensorDictPrimer
 
 from adadex.envs.observation import OBSERVATION
 from adadex.modules.channels import MOD, ModulationConfig, ModulationLayout
-from adadex.transforms.modulation import ChannelTransform, modulation
+from adadex.transforms.modulation import ChannelTransform, ModulatorView, modulation
 
 SAMPLE = (MOD, "sample")
 
 
 class _ShowState(TensorDictModuleBase):
-    """Applies the carried channel state to the env's raw observation (the channels' forward path,
-    e.g. R's persistent reference edit), so the modulator reads what the transformed env shows."""
+    """Applies the carried state to the env's raw observation (the transforms' forward path: R's
+    persistent reference edit, then the modulator's view), so the modulator reads what the
+    transformed env shows."""
 
-    def __init__(self, channels: list[ChannelTransform]):
+    def __init__(self, channels: list):
         super().__init__()
         self.channels = nn.ModuleList(channels)
         self.state_keys = [key for t in channels for key in t.state_shapes()]
         self.in_keys = [*self.state_keys, OBSERVATION]
-        self.out_keys = [OBSERVATION]
+        self.out_keys = [OBSERVATION] + [out for t in channels for out in t.out_keys]
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         for key in self.state_keys:
             if td.get(key, None) is None:
-                raise KeyError(f"the modulation channels {'+'.join(t.channel.name for t in self.channels)} need "
-                               f"their state {key} in the tensordict: add it to the env with "
-                               "env.append_transform(policy.primer())")
+                raise KeyError(f"the modulated policy needs its state {key} in the tensordict: add it to the env "
+                               "with env.append_transform(policy.primer())")
         for t in self.channels:
             td = t._call(td)
         return td
@@ -71,7 +74,7 @@ class _TrackerStage(TensorDictModuleBase):
     """The modulator's action → channel inverses → frozen tracker → env action, on a shallow copy
     so that nothing the modulator read is overwritten; writes back the action and the next state."""
 
-    def __init__(self, chain, layout: ModulationLayout, stateful: list[ChannelTransform]):
+    def __init__(self, chain, layout: ModulationLayout, stateful: list):
         super().__init__()
         self.chain, self.layout, self.stateful = chain, layout, stateful
         self.in_keys = [OBSERVATION, "action"]
@@ -135,7 +138,8 @@ def make_policy(tracker, modulator=None, channels=None,
     >>> a = plain.rollout(3, policy)
     >>> a["action"].shape, a["modulation", "sample"].shape      # the env's action, the modulator's
     (torch.Size([2, 3, 22]), torch.Size([2, 3, 198]))
-    >>> env = TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None), modulation("R+O+T", tracker))
+    >>> env = TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None),
+    ...                      modulation("R+O+T", tracker, view=modulator.view))
     >>> b = env.rollout(3, modulator.actor)
     >>> torch.equal(a["next", "proprio", "joint_pos"], b["next", "proprio", "joint_pos"])
     True
@@ -147,9 +151,10 @@ def make_policy(tracker, modulator=None, channels=None,
         raise ValueError(f"channels {layout.name} need a modulator; pass modulator=… or channels='none'")
     if modulator is not None and modulator.layout.channels != layout.channels:
         raise ValueError(f"the modulator was built for channels {modulator.layout.name}, not {layout.name}")
-    chain = modulation(layout.channels, tracker, config)
-    # Channel transforms carrying state, in the chain's (forward-path) order.
-    stateful = [t for t in chain if isinstance(t, ChannelTransform) and t.state_shapes()]
+    view = getattr(modulator, "view", None)
+    chain = modulation(layout.channels, tracker, config, view=view)
+    # Transforms carrying state, in the chain's (forward-path) order: R's edit, then the view.
+    stateful = [t for t in chain if isinstance(t, (ChannelTransform, ModulatorView)) and t.state_shapes()]
     modules = []
     if stateful:
         modules.append(_ShowState(stateful))

@@ -216,7 +216,7 @@ def test_observation_moments_merge_batches_into_the_whole_sample():
                                            ("O+T", 86), ("R+O", 176)])
 def test_modulator_is_sized_by_its_channels(channels, dim):
     torch.manual_seed(0)
-    mod = Modulator(channels, hidden=(32, 32))
+    mod = Modulator(channels, hidden=(32, 32), inputs="observation")
     assert mod.layout.dim == dim
     td = mod(_obs())
     assert td["action"].shape == (6, dim) and (td["action"].abs() <= 1).all()
@@ -225,7 +225,7 @@ def test_modulator_is_sized_by_its_channels(channels, dim):
 
 def test_untrained_modulator_starts_near_identity():
     torch.manual_seed(0)
-    mod = Modulator("R+O+T", hidden=(64, 64))
+    mod = Modulator("R+O+T", hidden=(64, 64), inputs="observation")
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         a = mod(_obs(32))["action"]
     assert a.abs().max() < 0.1, a.abs().max()
@@ -235,8 +235,8 @@ def test_modulator_needs_a_channel_and_round_trips(tmp_path):
     with pytest.raises(ValueError, match="at least one channel"):
         Modulator("none")
     torch.manual_seed(0)
-    mod = Modulator("R+T", hidden=(16, 16))
+    mod = Modulator("R+T", hidden=(16, 16), inputs="observation", init_scale={"T": 0.2})
     again = Modulator.load(mod.save(tmp_path / "m.pt"))
-    assert again.channels == ("R", "T")
+    assert again.channels == ("R", "T") and again.config == mod.config
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         assert torch.equal(mod(_obs())["action"], again(_obs())["action"])

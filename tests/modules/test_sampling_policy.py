@@ -21,8 +21,8 @@ def _obs(n=256, seed=0):
 @pytest.mark.parametrize("make", [lambda: Tracker(hidden=(32, 32), residual=0.25, init_scale=0.5),
                                   lambda: Tracker(hidden=(32, 32), residual=0.25, init_scale=0.5, loc_bound=5.0),
                                   lambda: Tracker(hidden=(32, 32)),
-                                  lambda: Modulator("R+O+T", hidden=(32, 32)),
-                                  lambda: Modulator("R+O+T", hidden=(32, 32), loc_bound=2.0)],
+                                  lambda: Modulator("R+O+T", hidden=(32, 32), inputs="observation"),
+                                  lambda: Modulator("R+O+T", hidden=(32, 32), loc_bound=2.0, inputs="observation")],
                          ids=["residual tracker", "bounded mean", "plain tracker", "modulator", "bounded modulator"])
 def test_samples_what_the_actor_samples_with_the_losss_log_prob(make):
     policy = make()

@@ -92,6 +92,6 @@ def test_a_fourth_channel_is_one_record(tiny_dataset, tracker, monkeypatch):
 
     a = run(TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None, seed=3), policy.primer()), policy)
     b = run(TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None, seed=3),
-                           modulation("R+S", tracker, config)), mod.actor)
+                           modulation("R+S", tracker, config, view=mod.view)), mod.actor)
     assert torch.equal(a["modulation", "sample"], b["action"])
     assert torch.equal(a["next", "proprio", "joint_pos"], b["next", "proprio", "joint_pos"])

@@ -20,6 +20,7 @@ from adadex.envs.observation import LAYOUT, REF_JOINT_POS, REF_OBJECT_POSE, flat
 from adadex.envs.tracking import TrackingConfig, TrackingEnv
 from adadex.modules.channels import HAND_EDIT, ModulationConfig, ModulationLayout, entry_shape
 from adadex.modules.modulator import Modulator
+from adadex.modules.modulator_view import VIEW
 from adadex.modules.tracker import Tracker
 from adadex.quat import quat_angle_between
 from adadex.transforms.modulation import (
@@ -274,8 +275,8 @@ def test_flat_action_is_split_into_the_channel_entries():
 
 def test_ppo_on_the_transformed_env_trains_the_modulator_only(tiny_dataset, tracker):
     torch.manual_seed(0)
-    env = TransformedEnv(_env(tiny_dataset, B=2), modulation("R+O+T", tracker))
     mod = Modulator("R+O+T", hidden=(32, 32))
+    env = TransformedEnv(_env(tiny_dataset, B=2), modulation("R+O+T", tracker, view=mod.view))
     before = [p.clone() for p in tracker.parameters()]
     with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
         data = env.rollout(6, mod.actor, break_when_any_done=False)
@@ -308,10 +309,12 @@ def test_make_policy_on_the_plain_env_equals_the_transformed_env(tiny_dataset, t
             return env.rollout(30, pol, break_when_any_done=False)
 
     a = run(TransformedEnv(_env(tiny_dataset, B=3, config=cfg), policy.primer()), policy)
-    b = run(TransformedEnv(_env(tiny_dataset, B=3, config=cfg), modulation(channels, tracker)),
+    b = run(TransformedEnv(_env(tiny_dataset, B=3, config=cfg),
+                           modulation(channels, tracker, view=mod.view if mod is not None else None)),
             mod.actor if mod is not None else None)
     assert a["next", "truncated"].any()
-    for key in [("next", "proprio", "joint_pos"), ("next", "object", "pose"), ("next", "reward"), "observation"]:
+    keys = [("next", "proprio", "joint_pos"), ("next", "object", "pose"), ("next", "reward"), "observation"]
+    for key in keys + ([VIEW] if mod is not None else []):      # the modulator saw the same in both
         assert torch.equal(a[key], b[key]), key
     if mod is not None:
         assert torch.equal(a["modulation", "sample"], b["action"])

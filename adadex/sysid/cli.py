@@ -8,6 +8,11 @@
     adadex sysid report   rec.npz --patch patch.json [--diagnosis D] --out report.html
     adadex sysid demo     [--out DIR]    the whole loop on assets/recordings/demo.npz
 
+``fit --accept D`` turns diagnosis D's selected effects into a patch (added to ``--patch``, if given).
+On a diagnosis that selected nothing (verdict ``nothing_missing``, or ``unexplained`` with no effect
+chosen) it says "nothing to add" and writes the starting patch unchanged — ``--patch``'s effects, else
+a patch with no effects — so a script's next step finds the file; the exit code is 0.
+
 Output folders (compare, diagnose) are written as one unit and replace only an earlier output of the
 same command; an existing --out that is something else (your files, another kind of output) is
 refused unless --force, checked before any work starts.
@@ -15,6 +20,10 @@ refused unless --force, checked before any work starts.
 Every command takes ``--model PATH``: replay on that MJCF (its servoed joints by name, its own
 options and contacts) instead of the built-in scene; patches made on it record it and are refused
 on another model. ``adadex sim export --out world.xml`` writes the built-in world as such a file.
+
+The demo's folder and excite's CSV folder are guarded the same way. Output files (excite's plan,
+simulate's recording) carry a marker beside them (``.NAME.adadex-output.json``): an existing file
+is replaced only when its marker says the same command wrote it, unchanged since, or with --force.
 """
 
 from __future__ import annotations
@@ -27,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from adadex.errors import AdadexError
-from adadex.io import check_output, output_folder
+from adadex.io import check_output, check_output_file, output_file, output_folder
 from adadex.resources import asset
 from adadex.sim.effects import EFFECT_NAMES, EffectError
 from adadex.sim.model_source import ModelSourceError, same_model
@@ -86,9 +95,10 @@ def _is_report(path: Path) -> bool:
 
 
 #: What an earlier output of each command looks like (outputs written before markers existed, single files).
+#: Recordings (``simulate``) and plans (``excite``) are recognized by their marker only: a user's own
+#: ``.npz`` has the same keys.
 _RECOGNIZE = {"compare": lambda p: (p / "compare.json").is_file(), "diagnosis": lambda p: (p / "diagnosis.json").is_file(),
-              "patch": _is_file_of("effects"), "recording": _is_file_of("time", "command", "joint_pos"),
-              "report": _is_report}
+              "patch": _is_file_of("effects"), "report": _is_report}
 
 
 def _check_out(a, kind: str) -> None:
@@ -104,17 +114,24 @@ def _floats(text: str) -> tuple[float, ...]:
 def _cmd_excite(a) -> int:
     from adadex.sysid.excite import design_excitation
 
+    out = Path(a.out)
+    folder = out.with_suffix("") if out.suffix == ".csv" else None
+    if folder is not None:              # before any work: a folder of CSV files, or one .npz file
+        check_output(folder, "plan", force=a.force)
+    else:
+        check_output_file(out, "plan", force=a.force)
     plan = design_excitation(a.joints.split(","), freqs=_floats(a.freqs), amps=_floats(a.amps),
                              poses=tuple(a.poses.split(",")), kinds=tuple(a.kinds.split(",")),
                              duration=a.duration, rate=a.rate, robot=_robot(a.model))
-    out = Path(a.out)
-    if out.suffix == ".csv":
+    if folder is not None:
         from adadex.data.recording import to_csv
 
-        files = to_csv(plan.to_recording(plan.command.copy(), {"plan": True}), out.with_suffix(""))
-        print(f"wrote {len(files)} CSV files to {out.with_suffix('')}/")
+        with output_folder(folder, "plan", force=a.force) as tmp:
+            files = to_csv(plan.to_recording(plan.command.copy(), {"plan": True}), tmp)
+        print(f"wrote {len(files)} CSV files to {folder}/")
     else:
-        plan.save(out)
+        with output_file(out, "plan", force=a.force):
+            plan.save(out)
         print(f"wrote {out}: {len(plan.sequences)} sequences × {len(plan.time)} samples at {a.rate:g} Hz "
               f"on {', '.join(plan.joint_names)}")
     return 0
@@ -123,10 +140,11 @@ def _cmd_excite(a) -> int:
 def _cmd_simulate(a) -> int:
     from adadex.sysid.excite import ExcitationPlan, simulate_recording
 
+    check_output_file(a.out, "recording", force=a.force)
     plan = ExcitationPlan.load(a.plan, robot=_robot(a.model))
-    _check_out(a, "recording")
     rec = simulate_recording(plan, _load_patch(a.patch, a.model), noise=a.noise, seed=a.seed, nthread=a.threads)
-    rec.save(a.out)
+    with output_file(a.out, "recording", force=a.force):
+        rec.save(a.out)
     print(f"wrote {a.out}: {rec.num_sequences} sequences simulated"
           + (f" with {len(_load_patch(a.patch, a.model))} effect(s)" if a.patch else " on the nominal model")
           + f", sensor noise {a.noise:g} rad, seed {a.seed}")
@@ -238,8 +256,12 @@ def _cmd_fit(a) -> int:
                            f"{robot.model_id if robot else 'builtin'}; pass the same --model")
         patch = diag.patch(robot)
         if not len(patch):
-            raise CliError(f"{a.accept}: the diagnosis selected no effect (verdict "
-                           f"{Diagnosis.load(a.accept).verdict}); nothing to accept")
+            # nothing missing (or nothing found): the result is the starting patch, unchanged
+            base = _load_patch(a.patch, a.model)
+            base.save(a.out)
+            print(f"{a.accept}: nothing to add (verdict {diag.verdict}, no effect selected); wrote {a.out} "
+                  f"with {'the effects of ' + str(a.patch) if a.patch else 'no effects'}")
+            return 0
     else:
         patch = fit_patch(rec, [_parse_add(s) for s in a.add], base_patch=_load_patch(a.patch, a.model),
                           nthread=a.threads)
@@ -275,7 +297,7 @@ def _cmd_report(a) -> int:
 def _cmd_demo(a) -> int:
     from adadex.sysid.demo import run_demo
 
-    run_demo(recording=a.recording or DEMO_RECORDING, out=a.out, nthread=a.threads, model=a.model)
+    run_demo(recording=a.recording or DEMO_RECORDING, out=a.out, nthread=a.threads, model=a.model, force=a.force)
     return 0
 
 
@@ -304,6 +326,8 @@ def add_parser(sub) -> None:
     q.add_argument("--duration", type=float, default=3.0)
     q.add_argument("--rate", type=float, default=60.0, help="sample rate, Hz")
     q.add_argument("--out", required=True, help="plan.npz, or plan.csv for a folder of CSV files")
+    q.add_argument("--force", action="store_true", help="replace --out even if it is not an earlier output "
+                   "of this command")
     add_model(q)
     q.set_defaults(func=_cmd_excite)
 
@@ -335,7 +359,8 @@ def add_parser(sub) -> None:
     q = s.add_parser("fit", help="fit chosen effects (or accept a diagnosis) into a model patch")
     q.add_argument("recording")
     q.add_argument("--add", action="append", default=[], metavar="EFFECT:JOINTS")
-    q.add_argument("--accept", metavar="DIAGNOSIS_DIR")
+    q.add_argument("--accept", metavar="DIAGNOSIS_DIR", help="the effects a diagnosis selected (none selected: "
+                   "'nothing to add', --out gets the starting patch unchanged)")
     q.add_argument("--patch", help="start from this patch")
     q.add_argument("--out", required=True)
     common(q)
@@ -353,7 +378,8 @@ def add_parser(sub) -> None:
 
     q = s.add_parser("demo", help="the whole loop on the shipped demo recording")
     q.add_argument("--recording", default=str(DEMO_RECORDING))
-    q.add_argument("--out", default="adadex_demo")
+    q.add_argument("--out", default="adadex_demo", help="output folder (diagnosis/, patch.json, report.html), "
+                   "written as one unit")
     common(q)
     q.set_defaults(func=_cmd_demo)
 

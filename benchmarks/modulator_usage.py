@@ -1,11 +1,21 @@
-"""Does a trained modulator edit, and do its edits help? A pipeline run's modulator against an untrained one.
+"""Can a modulator setting learn, and does a trained modulator help? Two checks, paired on the same draws.
 
-For one row of a finished ``recipes/pipeline.py`` run (default ``ROT``, seed 0), on the first
-``--references`` unseen-trajectory test references under Table 3 randomization: how much each channel
-is moved (mean |a| of the modulator's action, :func:`adadex.eval.figures.channel_usage`) and the
-completion success, for the trained modulator and for a freshly initialised one of the same shape
-(its edits are ≈ 0, so it tracks as the frozen tracker does). A trained modulator whose channels move
-but whose success falls has learned edits that do not help.
+``--init-check`` — the cheap check before a long run: per channel set and exploration scale, an
+*untrained* modulator around a frozen tracker (kinematic replay by default, ``Tracker.replay()``;
+or ``--tracker PATH``), run deterministically and sampled as the collectors sample it, against the
+tracker alone, on the unseen-trajectory test references under Table 3 (``--repeats`` draws each,
+the same draws for every row). A setting whose *sampled* modulator costs the tracker more than a
+point wrecks the episodes PPO learns from (the issue that sized ``CHANNELS[c].init_scale``).
+Printed per row: completion and object completion, the paired difference to the tracker with its
+bootstrap interval over references (:func:`adadex.eval.paired.paired_bootstrap`), and the edit size
+(mean |a| per action entry)::
+
+    python benchmarks/modulator_usage.py --init-check --dataset data/small_pg [--channels R,T,O,R+O+T]
+        [--scales default,0.05,0.5] [--repeats 4] [--references 0] [--tracker PATH] [--out FILE]
+
+Without it: one row of a finished ``recipes/pipeline.py`` run (default ``ROT``, seed 0) — how much the
+trained modulator moves each channel and its completion, against a freshly initialised one of the
+same shape::
 
     python benchmarks/modulator_usage.py --run runs/table1 [--row ROT] [--seed 0] [--references 16] [--out FILE]
 """
@@ -14,9 +24,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
+import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from adadex.io import atomic_write_text
@@ -24,20 +37,86 @@ from adadex.io import atomic_write_text
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def main(argv=None) -> dict:
+def _paired(row: dict, base: dict, metric: str) -> dict:
+    from adadex.eval.paired import paired_bootstrap
+
+    a, b = row["per_episode"], base["per_episode"]
+    assert a["reference"] == b["reference"] and a["repeat"] == b["repeat"]
+    d = paired_bootstrap(100.0 * np.asarray(a[metric], float), 100.0 * np.asarray(b[metric], float),
+                         a["reference"], None)
+    return {"diff": d["estimate"], "ci95": d["ci95"]}
+
+
+def init_check(a) -> dict:
+    from adadex.data.reference import ReferenceDataset
+    from adadex.envs.randomization import Randomization
+    from adadex.envs.tracking import TrackingConfig, episode_references
+    from adadex.eval.evaluate import evaluate
+    from adadex.eval.figures import channel_usage
+    from adadex.modules.channels import ModulationLayout
+    from adadex.modules.modulator import Modulator, channel_scales
+    from adadex.modules.tracker import Tracker
+    from adadex.transforms.policy import make_policy
+
+    ds = ReferenceDataset(a.dataset)
+    config = TrackingConfig()
+    refs = episode_references(ds, ("unseen_trajectory", "test"), config.window)
+    if a.references:
+        refs = refs[: a.references]
+    tracker = Tracker.load(a.tracker).freeze() if a.tracker else Tracker.replay()
+    episodes = refs * a.repeats
+
+    def run(policy, sample=False, seed=0):
+        torch.manual_seed(seed)
+        return evaluate(policy, ds, split=None, references=episodes, max_worlds=a.worlds,
+                        env_transform=policy.primer, config=config, randomize=Randomization(), seed=a.seed,
+                        progress=False, keep_rollouts=True, sample=sample, nthread=2)
+
+    def summary(res):
+        s = res["summary"]
+        return {k: s[k] for k in ("completion_pct", "object_completion_pct", "carried_pct", "T_o")}
+
+    t0 = time.perf_counter()
+    base = run(make_policy(tracker, None, channels="none"))
+    result = {"benchmark": "modulator_usage --init-check", "dataset": str(a.dataset),
+              "tracker": a.tracker or "replay", "episodes": len(episodes), "references": len(refs),
+              "repeats": a.repeats, "seed": a.seed, "condition": "unseen_trajectory test, Table 3",
+              "tracker_alone": summary(base), "rows": []}
+    print(f"tracker alone ({result['tracker']}): completion {base['summary']['completion_pct']:.1f} %, "
+          f"object completion {base['summary']['object_completion_pct']:.1f} % ({len(episodes)} episodes)",
+          flush=True)
+    for channels in a.channels.split(","):
+        layout = ModulationLayout(channels)
+        for scale in a.scales.split(","):
+            init = None if scale == "default" else float(scale)
+            torch.manual_seed(a.seed)
+            mod = Modulator(channels, hidden=(256, 256, 128), init_scale=init)
+            policy = make_policy(tracker, mod, channels=channels)
+            modes = (("deterministic", False), ("sampled", True)) if scale == a.scales.split(",")[0] else \
+                (("sampled", True),)
+            for mode, sample in modes:
+                res = run(policy, sample=sample, seed=a.seed)
+                row = {"channels": layout.name, "init_scale": channel_scales(layout, init), "mode": mode,
+                       **summary(res), "channel_usage": channel_usage(res["rollouts"], channels)}
+                for metric in ("completion", "object_completion"):
+                    row[f"{metric}_vs_tracker"] = _paired(res, base, metric)
+                result["rows"].append(row)
+                c, o = row["completion_vs_tracker"], row["object_completion_vs_tracker"]
+                usage = ", ".join(f"{k} {v:.3f}" for k, v in row["channel_usage"].items())
+                scales = ", ".join(f"{k} {v:g}" for k, v in row["init_scale"].items())
+                print(f"{layout.name:6s} {mode:13s} scale {scales:22s} completion {row['completion_pct']:5.1f} % "
+                      f"({c['diff']:+.1f} [{c['ci95'][0]:+.1f}, {c['ci95'][1]:+.1f}]), object "
+                      f"{row['object_completion_pct']:5.1f} % ({o['diff']:+.1f} [{o['ci95'][0]:+.1f}, "
+                      f"{o['ci95'][1]:+.1f}]); mean |a|: {usage}", flush=True)
+    result["wall_s"] = time.perf_counter() - t0
+    return result
+
+
+def trained_vs_untrained(a) -> dict:
     from adadex.envs.tracking import episode_references
     from adadex.eval.figures import channel_usage
     from adadex.modules.modulator import Modulator
     from adadex.train.pipeline import MODULATOR_ROWS, Pipeline, PipelineConfig
-
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--run", type=Path, required=True, help="the out= folder of a finished pipeline run")
-    p.add_argument("--dataset", type=Path, default=None, help="its dataset (default: the one its stages used)")
-    p.add_argument("--row", default="ROT", choices=sorted(MODULATOR_ROWS))
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--references", type=int, default=16)
-    p.add_argument("--out", type=Path, default=RESULTS / "modulator_usage.json")
-    a = p.parse_args(argv)
 
     root = a.run / f"seed_{a.seed}"
     stage = root / "modulators" / a.row / "stage.json"
@@ -47,12 +126,13 @@ def main(argv=None) -> dict:
     dataset = a.dataset or Path(settings["dataset"])
     pipe = Pipeline(PipelineConfig(out=str(a.run), dataset=str(dataset), progress=False))
     pipe.ds = pipe.dataset()
-    refs = episode_references(pipe.ds, ("unseen_trajectory", "test"), pipe.env_config.window)[: a.references]
+    refs = episode_references(pipe.ds, ("unseen_trajectory", "test"), pipe.env_config.window)[: a.references or 16]
     channels = MODULATOR_ROWS[a.row]
     m = settings["modulator"]
     torch.manual_seed(a.seed)
     fresh = Modulator(channels, hidden=tuple(m["hidden"]), init_scale=m["init_scale"],
-                      loc_bound=m.get("loc_bound", 0.0))
+                      loc_bound=m.get("loc_bound", 0.0), inputs=m.get("inputs", "observation"),
+                      history=m.get("history", 3))
     paths = {"tracker": str(root / "generalist" / "tracker.pt")}
     result = {"benchmark": "modulator_usage", "run": str(a.run), "row": a.row, "seed": a.seed,
               "references": len(refs), "condition": "unseen_trajectory, randomized"}
@@ -64,16 +144,45 @@ def main(argv=None) -> dict:
             result[name] = {"channel_usage": channel_usage(res["rollouts"], channels),
                             "completion_pct": res["summary"]["completion_pct"],
                             "mean_error_pct": res["summary"]["success_mean_error_pct"]}
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(a.out, json.dumps(result, indent=1))
     for name in ("untrained", "trained"):
         r = result[name]
         usage = ", ".join(f"{k} {v:.4f}" for k, v in r["channel_usage"].items())
         print(f"{name:9s} mean |a|: {usage}; completion {r['completion_pct']:.1f} %, "
               f"mean-error success {r['mean_error_pct']:.1f} %")
-    print(f"wrote {a.out}")
+    return result
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--init-check", action="store_true", help="untrained modulators against the tracker alone")
+    p.add_argument("--run", type=Path, default=None, help="the out= folder of a finished pipeline run")
+    p.add_argument("--dataset", type=Path, default=None, help="the dataset (--init-check: required)")
+    p.add_argument("--tracker", default=None, help="--init-check: a tracker checkpoint (default: kinematic replay)")
+    p.add_argument("--channels", default="R,T,O,R+O+T", help="--init-check: channel sets, comma-separated")
+    p.add_argument("--scales", default="default,0.5",
+                   help="--init-check: exploration scales, comma-separated; 'default' is each channel's own")
+    p.add_argument("--repeats", type=int, default=4, help="--init-check: Table 3 draws per test reference")
+    p.add_argument("--worlds", type=int, default=64)
+    p.add_argument("--row", default="ROT")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--references", type=int, default=0, help="first N test references (0: all; trained: 16)")
+    p.add_argument("--out", type=Path, default=None)
+    a = p.parse_args(argv)
+    if a.init_check:
+        if a.dataset is None:
+            p.error("--init-check needs --dataset")
+        result = init_check(a)
+        out = a.out or RESULTS / "modulator_init_check.json"
+    else:
+        if a.run is None:
+            p.error("give --run (a finished pipeline run) or --init-check")
+        result = trained_vs_untrained(a)
+        out = a.out or RESULTS / "modulator_usage.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, json.dumps(result, indent=1))
+    print(f"wrote {out}")
     return result
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(0 if main() else 1)

@@ -53,13 +53,16 @@ EPISODE_FIELDS = ("completion", "success_mean_error", "object_completion", "carr
 def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajectory", "test"), *,
              references=None, max_worlds: int = 64, env_transform: Callable | None = None,
              config: TrackingConfig = TrackingConfig(), thresholds: Thresholds = Thresholds(),
-             progress: bool = True, keep_rollouts: bool = False, **env_kwargs) -> dict:
+             progress: bool = True, keep_rollouts: bool = False, sample: bool = False, **env_kwargs) -> dict:
     """Metrics of ``policy`` over every reference of ``split`` (see the module docstring).
 
     Args:
         policy: a TensorDictModule writing ``"action"`` (tracker, replay policy, make_policy graph).
         references: dataset indices to evaluate instead of ``split`` (each must have an episode window).
         env_transform: called once per chunk, returns a transform to append to the env (a primer …).
+        sample: run the policy as collectors do (``ExplorationType.RANDOM``: a modulator or tracker
+            samples its distribution; a frozen tracker inside a modulated policy stays deterministic)
+            instead of its deterministic action — what exploration costs, e.g. at initialization.
         env_kwargs: passed to :class:`TrackingEnv` (``randomize``, ``patch``, ``latent_fn``, ``seed`` …).
 
     Returns ``{"summary": {…}, "per_reference": {name: {…}}, "per_episode": {field: [one value per
@@ -95,7 +98,7 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
                           seed=chunk_seed(seed, k), **env_kwargs)
         if env_transform is not None:
             env = TransformedEnv(env, env_transform())
-        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM if sample else ExplorationType.DETERMINISTIC):
             td = env.reset()
             names += [ds.entries[i]["name"] for i in chunk]
             td = env.rollout(steps, policy, tensordict=td, auto_reset=False, break_when_any_done=False,

@@ -61,6 +61,50 @@ ARM_JOINTS = 6
 _NEXT_REF_OBJECT = slice(LAYOUT["ref_object_future"].start, LAYOUT["ref_object_future"].start + 3)
 
 
+class PalmShift:
+    """(n, 6) arm joints, (n, 3) palm shift (m, base frame) → (n, 6) arm-joint change that moves the
+    palm by the shift without turning it: ``iterations`` damped Gauss–Newton steps on the palm's pose,
+    each re-linearized at the joints reached (see the module docstring for what one step misses).
+    Shared by :class:`ObjectAnchor` and the modulator's compact channel
+    (:class:`adadex.transforms.modulation.CompactModulation`). Holds no parameters.
+
+    >>> import torch
+    >>> dq = PalmShift()(torch.zeros(4, 6), torch.tensor([[0.05, 0.0, 0.0]]).expand(4, 3))
+    >>> dq.shape, bool(dq.abs().max() > 0)
+    (torch.Size([4, 6]), True)
+    """
+
+    def __init__(self, damping: float = 0.02, iterations: int = 3):
+        self.damping = float(check_number("PalmShift.damping", damping, strict_low=True))
+        self.iterations = int(check_number("PalmShift.iterations", iterations, low=1, integer=True))
+        palm = pk.SerialChain(RobotKinematics(dtype=torch.float32).chain, TRACKED_SITES[0])
+        names = palm.get_joint_parameter_names()
+        if len(names) != ARM_JOINTS:
+            raise ValueError(f"the palm's chain should hold the {ARM_JOINTS} arm joints, got {names}")
+        self._palm = RevoluteChainJacobian(palm)
+
+    def __call__(self, q: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+        if self._palm.folds.device != q.device:
+            self._palm.to(device=q.device)
+        dtype = q.dtype
+        q, shift = q.float(), shift.float()
+        eye = torch.eye(6, dtype=q.dtype, device=q.device)
+        error = torch.cat([shift, torch.zeros_like(shift)], dim=-1)
+        x, target = q, None
+        for _ in range(self.iterations):
+            jac, pose = self._palm(x)                                        # (n, 6, 6), (n, 4, 4) in the base frame
+            if target is None:                                              # at q the error is the shift itself
+                target = pose[:, :3, 3] + shift, pose[:, :3, :3]
+            else:
+                turn = target[1] @ pose[:, :3, :3].transpose(1, 2)
+                error = torch.cat([target[0] - pose[:, :3, 3],
+                                   0.5 * torch.stack([turn[:, 2, 1] - turn[:, 1, 2], turn[:, 0, 2] - turn[:, 2, 0],
+                                                      turn[:, 1, 0] - turn[:, 0, 1]], dim=-1)], dim=-1)
+            x = x + (jac.transpose(1, 2) @ torch.linalg.solve(jac @ jac.transpose(1, 2) + self.damping ** 2 * eye,
+                                                             error[:, :, None]))[:, :, 0]
+        return (x - q).to(dtype)
+
+
 class ObjectAnchor(nn.Module):
     """(flat observation, object start pose, reference object start pose) → (…, 22) joint offset of
     the feed-forward (see the module docstring).
@@ -82,11 +126,7 @@ class ObjectAnchor(nn.Module):
         self.damping = float(check_number("ObjectAnchor.damping", damping, strict_low=True))
         self.reach = float(check_number("ObjectAnchor.reach", reach))
         self.iterations = int(check_number("ObjectAnchor.iterations", iterations, low=1, integer=True))
-        palm = pk.SerialChain(RobotKinematics(dtype=torch.float32).chain, TRACKED_SITES[0])
-        names = palm.get_joint_parameter_names()
-        if len(names) != ARM_JOINTS:
-            raise ValueError(f"the palm's chain should hold the {ARM_JOINTS} arm joints, got {names}")
-        self._palm = RevoluteChainJacobian(palm)     # no nn.Module: its tensors stay out of the state dict
+        self._shift = PalmShift(damping, iterations)     # no nn.Module: its tensors stay out of the state dict
 
     def weight(self, observation: torch.Tensor, ref_object_start: torch.Tensor) -> torch.Tensor:
         """(…,) anchor weight: 1 while the reference object is at rest, 0 once it travelled
@@ -108,27 +148,5 @@ class ObjectAnchor(nn.Module):
         out = torch.zeros(obs.shape[0], NUM_JOINTS, dtype=obs.dtype, device=obs.device)
         rows = shift.any(dim=1).nonzero()[:, 0]      # the Jacobian only where there is a shift
         if len(rows):
-            if self._palm.folds.device != obs.device:   # the chain is no nn.Module: .to() does not move it
-                self._palm.to(device=obs.device)
-            q = obs[rows, _NEXT_REF][:, :ARM_JOINTS].float()
-            out[rows, :ARM_JOINTS] = self._solve(q, shift[rows].float()).to(obs.dtype)
+            out[rows, :ARM_JOINTS] = self._shift(obs[rows, _NEXT_REF][:, :ARM_JOINTS], shift[rows, :3])
         return out.reshape(*lead, NUM_JOINTS)
-
-    def _solve(self, q: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
-        """(n, 6) arm-joint change taking the palm from its pose at ``q`` to that pose moved by
-        ``shift[:, :3]``, unturned: damped Gauss–Newton on the palm's pose error (position, and the
-        rotation's axis·angle to first order), each step re-linearized at the joints reached."""
-        eye = torch.eye(6, dtype=q.dtype, device=q.device)
-        x, error, target = q, shift, None
-        for _ in range(self.iterations):
-            jac, pose = self._palm(x)                                        # (n, 6, 6), (n, 4, 4) in the base frame
-            if target is None:                                              # at q the error is the shift itself
-                target = pose[:, :3, 3] + shift[:, :3], pose[:, :3, :3]
-            else:
-                turn = target[1] @ pose[:, :3, :3].transpose(1, 2)
-                error = torch.cat([target[0] - pose[:, :3, 3],
-                                   0.5 * torch.stack([turn[:, 2, 1] - turn[:, 1, 2], turn[:, 0, 2] - turn[:, 2, 0],
-                                                      turn[:, 1, 0] - turn[:, 0, 1]], dim=-1)], dim=-1)
-            x = x + (jac.transpose(1, 2) @ torch.linalg.solve(jac @ jac.transpose(1, 2) + self.damping ** 2 * eye,
-                                                             error[:, :, None]))[:, :, 0]
-        return x - q

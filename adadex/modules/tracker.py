@@ -130,6 +130,28 @@ class Tracker(ActorCritic):
         self.critic = make_critic(OBSERVATION, OBS_DIM, hidden)
 
     @classmethod
+    def replay(cls, hidden: Sequence[int] = (16,), max_action: float = 0.1, residual: float = 0.25) -> Tracker:
+        """Kinematic replay as a tracker: a residual tracker whose correction is exactly zero (its
+        heads zeroed), so its deterministic action is replay's (to float32 rounding). A frozen tracker to modulate without
+        training one first, e.g. the cheap check that a modulator setting can learn.
+
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> obs = TensorDict({"observation": torch.rand(3, 273) * 0.1, ("proprio", "joint_target"): torch.zeros(3, 22)},
+        ...                  batch_size=[3])
+        >>> from adadex.envs.observation import NEXT_REF_JOINTS
+        >>> float((Tracker.replay()(obs)["action"] - obs["observation"][:, NEXT_REF_JOINTS]).abs().max()) < 1e-6
+        True
+        """
+        tracker = cls(hidden=hidden, max_action=max_action, residual=residual)
+        heads = next(m for m in tracker.actor.modules() if hasattr(m, "heads"))
+        with torch.no_grad():
+            for h in heads.heads:
+                h.weight.zero_()
+                h.bias.zero_()
+        return tracker.freeze()
+
+    @classmethod
     def upgrade_config(cls, config: dict) -> dict:
         """Checkpoints saved before ``torchrl_tanh_loc`` existed bounded their mean with TorchRL's
         ``tanh_loc`` (it makes a difference only with ``residual`` and ``loc_bound`` both > 0); those

@@ -118,7 +118,11 @@ class PipelineConfig:
     distill_steps: int = 3000
     distill_batch: int = 1024
     imitation_coef: float = 1.0              # IL+RL's imitation weight
-    modulator: dict = field(default_factory=dict)    # ModulatorSettings fields (hidden, init_scale)
+    modulator: dict = field(default_factory=dict)    # ModulatorSettings fields (hidden, init_scale, inputs, …)
+    #: the reference channel of the R rows (R, RT, ROT): ``"R"`` — the full per-frame residuals (112
+    #: numbers); ``"C"`` — the compact edit, a palm offset through the arm Jacobian and a closure per
+    #: finger (7 numbers, :class:`adadex.transforms.modulation.CompactModulation`)
+    reference_channel: str = "R"
     modulation: dict = field(default_factory=lambda: {"persistent": True})   # ModulationConfig overrides
     eval_repeats: int = 4                    # randomized evaluation: episodes per test reference
     #: Randomization fields to change from Table 3 (e.g. ``{"object_xy_std": 0.02}``), for every training
@@ -152,6 +156,12 @@ class PipelineConfig:
             cls(**getattr(self, name))       # a bad key or value fails here, before any stage runs
         self.randomization = dict(self.randomization or {})
         self.randomization_config()
+        if self.reference_channel not in ("R", "C"):
+            raise ConfigError(f"PipelineConfig.reference_channel must be 'R' or 'C', got {self.reference_channel!r}")
+
+    def row_channels(self, row: str) -> str:
+        """The channels a modulator row trains: :data:`MODULATOR_ROWS` with ``reference_channel`` for R."""
+        return "+".join(self.reference_channel if c == "R" else c for c in MODULATOR_ROWS[row].split("+"))
 
     def randomization_config(self) -> Randomization:
         """Table 3 with this pipeline's ``randomization`` changes (checked as a training run checks them)."""
@@ -313,7 +323,8 @@ class Pipeline:
 
     def modulators(self, seed: int, root: Path, tracker: str) -> dict[str, str]:
         out = {}
-        for row, channels in MODULATOR_ROWS.items():
+        for row in MODULATOR_ROWS:
+            channels = self.cfg.row_channels(row)
             m = ModulatorSettings(tracker=tracker, channels=channels, modulation=dict(self.cfg.modulation),
                                   **self.cfg.modulator)
             tc = self._train_config(root / "modulators" / row, seed, self.cfg.modulator_frames, modulator=m)
@@ -340,7 +351,7 @@ class Pipeline:
         if row == "replay":
             g = make_policy(replay_policy(), None, channels="none")
         elif row in MODULATOR_ROWS:
-            g = make_policy(Tracker.load(paths["tracker"]), Modulator.load(paths[row]), channels=MODULATOR_ROWS[row],
+            g = make_policy(Tracker.load(paths["tracker"]), Modulator.load(paths[row]), channels=self.cfg.row_channels(row),
                             config=ModulationConfig(**self.cfg.modulation))
         else:
             g = make_policy(Tracker.load(paths[row]), None, channels="none")
@@ -461,7 +472,7 @@ class Pipeline:
         name = self.ds.entries[refs[w]]["name"]
         out["fig4_object_path"] = fig.plot_object_paths(paths_xyz[w], folder / "fig4_object_path.png",
                                                         title=f"{name}: reference, modulated reference, executed")
-        frames, latents = fig.decoded_latents(td, w, channels="R+O+T",
+        frames, latents = fig.decoded_latents(td, w, channels=self.cfg.row_channels("ROT"),
                                               config=ModulationConfig(**self.cfg.modulation))
         obj = self.ds.entries[refs[w]]["object"]
         out["fig5_latent"] = fig.plot_latent_decoding(load_encoder(SHIPPED_ENCODER)[0], latents, frames, obj,
@@ -487,8 +498,9 @@ class Pipeline:
         out["fig12_smoothness"] = folder / "fig12_smoothness.png"
         # which channels each modulator uses, on the randomized unseen-trajectory episodes
         usage = {row: fig.channel_usage(self.evaluate(self.policy(row, paths), "unseen_trajectory", "randomized",
-                                                      20_000 + seed, keep_rollouts=True)["rollouts"], channels)
-                 for row, channels in MODULATOR_ROWS.items()}
+                                                      20_000 + seed, keep_rollouts=True)["rollouts"],
+                                      self.cfg.row_channels(row))
+                 for row in MODULATOR_ROWS}
         out["channel_usage"] = fig.plot_channel_usage(usage, folder / "channel_usage.png")
         atomic_write_text(folder / "channel_usage.json", json.dumps(usage, indent=1))
         atomic_write_text(folder / "smoothness.json",

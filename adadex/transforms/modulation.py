@@ -13,6 +13,8 @@ input to the env's action spec (entries under ``"modulation"``, in [−1, 1]) an
   for frames t … t+12, shifted by one frame per step and zero after a reset; the observation
   leaving the env shows the edited reference (structured entries and the 273-D vector), the
   reward still scores the original one. ``persistent=False`` edits the current step only.
+* :class:`CompactModulation` (C): R in 7 numbers — the visible reference's palm moved by an offset
+  (through the arm Jacobian) and each finger's flexion closed or opened; absolute, not carried.
 * :class:`LatentModulation` (O): the object latent becomes f̃ = clip(f + λ · a, −1, 1).
 * :class:`ActionModulation` (T): action ← action + bound · clip(Δa, −1, 1).
 * :class:`TrackerInTheLoop`: runs a frozen tracker (deterministic, no gradient) on the modulated
@@ -44,10 +46,11 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adadex.envs.observation import OBJECT_LATENT, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, REF_OFFSETS, \
     flat_from_tensordict
-from adadex.modules.channels import HAND_EDIT, MOD, OBJECT_EDIT, Channel, ModulationConfig, \
+from adadex.modules.channels import GRIP_JOINTS, HAND_EDIT, MOD, OBJECT_EDIT, Channel, ModulationConfig, \
     ModulationLayout, bind_transform
 from adadex.modules.modulator_view import VIEW, ViewLayout, next_view_state, view_features
 from adadex.quat import quat_from_rotvec, quat_mul, rotvec_from_quat
+from adadex.sim.robot import JOINT_NAMES, NUM_JOINTS
 
 _FUTURE_ROWS = list(REF_OFFSETS[1:])      # rows of the 13-frame edit that the R action moves
 _OBS_ROWS = list(REF_OFFSETS)             # rows of the edit seen by the reference entries
@@ -242,6 +245,47 @@ class ReferenceModulation(ChannelTransform, channel="R"):
 def shift_edit(edit: torch.Tensor) -> torch.Tensor:
     """Edits for frames t … t+12 → for frames t+1 … t+13 (the new last frame unedited)."""
     return torch.cat([edit[..., 1:, :], torch.zeros_like(edit[..., :1, :])], dim=-2)
+
+
+class CompactModulation(ChannelTransform, channel="C"):
+    """Channel C, the compact reference edit: 7 numbers instead of R's 112. The palm of every visible
+    reference frame (offsets 0, 1, 2, 4, 12) moves by ``λ_palm · a_palm`` (m, base frame) — the arm
+    joints of each frame solved through the palm's Jacobian without turning it
+    (:class:`adadex.modules.anchor.PalmShift`) — and each finger's flexion joints close by
+    ``λ_grip · a_grip`` (index, middle, ring, thumb). The edit is absolute, not carried: the action
+    says where the reference is this step (reaching an object that Table 3 moved is one constant
+    palm offset, not an edit to accumulate). The reward scores the original reference.
+    """
+
+    def __init__(self, config: ModulationConfig = ModulationConfig()):
+        super().__init__(config, (REF_JOINT_POS, OBSERVATION))
+        from adadex.modules.anchor import PalmShift
+
+        self._shift = PalmShift()
+        mask = torch.zeros(len(GRIP_JOINTS), NUM_JOINTS)
+        for f, joints in enumerate(GRIP_JOINTS):
+            mask[f, [JOINT_NAMES.index(j) for j in joints]] = 1.0
+        self._grip = mask
+
+    def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
+        a = self._inputs(td)
+        if a is None:
+            return td
+        palm, grip = a[0] * self.config.lambda_palm, a[1] * self.config.lambda_grip
+        ref = td.get(REF_JOINT_POS)                       # (…, 5, 22)
+        lead, k = ref.shape[:-2], ref.shape[-2]
+        edit = (grip @ self._grip.to(grip))[..., None, :].expand(*lead, k, NUM_JOINTS).clone()
+        q = ref[..., :6].reshape(-1, 6)
+        shift = palm[..., None, :].expand(*lead, k, 3).reshape(-1, 3)
+        rows = shift.any(dim=1).nonzero()[:, 0]           # the Jacobian only where the palm moves
+        if len(rows):
+            flat = edit.reshape(-1, NUM_JOINTS)
+            flat[rows, :6] = self._shift(q[rows], shift[rows])
+            edit = flat.reshape(*lead, k, NUM_JOINTS)
+        td.set(REF_JOINT_POS, ref + edit)
+        if OBSERVATION in td.keys():
+            td.set(OBSERVATION, flat_from_tensordict(td))
+        return td
 
 
 class LatentModulation(ChannelTransform, channel="O"):

@@ -1,0 +1,153 @@
+"""Does modulation pay? Modulators trained around a frozen tracker, each paired with the tracker alone.
+
+For every row (a channel set and its settings) and training seed: PPO trains a modulator around the
+frozen tracker (kinematic replay by default, ``Tracker.replay()``; or ``--tracker PATH``) on the
+unseen-trajectory training references under Table 3, then the modulated policy and the tracker
+alone are evaluated on the unseen-trajectory test references under Table 3, ``--repeats`` draws
+each, on the same draws (the same env seed for every row and seed). Printed per row: completion
+and object completion (the object within 5 cm: :func:`adadex.envs.frame_errors.object_success`),
+carried, T_o, and the paired difference to the tracker with its bootstrap interval over references,
+pooled across the seeds (:func:`adadex.eval.paired.paired_bootstrap`).
+
+A row is ``CHANNELS[:inputs[:init_scale]]``: ``C+T`` (the defaults: the view, each channel's own
+scale), ``R+O+T:observation:0.5`` (the modulator as it was before 2026-11-27). Every run is kept
+under ``--runs`` and resumes (training from its checkpoint, evaluations from their JSON), so a
+killed benchmark continues where it stopped::
+
+    python benchmarks/modulator_quality.py --dataset data/small_pg --rows C+T,R+T,R+O+T:observation:0.5
+        [--seeds 0,1,2] [--frames 250000] [--repeats 4] [--reward w_object_success=3] [--runs DIR] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from adadex.io import atomic_write_text
+
+RESULTS = Path(__file__).resolve().parent / "results"
+METRICS = ("completion_pct", "object_completion_pct", "carried_pct", "success_mean_error_pct", "T_o")
+#: per-episode field → its summary name (as % where the summary gives %)
+PAIRED = {"completion": "completion_pct", "object_completion": "object_completion_pct", "carried": "carried_pct"}
+
+
+def parse_row(text: str) -> dict:
+    parts = text.split(":")
+    if not 1 <= len(parts) <= 3:
+        raise SystemExit(f"--rows: {text!r} is not CHANNELS[:inputs[:init_scale]]")
+    row = {"channels": parts[0], "inputs": parts[1] if len(parts) > 1 else "view",
+           "init_scale": float(parts[2]) if len(parts) > 2 else None}
+    row["name"] = text.replace("+", "").replace(":", "_").replace(".", "")
+    return row
+
+
+def main(argv=None) -> dict:
+    from adadex.data.reference import ReferenceDataset
+    from adadex.envs.randomization import Randomization
+    from adadex.envs.tracking import TrackingConfig, episode_references
+    from adadex.eval.evaluate import evaluate
+    from adadex.eval.paired import paired_bootstrap
+    from adadex.modules.modulator import Modulator
+    from adadex.modules.tracker import Tracker
+    from adadex.train.config import CollectorConfig, ModulatorSettings, PPOConfig, TrainConfig
+    from adadex.train.ppo import PPOTrainer
+    from adadex.transforms.policy import make_policy
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--dataset", type=Path, required=True)
+    p.add_argument("--rows", default="C+T,R+T,R+O+T:observation:0.5")
+    p.add_argument("--seeds", default="0,1,2")
+    p.add_argument("--frames", type=int, default=250_000)
+    p.add_argument("--repeats", type=int, default=4)
+    p.add_argument("--tracker", default=None, help="a tracker checkpoint (default: kinematic replay)")
+    p.add_argument("--runs", type=Path, default=Path("runs/modulator_quality"))
+    p.add_argument("--ppo", default="", help="PPOConfig settings, e.g. 'lr=1e-4,desired_kl=0'")
+    p.add_argument("--reward", default="", help="RewardConfig changes for training, e.g. 'w_object_success=3'")
+    p.add_argument("--out", type=Path, default=RESULTS / "modulator_quality.json")
+    a = p.parse_args(argv)
+    rows = [parse_row(r) for r in a.rows.split(",")]
+    seeds = [int(s) for s in a.seeds.split(",")]
+    ppo = {"desired_kl": 0.0, "update_threads": 1}      # as the pipeline trains its modulators
+    for kv in filter(None, a.ppo.split(",")):
+        k, v = kv.split("=")
+        ppo[k] = type(getattr(PPOConfig(), k))(v) if not isinstance(getattr(PPOConfig(), k), bool) else v == "true"
+    reward = {k: float(v) for k, v in (kv.split("=") for kv in filter(None, a.reward.split(",")))}
+    a.runs.mkdir(parents=True, exist_ok=True)
+    tracker_path = a.tracker
+    if tracker_path is None:
+        tracker_path = str(a.runs / "replay_tracker.pt")
+        if not Path(tracker_path).is_file():
+            Tracker.replay().save(tracker_path)
+    ds = ReferenceDataset(a.dataset)
+    config = TrackingConfig()
+    episodes = episode_references(ds, ("unseen_trajectory", "test"), config.window) * a.repeats
+    t_start = time.perf_counter()
+
+    def evaluated(folder: Path, policy) -> dict:
+        path = folder / "eval.json"
+        if path.is_file():
+            return json.loads(path.read_text(encoding="utf-8"))
+        res = evaluate(policy, ds, split=None, references=episodes, max_worlds=64, env_transform=policy.primer,
+                       config=config, randomize=Randomization(), seed=20_000, progress=False, nthread=2)
+        out = {"summary": res["summary"], "per_episode": res["per_episode"], "wall_s": res["wall_s"]}
+        folder.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(path, json.dumps(out))
+        return out
+
+    tracker = Tracker.load(tracker_path).freeze()
+    base = evaluated(a.runs / "tracker_alone", make_policy(tracker, None, channels="none"))
+    result = {"benchmark": "modulator_quality", "dataset": str(a.dataset), "tracker": a.tracker or "replay",
+              "frames": a.frames, "seeds": seeds, "episodes": len(episodes), "ppo": ppo, "reward": reward,
+              "condition": "unseen_trajectory test, Table 3", "tracker_alone": {k: base["summary"][k] for k in METRICS},
+              "rows": {}}
+    for row in rows:
+        per_seed = []
+        for seed in seeds:
+            folder = a.runs / f"{row['name']}_s{seed}"
+            m = ModulatorSettings(tracker=tracker_path, channels=row["channels"], inputs=row["inputs"],
+                                  init_scale=row["init_scale"])
+            tc = TrainConfig(dataset=str(a.dataset), out=str(folder), seed=seed,
+                             resume=(folder / "checkpoint.pt").is_file(),
+                             ppo=PPOConfig(**{**ppo, "total_frames": a.frames}), collector=CollectorConfig(),
+                             modulator=m, reward=reward, eval_max_references=0, wandb=False, progress=False)
+            t0 = time.perf_counter()
+            trained = PPOTrainer(tc, run_name=f"{row['name']} seed {seed}").train()
+            train_s = time.perf_counter() - t0
+            mod = Modulator.load(trained["policy"])
+            ev = evaluated(folder, make_policy(tracker, mod))
+            per_seed.append({"seed": seed, "train_s": train_s, **{k: ev["summary"][k] for k in METRICS},
+                             "per_episode": ev["per_episode"]})
+        diffs = {}
+        for field, name in PAIRED.items():
+            a_ = np.concatenate([100.0 * np.asarray(s["per_episode"][field], float) for s in per_seed])
+            b_ = np.concatenate([100.0 * np.asarray(base["per_episode"][field], float) for _ in per_seed])
+            refs = np.concatenate([s["per_episode"]["reference"] for s in per_seed])
+            sid = np.concatenate([[s["seed"]] * len(s["per_episode"]["reference"]) for s in per_seed])
+            d = paired_bootstrap(a_, b_, refs, sid)
+            diffs[name] = {"diff": d["estimate"], "ci95": d["ci95"]}
+        entry = {**row, "per_seed": [{k: v for k, v in s.items() if k != "per_episode"} for s in per_seed],
+                 **{k: float(np.mean([s[k] for s in per_seed])) for k in METRICS}, "vs_tracker": diffs}
+        result["rows"][row["name"]] = entry
+        c, o = diffs["completion_pct"], diffs["object_completion_pct"]
+        print(f"{row['name']:24s} completion {entry['completion_pct']:5.1f} % ({c['diff']:+.1f} [{c['ci95'][0]:+.1f}, "
+              f"{c['ci95'][1]:+.1f}])  object {entry['object_completion_pct']:5.1f} % ({o['diff']:+.1f} "
+              f"[{o['ci95'][0]:+.1f}, {o['ci95'][1]:+.1f}])  carried {entry['carried_pct']:5.1f} %  "
+              f"T_o {entry['T_o']:.2f} cm  per seed completion "
+              + " / ".join(f"{s['completion_pct']:.1f}" for s in per_seed), flush=True)
+    result["wall_s"] = time.perf_counter() - t_start
+    b = result["tracker_alone"]
+    print(f"{'tracker alone':24s} completion {b['completion_pct']:5.1f} %  object {b['object_completion_pct']:5.1f} %  "
+          f"carried {b['carried_pct']:5.1f} %  T_o {b['T_o']:.2f} cm ({len(episodes)} episodes per seed)")
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(a.out, json.dumps(result, indent=1))
+    print(f"wrote {a.out}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -2,7 +2,7 @@
 versus by the modulated graph, both ways it can be run.
 
 * ``tracker``: ``env.rollout(N, tracker)`` on a plain TrackingEnv;
-* ``transformed env``: ``TransformedEnv(env, modulation("R+O+T", tracker))`` driven by the modulator
+* ``transformed env``: ``TransformedEnv(env, modulation("R+O+T", tracker, view=modulator.view))`` driven by the modulator
   (the modulator's training setup);
 * ``make_policy``: the same graph as one policy on the plain env (+ its primer).
 
@@ -55,7 +55,7 @@ def main(argv=None) -> dict:
         runs = {
             "tracker": (lambda: TrackingEnv(dataset, num_worlds=a.worlds, split=None, config=cfg), tracker.actor),
             "transformed env": (lambda: TransformedEnv(TrackingEnv(dataset, num_worlds=a.worlds, split=None, config=cfg),
-                                                       modulation(a.channels, tracker)), modulator.actor),
+                                                       modulation(a.channels, tracker, view=modulator.view)), modulator.actor),
             "make_policy": (lambda: TransformedEnv(TrackingEnv(dataset, num_worlds=a.worlds, split=None, config=cfg),
                                                    policy.primer()), policy),
         }

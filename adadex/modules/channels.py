@@ -108,7 +108,11 @@ class Channel:
       path) or ``"action"`` (the tracker's output: runs after it);
     * ``init_scale`` — the modulator's initial exploration scale (pre-tanh) on this channel's head:
       sampling an untrained modulator must leave the tracker's success intact, so each channel's is
-      sized to what its edits cost (``python benchmarks/modulator_usage.py --init-check``);
+      sized to what its edits cost (``python benchmarks/modulator_usage.py --init-check``: around
+      kinematic replay on the planned-grasp ``small`` dataset under Table 3, 188 paired episodes,
+      sampling at 0.5 cost R 18.0 and T 6.8 completion points; R 0.05, T 0.2 and C 0.03 are the
+      largest scales measured within noise of the tracker alone, docs/training-log.md); O keeps 0.5
+      (its edits changed nothing measurable at 0.5);
     * :attr:`transform` — its transform class, bound by :mod:`adadex.transforms.modulation`.
     """
 
@@ -165,7 +169,7 @@ CHANNELS: Mapping[str, Channel] = _registry(
                     Field("persistent", True, "the R edits stay in the future reference as the episode moves on "
                                               "(PAPER.md decision); ``False`` edits the reference for the current "
                                               "step only")),
-            edits="observation"),
+            edits="observation", init_scale=0.05),
     Channel("C", "compact reference edit: palm position offset (through the arm Jacobian) and grip",
             entries=((PALM, (3,)), (GRIP, (len(GRIP_JOINTS),))),
             fields=(Field("lambda_palm", 0.10, "λ_palm: the palm of the whole visible reference moves by up to "
@@ -174,7 +178,7 @@ CHANNELS: Mapping[str, Channel] = _registry(
                     Field("lambda_grip", 0.3, "λ_grip: each finger's flexion joints (index, middle, ring: mcp, pip, "
                                               "dip; thumb: mcp, ipl) of the visible reference close (+) or open (−) "
                                               "by up to this much (rad)")),
-            edits="observation", init_scale=0.5),
+            edits="observation", init_scale=0.03),
     Channel("O", "object latent",
             entries=((LATENT, (LATENT_DIM,)),),
             fields=(Field("lambda_latent", 0.25, "λ_latent: f̃ = clip(f + λ·a, −1, 1) (the latent is tanh-bounded). "
@@ -186,7 +190,7 @@ CHANNELS: Mapping[str, Channel] = _registry(
             entries=((ACTION_RESIDUAL, (NUM_JOINTS,)),),
             fields=(Field("action_bound", 0.05, "the T residual added to the tracker's action is in "
                                                 "[−bound, bound] (rad)"),),
-            edits="action"),
+            edits="action", init_scale=0.2),
 )
 
 _TRANSFORMS: dict[str, type] = {}      # channel name → transform class, filled by bind_transform

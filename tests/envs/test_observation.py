@@ -171,3 +171,25 @@ def test_success_term_pays_for_the_frames_completion_counts():
     assert torch.allclose(paid - base, 2.5 * ok.float())
     with pytest.raises(ConfigError, match="w_success"):
         RewardConfig(w_success=float("nan"))
+
+
+def test_object_success_term_pays_only_with_the_object_within_5_cm():
+    """``w_object_success`` pays on the frames that pass the paper's thresholds with the object within
+    5 cm: the frame 8 cm off passes the paper's test and fails this one."""
+    from adadex.envs.frame_errors import frame_errors, object_success
+    from adadex.envs.reward import RewardConfig, tracking_reward
+
+    B = 3
+    rq, rlink, robj = _reference_at_origin(B)
+    link, obj = rlink.clone(), robj.clone()
+    off = torch.tensor([0.03, 0.08, 0.12])
+    link[..., 0] += off[:, None]
+    obj[:, 0] += off
+    kw = dict(joint_pos=rq, link_pose=link, object_pose=obj, ref_joint_pos=rq, ref_link_pose=rlink,
+              ref_object_pose=robj)
+    base, t0 = tracking_reward(RewardConfig(), **kw)
+    paid, t1 = tracking_reward(RewardConfig(w_object_success=3.0), **kw)
+    ok = object_success(frame_errors(obj, robj, link[:, 0], rlink[:, 0], rq, rq))
+    assert ok.tolist() == [True, False, False]
+    assert torch.equal(t1["object_success"], ok.float())
+    assert torch.allclose(paid - base, 3.0 * ok.float())

@@ -147,25 +147,16 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-#: Errors in the user's input: one line, exit code 2 (FileNotFoundError & co. are missing or unusable paths).
-INPUT_ERRORS = (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, FileExistsError)
-
-
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return _dispatch(args)
     except Exception as e:
-        from adadex.errors import AdadexError
+        from adadex.errors import report_error
 
         if args.debug:
             raise
-        if isinstance(e, (AdadexError, *INPUT_ERRORS)):
-            print(f"adadex {args.command}: error: {e}", file=sys.stderr)
-            return 2
-        print(f"adadex {args.command}: internal error (a bug in adadex, please report it): "
-              f"{type(e).__name__}: {e}; run `adadex --debug …` for the traceback", file=sys.stderr)
-        return 1
+        return report_error(f"adadex {args.command}", e, hint="; run `adadex --debug …` for the traceback")
 
 
 def _dispatch(args) -> int:

@@ -98,3 +98,64 @@ def from_known_keys(cls, d: dict):
     if unknown:
         raise ConfigError(f"{cls.__name__}: unknown keys {unknown}")
     return cls(**d)
+
+
+# ----------------------------------------------------------------------------------------------
+# The one error contract of the ``adadex`` command and the recipes
+
+#: built-in exceptions that mean bad input too: a path given that is missing, a folder where a file is
+#: expected, a file that may not be read or replaced
+INPUT_ERRORS = (FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, FileExistsError)
+
+
+def one_line(error: BaseException) -> str:
+    """``error``'s message on one line (a ``KeyError``'s without the quotes ``str`` adds)."""
+    msg = str(error.args[0]) if isinstance(error, KeyError) and error.args else str(error)
+    return " ".join(part.strip() for part in msg.splitlines() if part.strip()) or type(error).__name__
+
+
+def report_error(prog: str, error: BaseException, *, hint: str = "", traceback: bool = False) -> int:
+    """Report ``error`` from the command ``prog`` on stderr; return the exit code.
+
+    Bad input — an :class:`AdadexError` or one of :data:`INPUT_ERRORS` — is one line,
+    ``prog: error: …``, exit code 2. Anything else is a bug in adadex: ``prog: internal error (a bug
+    in adadex, please report it): Type: …`` (``hint`` appended, e.g. how to see the traceback; with
+    ``traceback`` the traceback is printed above it), exit code 1.
+
+    >>> import contextlib, io
+    >>> err = io.StringIO()
+    >>> with contextlib.redirect_stderr(err):
+    ...     report_error("adadex x", ConfigError("a.b must be > 0, got -1"))
+    2
+    >>> err.getvalue()
+    'adadex x: error: a.b must be > 0, got -1\\n'
+    """
+    import sys
+
+    if isinstance(error, (AdadexError, *INPUT_ERRORS)):
+        print(f"{prog}: error: {one_line(error)}", file=sys.stderr)
+        return 2
+    if traceback:
+        import traceback as tb
+
+        tb.print_exception(error, file=sys.stderr)
+    print(f"{prog}: internal error (a bug in adadex, please report it): {type(error).__name__}: {one_line(error)}"
+          f"{hint}", file=sys.stderr)
+    return 1
+
+
+def exit_on_error(prog: str, *, traceback: bool = True):
+    """A context manager: an exception leaving the block is reported by :func:`report_error` and the
+    process exits with its code (2: bad input, one line; 1: a bug). What the recipes run in.
+    ``KeyboardInterrupt`` and ``SystemExit`` pass through."""
+    import contextlib
+    import sys
+
+    @contextlib.contextmanager
+    def guard():
+        try:
+            yield
+        except Exception as e:      # noqa: BLE001 - this is the one place errors are turned into exit codes
+            sys.exit(report_error(prog, e, traceback=traceback))
+
+    return guard()

@@ -17,6 +17,12 @@ names the same kind and its content is still what was written (a file the user w
 since, is refused), or with ``force=True``. Earlier outputs are recognized by the marker the command
 wrote, never by the shape of their content. A folder is never replaced by a file.
 
+An output folder that is written *in place*, file by file as the work goes (a training run's ``out``,
+the Table 1 pipeline's), cannot be swapped in whole; it is checked the same way before any work
+(:func:`check_output_dir`: absent, empty, marked as the same command's, or ``force``; a file there is
+refused) and then marked (:func:`mark_output_dir`). What a rerun into it may do — resume, skip — is
+the command's to decide (:func:`adadex.train.checkpoint.check_run`).
+
 Example
 -------
 >>> import tempfile, pathlib
@@ -35,7 +41,7 @@ import re
 import secrets
 import shutil
 import zipfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import BinaryIO
 
@@ -202,19 +208,21 @@ def output_file(path, kind: str, *, force: bool = False, option: str = "--force"
 
 
 def check_output(path, kind: str, *, force: bool = False, recognize: Callable[[Path], bool] | None = None,
-                 option: str = "--force") -> Path:
+                 option: str = "--force", ignore: Collection[str] = ()) -> Path:
     """Refuse to replace ``path`` unless it is absent, an empty folder, or an adadex ``kind`` output.
 
     A file at ``path`` is accepted when its marker (:func:`mark_file`) names ``kind`` and it is unchanged
-    since, or when ``recognize(path)`` says it is one. ``force=True`` replaces anything. Raises
-    :class:`OutputExistsError` naming the path, what is there and ``option`` (how to force).
+    since, or when ``recognize(path)`` says it is one. ``force=True`` replaces anything. A folder holding
+    only entries named in ``ignore`` counts as empty (what the running command itself just put there,
+    such as Hydra's ``.hydra/`` and log). Raises :class:`OutputExistsError` naming the path, what is
+    there and ``option`` (how to force).
     """
     path = Path(path)
     if force or not (path.exists() or path.is_symlink()):
         return path
     if path.is_dir() and not path.is_symlink():
         found = output_kind(path, recognize, kind)
-        if found == kind or not any(path.iterdir()):
+        if found == kind or not any(p.name not in ignore for p in path.iterdir()):
             return path
         what = f"an adadex {found} output" if found else "a folder that is not an adadex output"
     elif path.is_file():
@@ -228,6 +236,50 @@ def check_output(path, kind: str, *, force: bool = False, recognize: Callable[[P
     article = "an" if kind[:1].lower() in "aeiou" else "a"
     raise OutputExistsError(f"{path} exists and is {what}; refusing to replace it with {article} {kind} "
                             f"(choose another path, or pass {option} to replace it)")
+
+
+def check_output_dir(path, kind: str, *, force: bool = False, recognize: Callable[[Path], bool] | None = None,
+                     option: str = "--force", ignore: Collection[str] = ()) -> Path:
+    """:func:`check_output` for an output folder written in place, file by file, as it is made (a training
+    run, the Table 1 pipeline) rather than swapped in whole: also refuses a file at ``path``, even with
+    ``force`` (a folder never replaces a file). Nothing is written; :func:`claim_output_dir` then marks it."""
+    path = Path(path)
+    if (path.exists() or path.is_symlink()) and not path.is_dir():
+        raise OutputExistsError(f"{path} exists and is not a folder; give a folder for the {kind} (a file is never "
+                                f"replaced by a folder, even with {option})")
+    return check_output(path, kind, force=force, recognize=recognize, option=option, ignore=ignore)
+
+
+def claim_output_dir(path, kind: str, *, force: bool = False, recognize: Callable[[Path], bool] | None = None,
+                     option: str = "--force") -> Path:
+    """:func:`check_output_dir`, then make the folder and mark it (:data:`OUTPUT_MARKER`) as an adadex ``kind``
+    output, so the next run of the same command may write into it again.
+
+    >>> import tempfile, pathlib
+    >>> run = pathlib.Path(tempfile.mkdtemp()) / "run"
+    >>> _ = claim_output_dir(run, "training run")
+    >>> output_kind(run), claim_output_dir(run, "training run") == run
+    ('training run', True)
+    >>> _ = (run.parent / "mine").mkdir(); _ = (run.parent / "mine" / "thesis.tex").write_text("x")
+    >>> claim_output_dir(run.parent / "mine", "training run", option="force=true")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    adadex.io.OutputExistsError: ... is a folder that is not an adadex output; ... pass force=true to replace it)
+    """
+    return mark_output_dir(check_output_dir(path, kind, force=force, recognize=recognize, option=option), kind)
+
+
+def mark_output_dir(path, kind: str) -> Path:
+    """Make the folder ``path`` and mark it as an adadex ``kind`` output (no check: the caller checked it)."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    try:
+        marked = json.loads((path / OUTPUT_MARKER).read_text(encoding="utf-8")).get("kind") == kind
+    except (OSError, ValueError, AttributeError):
+        marked = False
+    if not marked:
+        atomic_write_text(path / OUTPUT_MARKER, json.dumps({"kind": kind}))
+    return path
 
 
 def clean_stale(path) -> list[Path]:

@@ -11,14 +11,13 @@ dataset, or a bad setting, is one line on stderr and exit code 2 (no traceback).
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from adadex.errors import AdadexError, ConfigError
+from adadex.errors import ConfigError, exit_on_error
 from adadex.envs.replay import replay_policy
 from adadex.envs.randomization import Randomization
 from adadex.eval.evaluate import evaluate, format_summary
@@ -27,6 +26,7 @@ from adadex.io import atomic_write_text
 from adadex.modules.channels import ModulationConfig, parse_channels
 from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
+from adadex.train.recipe import check_keys, modulation_keys, recipe_main, yaml_keys
 from adadex.transforms.policy import make_policy
 
 
@@ -61,13 +61,16 @@ def _modules(cfg):
     return tracker, Modulator.load(_checkpoint(cfg.modulator, "modulator"))
 
 
+def keys() -> dict:
+    """What the recipe accepts: evaluate.yaml's keys, ModulationConfig's fields under ``modulation``."""
+    return yaml_keys(Path(__file__).with_name("evaluate.yaml"), modulation=modulation_keys())
+
+
 @hydra.main(config_path=".", config_name="evaluate", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
-    try:
+    with exit_on_error("recipes/evaluate.py"):      # input errors: one line, exit code 2
+        check_keys(cfg, keys())
         return _evaluate(cfg)
-    except (AdadexError, FileNotFoundError) as e:     # input errors; anything else keeps its traceback
-        print(f"recipes/evaluate.py: error: {e}", file=sys.stderr)
-        sys.exit(2)
 
 
 def _evaluate(cfg: DictConfig) -> dict:
@@ -95,4 +98,4 @@ def _evaluate(cfg: DictConfig) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    recipe_main(main, schema=keys())

@@ -6,35 +6,65 @@
 Runs specialists → teacher rollouts → distillation → modulators (R, R+T, R+O+T, O) → baselines
 (vanilla PPO, IL+RL) → evaluation on both splits, nominal and randomized, once per training seed, and
 writes ``out/table1.md``, ``out/table1.json`` and ``out/figures/``. Run it again to resume: finished
-stages are skipped, a killed one continues from its checkpoint. Bad input (a missing dataset, a bad
-setting, a stage run with other settings) is one line on stderr and exit code 2.
+stages are skipped, a killed one continues from its checkpoint. An ``out`` holding anything but an
+earlier pipeline's output is refused before any work (``force=true`` writes into it). Bad input (a
+missing dataset, an unknown key, a bad setting, a stage run with other settings) is one line on stderr
+and exit code 2.
 """
 
 from __future__ import annotations
 
-import sys
-
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from adadex.errors import AdadexError
+from adadex.errors import exit_on_error
+from adadex.train.recipe import check_keys, hydra_files, recipe_main
+
+
+def keys() -> dict:
+    """What the recipe accepts: PipelineConfig's fields (with the nested configs'), ``preset``, ``force``."""
+    from adadex.train.config import ModulatorSettings, PolicyConfig, PPOConfig
+    from adadex.train.pipeline import PipelineConfig
+    from adadex.train.recipe import dataclass_keys, modulation_keys
+
+    return dataclass_keys(PipelineConfig, ppo=dataclass_keys(PPOConfig, drop=("total_frames",)),
+                          policy=dataclass_keys(PolicyConfig),
+                          modulator=dataclass_keys(ModulatorSettings, drop=("tracker", "channels", "modulation")),
+                          modulation=modulation_keys(), preset=None, force=None)
+
+
+def _config(cfg):
+    from adadex.train.pipeline import PipelineConfig
+
+    settings = OmegaConf.to_container(cfg, resolve=True)
+    settings.pop("preset", None)
+    force = bool(settings.pop("force", False))
+    return PipelineConfig.from_dict(settings), force
+
+
+def guard(cfg) -> None:
+    """The output guard, before any work (nothing written when refused)."""
+    from adadex.train.pipeline import check_pipeline_out
+
+    pc, force = _config(cfg)
+    check_pipeline_out(pc.out, force=force, ignore=hydra_files(pc.out))
 
 
 @hydra.main(config_path=".", config_name="pipeline", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
-    from adadex.train.pipeline import PipelineConfig, run_pipeline
+    from adadex.io import mark_output_dir
+    from adadex.train.pipeline import PIPELINE_RUN, run_pipeline
 
-    try:
-        settings = OmegaConf.to_container(cfg, resolve=True)
-        settings.pop("preset", None)
-        result = run_pipeline(PipelineConfig.from_dict(settings))
-    except (AdadexError, FileNotFoundError) as e:     # input errors; anything else keeps its traceback
-        print(f"recipes/pipeline.py: error: {e}", file=sys.stderr)
-        sys.exit(2)
+    with exit_on_error("recipes/pipeline.py"):
+        check_keys(cfg, keys())
+        pc, _ = _config(cfg)
+        guard(cfg)
+        mark_output_dir(pc.out, PIPELINE_RUN)      # force=true: the folder is the pipeline's from now on
+        result = run_pipeline(pc)
     print(open(f"{cfg.out}/table1.md", encoding="utf-8").read())
     print(f"wrote {cfg.out}/table1.md, table1.json and figures/ in {result['wall_s']:.0f} s")
     return result["table"]
 
 
 if __name__ == "__main__":
-    main()
+    recipe_main(main, schema=keys(), guard=guard)

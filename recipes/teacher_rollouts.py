@@ -9,30 +9,34 @@ missing folder or a bad setting is one line on stderr and exit code 2 (no traceb
 
 from __future__ import annotations
 
-import sys
+from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
 
-from adadex.errors import AdadexError
+from adadex.errors import exit_on_error
+from adadex.train.recipe import check_keys, recipe_main, yaml_keys
 from adadex.train.rollouts import specialist_teachers, teacher_rollouts
+
+
+def keys() -> dict:
+    """What the recipe accepts: teacher_rollouts.yaml's keys."""
+    return yaml_keys(Path(__file__).with_name("teacher_rollouts.yaml"))
 
 
 @hydra.main(config_path=".", config_name="teacher_rollouts", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
-    try:
+    with exit_on_error("recipes/teacher_rollouts.py"):       # input errors: one line, exit code 2
+        check_keys(cfg, keys())
         teachers = specialist_teachers(cfg.teachers, cfg.dataset)
         info = teacher_rollouts(teachers, cfg.dataset, cfg.out, episodes_per_reference=int(cfg.episodes_per_reference),
                                 randomize=bool(cfg.randomize), seed=int(cfg.seed), max_worlds=int(cfg.max_worlds),
                                 criterion=str(cfg.criterion), nthread=int(cfg.env_threads), force=bool(cfg.force),
                                 progress=bool(cfg.progress))
-    except (AdadexError, FileNotFoundError) as e:     # input errors; anything else keeps its traceback
-        print(f"recipes/teacher_rollouts.py: error: {e}", file=sys.stderr)
-        sys.exit(2)
     print(f"{len(info['teachers'])} teachers: kept {info['episodes_kept']} of {info['episodes_tried']} episodes "
           f"({info['success_pct']:.1f} %), {info['frames']} steps -> {cfg.out}")
     return {k: v for k, v in info.items() if k != "per_reference"}
 
 
 if __name__ == "__main__":
-    main()
+    recipe_main(main, schema=keys())

@@ -9,20 +9,31 @@ as ``adadex encoder train``.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import hydra
 import torch
 from omegaconf import DictConfig
 
+from adadex.errors import exit_on_error
 from adadex.train.encoder import save_training_run, train_encoder
+from adadex.train.recipe import check_keys, recipe_main, yaml_keys
+
+
+def keys() -> dict:
+    """What the recipe accepts: encoder.yaml's keys."""
+    return yaml_keys(Path(__file__).with_name("encoder.yaml"))
 
 
 @hydra.main(config_path=".", config_name="encoder", version_base="1.3")
 def main(cfg: DictConfig) -> dict:
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
-    model, history = train_encoder(steps=int(cfg.steps), batch_size=int(cfg.batch_size), points=int(cfg.points),
-                                   lr=float(cfg.lr), seed=int(cfg.seed))
-    save_training_run(cfg.out, model, history)
+    with exit_on_error("recipes/train_encoder.py"):      # input errors: one line, exit code 2
+        check_keys(cfg, keys())
+        if cfg.threads:
+            torch.set_num_threads(int(cfg.threads))
+        model, history = train_encoder(steps=int(cfg.steps), batch_size=int(cfg.batch_size), points=int(cfg.points),
+                                       lr=float(cfg.lr), seed=int(cfg.seed))
+        save_training_run(cfg.out, model, history)
     final = history["final"]
     print(f"trained in {history['seconds']:.0f} s; Chamfer "
           + "; ".join(f"{k} {v['chamfer_cm2']:.4f} cm² (RMS {v['rms_mm']:.2f} mm)" for k, v in final.items())
@@ -31,4 +42,4 @@ def main(cfg: DictConfig) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    recipe_main(main, schema=keys(), config_name="encoder")

@@ -50,7 +50,8 @@ from tqdm.auto import tqdm
 from adadex.errors import ConfigError, check_number, check_numbers, from_known_keys
 from adadex.modules.nets import fit_normalizers
 from adadex.modules.tracker import Tracker
-from adadex.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint, set_rng_state
+from adadex.train.checkpoint import (DISTILLATION_RUN, CheckpointError, check_run, save_checkpoint,
+                                     set_rng_state, start_run)
 from adadex.train.logs import RunLog
 from adadex.train.threads import torch_threads
 from adadex.train.rollouts import RolloutsError, load_rollouts, rollouts_info
@@ -194,7 +195,10 @@ class Distiller:
         fit_normalizers(self.student, obs)
 
     def _resume(self) -> bool:
-        blob = load_checkpoint(self.out) if self.cfg.resume else None
+        """Check ``out`` and load its checkpoint with ``resume``, as the PPO trainer does
+        (:func:`~adadex.train.checkpoint.check_run`; ``resume`` without a checkpoint: a fresh run here,
+        refused by the recipe)."""
+        blob = check_run(self.out, DISTILLATION_RUN, self.cfg.to_dict(), resume=self.cfg.resume, strict=False)
         if blob is None:
             return False
         try:
@@ -220,8 +224,8 @@ class Distiller:
 
     def train(self) -> dict:
         cfg = self.cfg
-        self.out.mkdir(parents=True, exist_ok=True)
-        resumed = self._resume()
+        resumed = self._resume()                    # checks out (nothing written before)
+        start_run(self.out, DISTILLATION_RUN, fresh=False)
         if self.step >= cfg.steps:
             return self._result(resumed)
         log = RunLog(self.out, name=self.run_name, config=cfg.to_dict(), wandb=cfg.wandb,

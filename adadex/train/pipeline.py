@@ -59,7 +59,7 @@ from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset
 from adadex.envs.randomization import Randomization
 from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import ConfigError, check_number, from_known_keys
-from adadex.io import atomic_write_text
+from adadex.io import atomic_write_text, check_output_dir, mark_output_dir
 from adadex.train.config import (CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, TrainConfig,
                                  randomization_with)
 
@@ -422,7 +422,7 @@ class Pipeline:
         from adadex.eval.table1 import aggregate, table_markdown
 
         t0 = time.perf_counter()
-        self.out.mkdir(parents=True, exist_ok=True)
+        mark_output_dir(check_pipeline_out(self.out), PIPELINE_RUN)    # someone else's folder: refused
         self.ds = self.dataset()
         seeds = self.cfg.seeds
         workers = min(self.cfg.seed_workers, len(seeds))
@@ -526,6 +526,22 @@ def _die_with_parent(parent: int) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, daemon=True).start()
+
+
+#: the output kind of the pipeline's ``out`` (its marker, :mod:`adadex.io`)
+PIPELINE_RUN = "table1 pipeline"
+
+
+def _earlier_pipeline(out: Path) -> bool:
+    """An ``out`` the pipeline wrote before it was marked: the ``stage.json`` of a stage under ``seed_<s>/``."""
+    return any(True for pattern in ("seed_*/*/" + STAGE, "seed_*/*/*/" + STAGE) for _ in Path(out).glob(pattern))
+
+
+def check_pipeline_out(out, *, force: bool = False, ignore=()) -> Path:
+    """The pipeline's output guard, before any work: ``out`` is absent, empty, or an earlier pipeline's
+    (whose stages then resume or are skipped); anything else is refused unless ``force``. Writes nothing."""
+    return check_output_dir(out, PIPELINE_RUN, force=force, recognize=_earlier_pipeline, option="force=true",
+                            ignore=ignore)
 
 
 def run_pipeline(cfg: PipelineConfig, **kwargs) -> dict:

@@ -52,7 +52,7 @@ from adadex.modules.nets import Normalizer, ObservationMoments, fit_normalizers,
 from adadex.modules.channels import ModulationConfig
 from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
-from adadex.train.checkpoint import load_checkpoint, save_checkpoint, set_rng_state
+from adadex.train.checkpoint import TRAINING_RUN, check_run, save_checkpoint, set_rng_state, start_run
 from adadex.train.collectors import make_collector, start_worker_server
 from adadex.train.config import TrainConfig
 from adadex.train.envs import ModulatedEnv, TrackingEnvFactory
@@ -142,7 +142,11 @@ class PPOTrainer:
                                   config=self.env_config, nthread=c.env_threads, transform=self.transform)
 
     def _resume(self) -> bool:
-        blob = load_checkpoint(self.out) if self.cfg.resume else None
+        """Check ``out`` (:func:`~adadex.train.checkpoint.check_run`: someone else's folder, a run there
+        without ``resume``, a resume with settings that change the result are refused) and, with
+        ``resume``, load its checkpoint; ``True`` when there was one to continue from. Here, as for the
+        pipeline's stages, ``resume`` without a checkpoint starts a fresh run; the recipes refuse it."""
+        blob = check_run(self.out, TRAINING_RUN, self.cfg.to_dict(), resume=self.cfg.resume, strict=False)
         if blob is None:
             return False
         self.loss.load_state_dict(blob["module"])
@@ -312,8 +316,8 @@ class PPOTrainer:
 
     # -- the run ----------------------------------------------------------------------------------
     def train(self) -> dict:
-        self.out.mkdir(parents=True, exist_ok=True)
-        resumed = self._resume()
+        resumed = self._resume()                    # checks out (nothing written before)
+        start_run(self.out, TRAINING_RUN, fresh=False)
         if self.frames >= self.ppo.total_frames:
             return self._result(resumed)
         log = RunLog(self.out, name=self.run_name, config=self.cfg.to_dict(), wandb=self.cfg.wandb,

@@ -1,24 +1,204 @@
-"""From a Hydra recipe's config (``recipes/train_*.yaml``) to a training run.
+"""From a Hydra recipe's config (``recipes/*.yaml``) to a run: strict keys, the output guard, one error contract.
 
 The recipes stay thin: :func:`train_config` maps the recipe keys onto :class:`TrainConfig`
 (``total_frames`` → ``ppo.total_frames``, ``ray.address`` → ``collector.ray_address``,
 ``split``/``part`` → ``split``, ``tracker``/``channels``/``modulator``/``modulation`` → a modulator run),
 :func:`run` builds the dataset if asked and trains.
+
+Every recipe runs through :func:`recipe_main`, which checks the command line *before Hydra starts*
+(Hydra makes the run folder ``out`` and writes its ``.hydra/`` and log there before the recipe's code
+runs):
+
+* **strict keys** — a setting the recipe does not know (``+foo=1``, ``ppo.foo=1``, ``+ppo.foo=1``,
+  ``+preset=tiny`` on a training recipe) is refused with one line naming it and the known ones. What
+  is known comes from the config dataclasses (:func:`dataclass_keys`; :data:`TRAIN_KEYS` for the PPO
+  recipes), not from a second list kept by hand;
+* **the output guard** — the recipe's ``guard`` (for a training run :func:`check_training_out`) on the
+  composed config, so a user's folder, a finished run without ``resume=true``, a resume without a
+  checkpoint or with other settings are refused before anything is written.
+
+The same checks run again inside the recipe (for ``-m`` multiruns, whose composed configs exist only
+there). Errors follow the one contract of :func:`adadex.errors.report_error`: bad input is one line
+and exit code 2, anything else is a bug, exit code 1.
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import io
 import json
-from collections.abc import Mapping
+import sys
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from adadex.errors import ConfigError, exit_on_error
 from adadex.train.config import CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, TrainConfig
 
-_TOP = ("seed", "resume", "group", "randomize", "checkpoint_every", "eval_every", "eval_split",
+_TOP = ("seed", "resume", "group", "references", "randomize", "checkpoint_every", "eval_every", "eval_split",
         "eval_max_references", "wandb", "progress", "reward", "randomization")
 
+
+# ----------------------------------------------------------------------------------------------
+# Strict keys
+
+def dataclass_keys(cls, *, drop=(), **nested) -> dict:
+    """The keys a config dataclass accepts, as a key schema: ``{field: None}`` (a value, or a mapping
+    whose keys are checked where it is used), with ``nested`` schemas for fields that hold another
+    config (``ppo=dataclass_keys(PPOConfig)``); fields in ``drop`` left out."""
+    keys = {f.name: None for f in dataclasses.fields(cls) if f.name not in drop}
+    return {**keys, **nested}
+
+
+def modulation_keys() -> dict:
+    """:class:`~adadex.modules.channels.ModulationConfig`'s fields (the ``modulation`` settings)."""
+    from adadex.modules.channels import ModulationConfig
+
+    return dataclass_keys(ModulationConfig)
+
+
+def yaml_keys(path, **nested) -> dict:
+    """A recipe file's own top-level keys (``defaults`` and ``hydra`` aside) as a key schema, for recipes
+    whose settings are not a config dataclass."""
+    cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+    return {**{k: None for k in cfg if k not in ("defaults", "hydra")}, **nested}
+
+
+def train_keys() -> dict:
+    """What the PPO recipes (``train_common.yaml`` and the recipes on it) accept: :class:`TrainConfig`'s
+    fields, the nested configs' fields under ``ppo``/``collector``/``policy``/``modulator``/``modulation``,
+    and the recipe's own keys (``total_frames``, ``part``, ``build_preset``, ``tracker``, ``channels``,
+    ``ray.address``, ``force``). ``reward`` and ``randomization`` are checked by their own classes."""
+    return dataclass_keys(
+        TrainConfig, drop=("modulator",),
+        ppo=dataclass_keys(PPOConfig, drop=("total_frames",)),          # set with total_frames
+        collector=dataclass_keys(CollectorConfig, drop=("ray_address",)),   # set with ray.address
+        policy=dataclass_keys(PolicyConfig),
+        modulator=dataclass_keys(ModulatorSettings, drop=("tracker", "channels", "modulation")),
+        modulation=modulation_keys(),
+        ray={"address": None}, total_frames=None, part=None, build_preset=None, tracker=None, channels=None,
+        force=None)
+
+
+def _unknown(d: Mapping, schema: dict, prefix: str = "") -> list[tuple[str, str, list[str]]]:
+    """(dotted name, parent, known keys there) for each key of ``d`` the ``schema`` does not have."""
+    found = []
+    for k, v in d.items():
+        if k not in schema:
+            found.append((f"{prefix}{k}", prefix[:-1], sorted(schema)))
+        elif isinstance(schema[k], dict) and isinstance(v, Mapping):
+            found += _unknown(v, schema[k], f"{prefix}{k}.")
+    return found
+
+
+def _refuse_unknown(found: list[tuple[str, str, list[str]]]) -> None:
+    if not found:
+        return
+    parts = []
+    for parent in dict.fromkeys(p for _, p, _ in found):
+        names = [n for n, p, _ in found if p == parent]
+        known = next(k for _, p, k in found if p == parent)
+        where = f"known under {parent}" if parent else "known"
+        parts.append(f"unknown setting{'s' if len(names) > 1 else ''} {', '.join(repr(n) for n in names)} "
+                     f"({where}: {', '.join(known)})")
+    raise ConfigError("; ".join(parts))
+
+
+def check_keys(cfg, schema: dict) -> None:
+    """Refuse, with one :class:`ConfigError` naming them and the known keys, the keys of the composed
+    config ``cfg`` (a mapping or a ``DictConfig``) that ``schema`` does not have."""
+    if OmegaConf.is_config(cfg):
+        cfg = OmegaConf.to_container(cfg, resolve=False)
+    _refuse_unknown(_unknown(cfg, schema))
+
+
+def check_overrides(overrides: list[str], schema: dict) -> None:
+    """:func:`check_keys` for Hydra command-line overrides (``key=value``, ``+key=value``, ``~key``);
+    ``hydra.*`` and unparsable overrides are left to Hydra."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(list(overrides))
+    except Exception:            # noqa: BLE001 - Hydra itself reports a malformed override
+        return
+    found = []
+    for o in parsed:
+        key = o.key_or_group
+        if key == "hydra" or key.startswith(("hydra.", "hydra/")):
+            continue
+        level, prefix = schema, ""
+        for part in key.split("."):
+            if part not in level:
+                found.append((f"{prefix}{part}", prefix[:-1], sorted(level)))
+                break
+            if not isinstance(level[part], dict):
+                break
+            level, prefix = level[part], f"{prefix}{part}."
+    _refuse_unknown(list({f[0]: f for f in found}.values()))
+
+
+# ----------------------------------------------------------------------------------------------
+# Running a recipe
+
+def _compose(config_dir: Path, config_name: str, argv: list[str], schema: dict):
+    """The config Hydra will compose for ``argv`` (after :func:`check_overrides`), or ``None`` where the
+    command line asks for something else (``-m``, ``--cfg``, ``--help`` …) or Hydra will refuse it
+    itself."""
+    from hydra._internal.utils import get_args_parser
+
+    with contextlib.redirect_stderr(io.StringIO()):
+        try:
+            args = get_args_parser().parse_args(argv)
+        except SystemExit:
+            return None
+    check_overrides(args.overrides, schema)
+    if (args.multirun or args.cfg or args.help or args.hydra_help or args.info or args.shell_completion
+            or args.experimental_rerun or args.config_path or args.config_name or args.config_dir):
+        return None
+    from hydra import compose, initialize_config_dir
+
+    try:
+        with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
+            return compose(config_name=config_name, overrides=list(args.overrides))
+    except Exception:            # noqa: BLE001 - a composition error: Hydra reports it when it runs
+        return None
+
+
+def recipe_main(main: Callable, *, schema: dict, guard: Callable | None = None, config_name: str | None = None):
+    """Run the Hydra recipe ``main`` (a ``@hydra.main`` function) as a command: first, before Hydra makes
+    or writes anything, refuse unknown keys (:func:`check_overrides`, then :func:`check_keys` on the
+    composed config) and run ``guard(cfg)`` (the output guard) — one line and exit code 2 on bad input —
+    then ``main()``. ``config_name`` defaults to the recipe file's name."""
+    import inspect
+
+    global _CHECKING_COMMAND_LINE
+
+    from omegaconf.errors import OmegaConfBaseException
+
+    file = Path(inspect.getfile(getattr(main, "__wrapped__", main)))
+    with exit_on_error(f"recipes/{file.name}"):
+        cfg = _compose(file.parent, config_name or file.stem, sys.argv[1:], schema)
+        if cfg is not None:
+            check_keys(cfg, schema)
+            if guard is not None:
+                _CHECKING_COMMAND_LINE = True
+                try:
+                    guard(cfg)
+                except OmegaConfBaseException:
+                    pass             # an interpolation that does not resolve …: Hydra reports it when it runs
+                finally:
+                    _CHECKING_COMMAND_LINE = False
+    return main()
+
+
+#: True while :func:`recipe_main` checks the command line, before Hydra runs (:func:`hydra_files`)
+_CHECKING_COMMAND_LINE = False
+
+
+# ----------------------------------------------------------------------------------------------
+# The PPO recipes
 
 def train_config(cfg: Mapping) -> TrainConfig:
     """:class:`TrainConfig` from a recipe config (a plain mapping or an OmegaConf ``DictConfig``)."""
@@ -40,26 +220,62 @@ def train_config(cfg: Mapping) -> TrainConfig:
                        **{k: cfg[k] for k in _TOP if k in cfg})
 
 
-def run(cfg: Mapping, *, name: str) -> dict:
-    """Build the dataset if missing (``build_preset``), train, print and return the final evaluation.
+def check_training_out(cfg) -> dict | None:
+    """The output guard of a PPO recipe (:func:`adadex.train.checkpoint.check_run`, strict: ``resume=true``
+    needs a checkpoint): the checkpoint to continue from, or ``None`` for a fresh run. Writes nothing."""
+    from adadex.train.checkpoint import TRAINING_RUN, check_run
 
-    Bad input — a missing dataset or checkpoint, a bad setting, an unknown group — is one line on
-    stderr and exit code 2, no traceback (anything else is a bug and keeps its traceback)."""
-    import sys
+    tc = train_config(cfg)
+    return check_run(tc.out, TRAINING_RUN, tc.to_dict(), resume=tc.resume, force=bool(cfg.get("force", False)),
+                     ignore=hydra_files(tc.out))
 
-    from adadex.errors import AdadexError
 
+def hydra_files(out) -> tuple[str, ...]:
+    """What Hydra itself has put into ``out`` when it is this recipe's run folder (``.hydra/``, the job's
+    log), made before the recipe's code runs — after :func:`recipe_main` checked ``out``."""
+    if _CHECKING_COMMAND_LINE:
+        return ()          # Hydra has not started: whatever is in out is not its
     try:
+        from hydra.core.hydra_config import HydraConfig
+
+        if not HydraConfig.initialized():
+            return ()
+        hc = HydraConfig.get()
+        if Path(hc.runtime.output_dir).resolve() != Path(out).resolve():
+            return ()
+        return tuple(n for n in (hc.output_subdir, f"{hc.job.name}.log") if n)
+    except Exception:            # noqa: BLE001 - no Hydra run: nothing of Hydra's to ignore
+        return ()
+
+
+def run(cfg: Mapping, *, name: str, prog: str | None = None) -> dict:
+    """Check the keys and the output folder, build the dataset if missing (``build_preset``), train,
+    print and return the final evaluation.
+
+    Bad input — an unknown key, an ``out`` that holds someone else's files or a run not to be replaced,
+    a missing dataset or checkpoint, a bad setting, an unknown group — is one line on stderr and exit
+    code 2, no traceback; anything else is reported as a bug, exit code 1
+    (:func:`adadex.errors.report_error`)."""
+    with exit_on_error(prog or f"recipes/{Path(sys.argv[0]).name}"):
         return _run(cfg, name)
-    except (AdadexError, FileNotFoundError) as e:
-        print(f"{name}: error: {e}", file=sys.stderr)
-        sys.exit(2)
 
 
 def _run(cfg: Mapping, name: str) -> dict:
+    from adadex.train.checkpoint import TRAINING_RUN, start_run
     from adadex.train.ppo import train
 
+    check_keys(cfg, train_keys())
+    if OmegaConf.is_config(cfg):
+        cfg = OmegaConf.to_container(cfg, resolve=True)
+    if cfg.get("tracker") is None and cfg.get("channels") is not None:
+        raise ConfigError(f"channels={cfg.get('channels')} is a modulator setting: give tracker= (the frozen "
+                          f"generalist) to train a modulator, or use recipes/train_modulator.py")
     tc = train_config(cfg)
+    blob = check_training_out(cfg)                  # before any work: nothing written when refused
+    if blob is not None and blob["frames"] >= tc.ppo.total_frames:
+        print(f"{name}: {tc.out} holds the finished run ({blob['frames']} of {tc.ppo.total_frames} frames): "
+              f"nothing to do (a larger total_frames trains on)")
+        return {}
     dataset = Path(tc.dataset)
     if not (dataset / "index.json").exists():
         preset = cfg.get("build_preset")
@@ -68,7 +284,13 @@ def _run(cfg: Mapping, name: str) -> dict:
         from adadex.data.build import build_dataset
 
         build_dataset(preset, dataset, seed=tc.seed)
+    start_run(tc.out, TRAINING_RUN, fresh=blob is None)
     result = train(tc, run_name=name)
     print(f"{name}: {result['frames']} frames, {result['iterations']} iterations -> {result['policy']}")
     print(json.dumps(result["eval"], indent=1))
     return result["eval"]
+
+
+def train_recipe(main: Callable):
+    """:func:`recipe_main` for a PPO recipe: :func:`train_keys`, :func:`check_training_out`."""
+    return recipe_main(main, schema=train_keys(), guard=check_training_out)

@@ -38,9 +38,13 @@ class TrackingEnvFactory:
     scenes: dict | None = field(default=None, repr=False, compare=False)
     #: a picklable callable returning a transform appended after the env (e.g. :class:`ModulatedEnv`)
     transform: object = None
+    #: picklable zero-argument callables, each returning a transform appended last, after ``transform`` and
+    #: ``RewardSum`` (a user's own: ``PPOTrainer(env_transforms=…)``)
+    transforms: tuple = ()
 
     def __call__(self) -> TransformedEnv:
-        """The env, with each episode's return summed into ``("next", "episode_reward")`` for the logs."""
+        """The env, with each episode's return summed into ``("next", "episode_reward")`` for the logs,
+        then the ``transforms``' transforms in order."""
         env = TrackingEnv(self.dataset, num_worlds=self.num_worlds, split=None, references=list(self.references),
                           config=self.config, randomize=self.randomize, patch=self.patch, nthread=self.nthread,
                           seed=self.seed, scenes=self.scenes)
@@ -48,6 +52,8 @@ class TrackingEnvFactory:
         if self.transform is not None:
             env.append_transform(self.transform())
         env.append_transform(RewardSum())
+        for make in self.transforms:
+            env.append_transform(make())
         return env
 
     def with_scenes(self) -> TrackingEnvFactory:

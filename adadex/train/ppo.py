@@ -23,21 +23,30 @@ Example (a few iterations on a tiny dataset)::
     result = train(TrainConfig(dataset="data/tiny", out="runs/t", ppo=PPOConfig(total_frames=2048,
                    frames_per_batch=512, minibatch_size=256), collector=CollectorConfig(worlds=8)))
     result["tracker"]            # runs/t/tracker.pt, loads with Tracker.load
+
+Your own modules: ``PPOTrainer(cfg, policy=…, loss=…, env_transforms=…)`` trains a policy you built
+(any :class:`~adadex.modules.nets.ActorCritic`, e.g. one with your own critic), with any TorchRL PPO
+loss built on its actor and critic, on envs carrying your extra transforms (see :class:`PPOTrainer`
+and docs/training.md, "Your own modules").
 """
 
 from __future__ import annotations
 
+import functools
 import os
+import pickle
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torch import nn
+from torchrl.data import Bounded, Composite, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.envs.utils import ExplorationType
-from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives import ClipPPOLoss, LossModule
 from torchrl.objectives.value import GAE
 from tqdm.auto import tqdm
 
@@ -48,13 +57,14 @@ from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import AdadexError, ConfigError
 from adadex.eval.evaluate import evaluate
 from adadex.eval.metrics import ERROR_NAMES, frame_success
-from adadex.modules.nets import Normalizer, ObservationMoments, fit_normalizers, stored_bounds_actor
+from adadex.modules.nets import ActorCritic, Normalizer, ObservationMoments, fit_normalizers, stored_bounds_actor
 from adadex.modules.channels import ModulationConfig
 from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
 from adadex.train.checkpoint import TRAINING_RUN, check_run, save_checkpoint, set_rng_state, start_run
 from adadex.train.collectors import make_collector, start_worker_server
-from adadex.train.config import TrainConfig
+from adadex.sim.robot import NUM_JOINTS
+from adadex.train.config import PPOConfig, TrainConfig
 from adadex.train.envs import ModulatedEnv, TrackingEnvFactory
 from adadex.transforms.policy import make_policy
 from adadex.train.logs import RunLog
@@ -84,13 +94,53 @@ def training_references(cfg: TrainConfig, dataset: ReferenceDataset, window: int
     return refs
 
 
+def default_loss(ppo: PPOConfig) -> Callable[..., LossModule]:
+    """The loss factory a run uses unless given one: ``(actor, critic) ->`` TorchRL's ``ClipPPOLoss``
+    with ``ppo.clip_epsilon``, ``ppo.entropy_coef``, ``ppo.critic_coef`` and normalized advantages."""
+    return functools.partial(ClipPPOLoss, clip_epsilon=ppo.clip_epsilon, entropy_coeff=ppo.entropy_coef,
+                             critic_coeff=ppo.critic_coef, normalize_advantage=True)
+
+
 class PPOTrainer:
     """A PPO run (see the module docstring); :meth:`train` runs it. The policy trained is a
     :class:`Tracker` (specialists, the vanilla-PPO baseline), or — with ``cfg.modulator`` — a
-    :class:`Modulator` on the modulated env with the generalist frozen inside it (paper Sec. 3.2)."""
+    :class:`Modulator` on the modulated env with the generalist frozen inside it (paper Sec. 3.2).
+
+    Args:
+        cfg: the run's settings.
+        env_config: the episode settings (default ``TrackingConfig()``); the run's reward settings go on top.
+        run_name: the name in the logs and the progress bar.
+        teacher: DexTrack-style imitation's teacher table (needs ``ppo.imitation_coef`` > 0).
+        policy: your own module to train instead of the one ``cfg`` builds: an ``nn.Module`` with
+            ``.actor`` (a TorchRL ``ProbabilisticActor`` writing ``"action"`` and its log-prob, with an
+            action spec), ``.critic`` (writing ``"state_value"``), ``.kind``, ``.save(path)`` and
+            optionally ``.obs_key`` (the key its :class:`~adadex.modules.nets.Normalizer` s read,
+            default ``"observation"``) — e.g. a :class:`Tracker` of your own sizes, or a subclass of
+            :class:`~adadex.modules.nets.ActorCritic` with your own critic. Given, ``cfg.policy`` is not
+            used, nor the settings of ``cfg.modulator`` that build the modulator (``hidden``,
+            ``init_scale``, ``loc_bound``); the env's settings (``cfg.modulator.tracker``, ``channels``,
+            ``modulation``, ``inputs``, ``history``) still make the modulated env. A ``policy`` that
+            does not fit the run is refused (:class:`~adadex.errors.ConfigError`): a tracker given to a
+            modulator run or a modulator to a tracker run, or an actor whose action size is not that of
+            the env's action spec (22 for a tracker; the channels' size for a modulator). Its actor
+            samples in the collector through ``policy.sampling_policy()`` where it has one that works
+            (an actor from :func:`~adadex.modules.nets.make_actor`), else the actor itself. Its
+            normalizers, if any, are fitted as the built policy's are.
+        loss: a factory ``(actor, critic) -> LossModule`` (default :func:`default_loss`: ``ClipPPOLoss``
+            with ``cfg.ppo``'s settings), e.g. ``functools.partial(KLPENPPOLoss, dtarg=0.01)``. GAE
+            (``cfg.ppo.gamma``, ``lmbda``) writes the advantage and value target before it; the
+            minibatch update adds every ``loss_*`` entry the loss returns. The checkpoint holds the
+            loss's state dict, so a resumed run must be given the same kind of loss and policy.
+        env_transforms: picklable zero-argument callables (``functools.partial(StepCounter,
+            max_steps=…)``, a class, a module-level function), each returning a TorchRL ``Transform``
+            appended to every collector env after adadex's own (the modulation, ``RewardSum``), in
+            this process and in every worker. The evaluation envs (``eval_every``, the final
+            evaluation) do not get them.
+    """
 
     def __init__(self, cfg: TrainConfig, *, env_config: TrackingConfig | None = None, run_name: str = "ppo",
-                 teacher: tuple[torch.Tensor, torch.Tensor] | None = None):
+                 teacher: tuple[torch.Tensor, torch.Tensor] | None = None, policy: nn.Module | None = None,
+                 loss: Callable[..., LossModule] | None = None, env_transforms: Sequence[Callable] = ()):
         env_config = cfg.env_config(env_config)              # with the run's reward settings
         self.cfg, self.env_config, self.run_name = cfg, env_config, run_name
         self.out = Path(cfg.out)
@@ -101,21 +151,29 @@ class PPOTrainer:
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed)
         m = cfg.modulator
-        if m is None:
+        #: the user's extra env transforms (factories), after adadex's own
+        self.env_transforms = self._check_env_transforms(env_transforms)
+        self.transform = None if m is None else ModulatedEnv(m.tracker, m.channels, ModulationConfig(**m.modulation),
+                                                             history=m.history if m.inputs == "view" else None)
+        if policy is not None:
+            self._check_policy(policy)
+            self.policy = policy
+        elif m is None:
             p = cfg.policy
             self.policy = Tracker(hidden=p.hidden, max_action=env_config.max_action, init_scale=p.init_scale,
                                   residual=p.residual, loc_bound=p.loc_bound, anchor=p.anchor,
                                   anchor_reach=p.anchor_reach, anchor_iterations=p.anchor_iterations)
-            self.transform = None
         else:
             self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
                                     inputs=m.inputs, history=m.history)
-            self.transform = ModulatedEnv(m.tracker, m.channels, ModulationConfig(**m.modulation),
-                                          history=m.history if m.inputs == "view" else None)
         self.ppo = cfg.ppo
-        self.loss = ClipPPOLoss(stored_bounds_actor(self.policy.actor), self.policy.critic,
-                                clip_epsilon=self.ppo.clip_epsilon, entropy_coeff=self.ppo.entropy_coef,
-                                critic_coeff=self.ppo.critic_coef, normalize_advantage=True)
+        actor = self.policy.actor
+        if getattr(actor, "_sampling_parts", None) is not None:          # built by make_actor
+            actor = stored_bounds_actor(actor)
+        self.loss = (loss if loss is not None else default_loss(self.ppo))(actor, self.policy.critic)
+        if not isinstance(self.loss, LossModule):
+            raise ConfigError(f"{run_name}: loss must build a TorchRL LossModule from (actor, critic), "
+                              f"got {type(self.loss).__name__}")
         self.gae = GAE(gamma=self.ppo.gamma, lmbda=self.ppo.lmbda, value_network=self.policy.critic,
                        average_gae=False)
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=self.ppo.lr)
@@ -135,11 +193,73 @@ class PPOTrainer:
         self.buffer: TensorDictReplayBuffer | None = None
 
     # -- pieces -----------------------------------------------------------------------------------
+    def _check_env_transforms(self, env_transforms) -> tuple:
+        out = tuple(env_transforms)
+        for t in out:
+            if not callable(t):
+                raise ConfigError(f"{self.run_name}: env_transforms holds {t!r}, not a callable returning a "
+                                  f"Transform (e.g. functools.partial(StepCounter, max_steps=100))")
+            try:
+                pickle.dumps(t)
+            except Exception as e:           # a lambda, a local function: no worker could build it
+                raise ConfigError(f"{self.run_name}: env_transforms holds {t!r}, which cannot be pickled for "
+                                  f"the collector's workers ({e}); use functools.partial or a module-level "
+                                  f"class or function") from e
+        return out
+
+    def env_action_dim(self) -> int:
+        """The size of the action the run's env takes: the tracker's joint-target change, or — with
+        ``cfg.modulator`` — what the modulated env's action spec says (its transforms' own spec)."""
+        spec = Composite(action=Bounded(low=-self.env_config.max_action, high=self.env_config.max_action,
+                                        shape=(1, NUM_JOINTS)), shape=(1,))
+        if self.transform is not None:
+            spec = self.transform().transform_action_spec(spec)
+        return int(spec["action"].shape[-1])
+
+    def _check_policy(self, policy) -> None:
+        """Refuse a ``policy`` this run cannot train, in one line (see the class docstring)."""
+        run = "tracker" if self.cfg.modulator is None else "modulator"
+        name = type(policy).__name__
+        if not isinstance(policy, nn.Module):
+            raise ConfigError(f"{self.run_name}: policy must be a torch.nn.Module with .actor and .critic (e.g. an "
+                              f"ActorCritic), got {name}")
+        missing = [a for a in ("actor", "critic", "kind", "save") if not hasattr(policy, a)]
+        if missing:
+            raise ConfigError(f"{self.run_name}: policy {name} has no {', '.join(missing)} (see ActorCritic)")
+        if isinstance(policy, ActorCritic) and not isinstance(getattr(policy, "config", None), dict):
+            raise ConfigError(f"{self.run_name}: policy {name} has no config dict, which ActorCritic.save writes "
+                              f"(set self.config in its __init__)")
+        kind = policy.kind
+        if {run, kind} == {"tracker", "modulator"}:
+            why = "cfg.modulator is set" if run == "modulator" else "cfg.modulator is None"
+            raise ConfigError(f"{self.run_name}: a {run} run ({why}) cannot train the {kind} given as policy ({name})")
+        spec = getattr(policy.actor, "spec", None)
+        action = spec.get("action", None) if isinstance(spec, Composite) else spec
+        if action is not None and action.shape:
+            want = self.env_action_dim()
+            if int(action.shape[-1]) != want:
+                env = (f"the modulated env (channels {self.cfg.modulator.channels})" if run == "modulator"
+                       else "the tracking env")
+                raise ConfigError(f"{self.run_name}: policy {name}'s actor writes a {int(action.shape[-1])}-D "
+                                  f"action, but {env} takes a {want}-D action (its action spec)")
+
+    def collecting_policy(self):
+        """The policy the collector runs: ``policy.sampling_policy()`` (one call per step, same
+        distribution) where the policy has one that works, else its actor."""
+        sampling = getattr(self.policy, "sampling_policy", None)
+        if sampling is not None:
+            try:
+                return sampling()
+            except TypeError:           # SamplingPolicy needs an actor built by make_actor
+                pass
+        return self.policy.actor
+
     def env_factory(self, seed: int) -> TrackingEnvFactory:
         c = self.cfg.collector
         return TrackingEnvFactory(str(self.dataset.path), tuple(self.references), num_worlds=c.worlds, seed=seed,
                                   randomize=self.cfg.randomization_config(),
-                                  config=self.env_config, nthread=c.env_threads, transform=self.transform)
+                                  config=self.env_config, nthread=c.env_threads, transform=self.transform,
+                                  transforms=self.env_transforms)
 
     def _resume(self) -> bool:
         """Check ``out`` (:func:`~adadex.train.checkpoint.check_run`: someone else's folder, a run there
@@ -156,8 +276,8 @@ class PPOTrainer:
         moments = blob.get("extra", {}).get("obs_moments")
         if moments is not None:
             self.moments.load_state_dict(moments)
-        else:                       # a checkpoint from before the running statistics: its fit, as one batch
-            norm = next(m for m in self.policy.modules() if isinstance(m, Normalizer))
+        elif (norm := next((m for m in self.policy.modules() if isinstance(m, Normalizer)), None)) is not None:
+            # a checkpoint from before the running statistics: its fit, as one batch
             self.moments.load_state_dict({"count": self.ppo.frames_per_batch, "mean": norm.loc.double(),
                                           "m2": norm.scale.double() ** 2 * (self.ppo.frames_per_batch - 1)})
         self.fitted = True
@@ -191,6 +311,9 @@ class PPOTrainer:
                 batch = buffer.sample()
                 out = self.loss(batch)
                 total = out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
+                for k in sorted(k for k in out.keys() if isinstance(k, str) and k.startswith("loss_")
+                                and k not in ("loss_objective", "loss_critic", "loss_entropy")):
+                    total = total + out[k]          # another loss's terms (ClipPPOLoss has none)
                 if self.teacher is not None:
                     imitation = self._imitation(batch)
                     total = total + self.ppo.imitation_coef * imitation
@@ -210,7 +333,7 @@ class PPOTrainer:
                 if self.ppo.desired_kl > 0 and "kl_approx" in out.keys():
                     self._adapt_lr(float(out["kl_approx"].detach().mean()))
                 for k in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "kl_approx", "clip_fraction",
-                          "ESS"):
+                          "ESS", "kl"):
                     if k in out.keys():
                         stats.setdefault(k, []).append(float(out[k].detach().mean()))
                 stats.setdefault("grad_norm", []).append(float(grad))
@@ -227,11 +350,14 @@ class PPOTrainer:
 
     def _minibatch_keys(self) -> list:
         """What a minibatch update reads: the actor's and critic's inputs, the action, its log-prob, GAE's
-        outputs (and the imitation term's keys). The buffer holds only these — a collected batch has
-        ~60 entries, and each is copied on every minibatch draw."""
+        outputs, the loss's other inputs at the step (e.g. ``KLPENPPOLoss``'s distribution parameters;
+        not those under ``"next"``, which only a loss computing its own advantage reads) and the imitation
+        term's keys. The buffer holds only these — a collected batch has ~60 entries, and each is copied
+        on every minibatch draw."""
         k = self.loss.tensor_keys
         keys = {*self.loss.actor_network.in_keys, *self.loss.critic_network.in_keys, k.action, k.sample_log_prob,
                 k.advantage, k.value_target, k.value}
+        keys |= {key for key in self.loss.in_keys if not (isinstance(key, tuple) and key[0] == "next")}
         if self.teacher is not None:
             keys |= {REFERENCE_INDEX, STEP}
         return sorted(keys, key=str)
@@ -325,7 +451,7 @@ class PPOTrainer:
         remaining = self.ppo.total_frames - self.frames
         # a resumed run draws new references and randomizations: seeds move on with the iteration
         factory = self.env_factory(self.cfg.seed + 7919 * self.iteration)
-        collector = make_collector(factory, self.policy.sampling_policy(), self.cfg.collector,
+        collector = make_collector(factory, self.collecting_policy(), self.cfg.collector,
                                    frames_per_batch=self.ppo.frames_per_batch, total_frames=remaining)
         bar = tqdm(total=self.ppo.total_frames, initial=self.frames, unit="frame", desc=self.run_name,
                    disable=not self.cfg.progress)
@@ -378,5 +504,6 @@ class PPOTrainer:
 
 
 def train(cfg: TrainConfig, **kwargs) -> dict:
-    """Run :class:`PPOTrainer` on ``cfg``; returns the tracker path, counters and final evaluation."""
+    """Run :class:`PPOTrainer` on ``cfg`` (``kwargs``: its keyword arguments — ``policy``, ``loss``,
+    ``env_transforms``, …); returns the policy path, counters and final evaluation."""
     return PPOTrainer(cfg, **kwargs).train()

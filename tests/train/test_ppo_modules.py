@@ -1,0 +1,139 @@
+"""PPOTrainer with the user's own modules: a policy with its own critic, another TorchRL loss, extra env
+transforms, and the refusal of a policy that does not fit the run. Toy runs: the tiny dataset, 8 worlds,
+2 iterations of 256 frames, no evaluation."""
+
+from __future__ import annotations
+
+import csv
+import functools
+import pickle
+import re
+from pathlib import Path
+
+import pytest
+import torch
+from torch import nn
+from torchrl.envs import StepCounter
+from torchrl.modules import MLP, ValueOperator
+from torchrl.objectives import ClipPPOLoss, KLPENPPOLoss
+
+from adadex.envs.observation import OBS_DIM, OBSERVATION
+from adadex.errors import ConfigError
+from adadex.modules.modulator import Modulator
+from adadex.modules.nets import ActorCritic, make_actor
+from adadex.modules.tracker import Tracker
+from adadex.sim.robot import NUM_JOINTS
+from adadex.train.checkpoint import load_checkpoint
+from adadex.train.config import CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, TrainConfig
+from adadex.train.ppo import PPOTrainer, train
+
+
+def _config(dataset, out, *, frames=512, **kw) -> TrainConfig:
+    return TrainConfig(dataset=str(dataset), out=str(out), wandb=False, progress=False, eval_max_references=0,
+                       ppo=PPOConfig(total_frames=frames, frames_per_batch=256, minibatch_size=128, epochs=2,
+                                     update_threads=1),
+                       collector=CollectorConfig(worlds=8, workers=1, env_threads=1),
+                       policy=PolicyConfig(hidden=(32, 32)), **kw)
+
+
+def _rows(out) -> list[dict]:
+    with (Path(out) / "metrics.csv").open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+class TanhCriticPolicy(ActorCritic):
+    """A user's policy: adadex's TanhNormal actor, and a critic of its own (a Tanh MLP, no normalizer)."""
+
+    kind = "tanh_critic"
+
+    def __init__(self, hidden=(16,)):
+        super().__init__()
+        self.config = {"hidden": list(hidden)}
+        self.actor = make_actor(OBSERVATION, OBS_DIM, [NUM_JOINTS], -0.1, 0.1, (32, 32), namespace="tracker",
+                                init_scale=0.5)
+        self.critic = ValueOperator(MLP(in_features=OBS_DIM, out_features=1, num_cells=list(hidden),
+                                        activation_class=nn.Tanh), in_keys=[OBSERVATION])
+
+
+def _critic_params(policy) -> torch.Tensor:
+    return torch.cat([p.detach().flatten() for p in policy.critic.parameters()])
+
+
+def test_a_users_policy_with_its_own_critic_trains_and_resumes(tiny_dataset, tmp_path):
+    torch.manual_seed(0)
+    policy = TanhCriticPolicy()
+    before = _critic_params(policy).clone()
+    cfg = _config(tiny_dataset, tmp_path / "run")
+    trainer = PPOTrainer(cfg, policy=policy)
+    assert trainer.policy is policy
+    res = trainer.train()
+    assert res["iterations"] == 2 and res["policy"] == tmp_path / "run" / "tanh_critic.pt"
+    assert not torch.equal(_critic_params(policy), before)         # the user's critic was trained
+    assert res["policy"].is_file() and TanhCriticPolicy.load(res["policy"])
+    # the checkpoint holds the loss (the user's actor and critic): a resumed run continues from it
+    ck = load_checkpoint(tmp_path / "run")
+    assert any("critic" in k for k in ck["module"])
+    fresh = TanhCriticPolicy()
+    resumed = PPOTrainer(_config(tiny_dataset, tmp_path / "run", resume=True), policy=fresh)
+    assert resumed._resume() and resumed.iteration == 2
+    torch.testing.assert_close(_critic_params(fresh), _critic_params(policy))
+
+
+def test_a_loss_factory_replaces_clip_ppo(tiny_dataset, tmp_path):
+    """KLPENPPOLoss reads the collecting policy's distribution parameters from the minibatch: the
+    trainer keeps the loss's own inputs in its buffer."""
+    cfg = _config(tiny_dataset, tmp_path / "klpen")
+    trainer = PPOTrainer(cfg, loss=functools.partial(KLPENPPOLoss, dtarg=0.01, entropy_coeff=0.0))
+    assert type(trainer.loss) is KLPENPPOLoss
+    assert ("tracker", "loc") in trainer._minibatch_keys() and ("tracker", "scale") in trainer._minibatch_keys()
+    res = trainer.train()
+    assert res["iterations"] == 2
+    rows = _rows(tmp_path / "klpen")
+    assert all(r["kl"] != "" and float(r["loss_objective"]) == float(r["loss_objective"]) for r in rows)
+    # the loss's state (the KL penalty's beta included) is what the checkpoint holds
+    assert "beta" in load_checkpoint(tmp_path / "klpen")["module"]
+    # and a partial of ClipPPOLoss with its own settings
+    clip = PPOTrainer(_config(tiny_dataset, tmp_path / "clip"), loss=functools.partial(ClipPPOLoss, clip_epsilon=0.1))
+    assert type(clip.loss) is ClipPPOLoss and float(clip.loss.clip_epsilon) == pytest.approx(0.1)
+
+
+def test_extra_env_transforms_reach_the_collected_batch_and_the_workers(tiny_dataset, tmp_path):
+    cfg = _config(tiny_dataset, tmp_path / "steps")
+    trainer = PPOTrainer(cfg, env_transforms=(functools.partial(StepCounter, max_steps=5),))
+    batches = []
+    update = trainer._update
+    trainer._update = lambda data: (batches.append(data.clone()), update(data))[1]
+    trainer.train()
+    assert len(batches) == 2
+    steps = batches[0]["next", "step_count"]
+    assert int(steps.max()) == 5 and bool(batches[0]["next", "truncated"].any())   # episodes cut at 5 steps
+    assert "episode_reward" in batches[0]["next"].keys()                          # adadex's own still there
+    # a worker builds its env from a pickled factory: the transform travels with it
+    worker = pickle.loads(pickle.dumps(trainer.env_factory(0).for_workers(2)[1]))
+    env = worker()
+    try:
+        assert isinstance(env.transform[-1], StepCounter) and env.transform[-1].max_steps == 5
+    finally:
+        env.close()
+    with pytest.raises(ConfigError, match="cannot be pickled") as e:
+        PPOTrainer(cfg, env_transforms=(lambda: StepCounter(),))
+    assert "\n" not in str(e.value)
+
+
+def test_a_policy_that_does_not_fit_the_run_is_refused_in_one_line(tiny_dataset, tmp_path):
+    path = Tracker(hidden=(16,), residual=0.25).save(tmp_path / "generalist.pt")
+    cfg = _config(tiny_dataset, tmp_path / "mod", modulator=ModulatorSettings(tracker=str(path), channels="R+O+T",
+                                                                              hidden=(32, 32)))
+    refusals = [
+        (cfg, Modulator("R+T", hidden=(16,)), "writes a 134-D action, but the modulated env (channels R+O+T) takes "
+                                              "a 198-D action"),
+        (cfg, Tracker(hidden=(16,)), "a modulator run"),
+        (_config(tiny_dataset, tmp_path / "trk"), Modulator("T", hidden=(16,)), "a tracker run"),
+    ]
+    for c, policy, fragment in refusals:
+        with pytest.raises(ConfigError, match=re.escape(fragment)) as e:
+            PPOTrainer(c, policy=policy)
+        assert "\n" not in str(e.value), str(e.value)
+    mod = Modulator("R+O+T", hidden=(16,))                       # the right size: taken as it is
+    trainer = PPOTrainer(cfg, policy=mod)
+    assert trainer.policy is mod and trainer.env_action_dim() == 198

@@ -11,8 +11,8 @@ chan.  entry                           shape           meaning (after scaling by
 =====  ==============================  ==============  =====================================================
 R      ``("modulation", "ref_hand")``    (…, 4, 22)    joint residual of the reference at t+1, t+2, t+4, t+12
 R      ``("modulation", "ref_object")``  (…, 4, 6)     object residual there: position (3) + rotation vector (3)
-C      ``("modulation", "palm")``        (…, 3)        change of the palm offset of the visible reference (compact R)
-C      ``("modulation", "grip")``        (…, 4)        change of each finger's flexion there (compact R)
+C      ``("modulation", "palm")``        (…, 3)        palm position offset of the whole visible reference (compact R)
+C      ``("modulation", "grip")``        (…, 4)        closure of each finger's flexion joints there (compact R)
 O      ``("modulation", "latent")``      (…, 64)       residual of the object latent (f̃ = f + λ·a)
 T      ``("modulation", "action")``      (…, 22)       residual added to the tracker's action
 =====  ==============================  ==============  =====================================================
@@ -74,11 +74,9 @@ ACTION_RESIDUAL = (MOD, "action")
 HAND_EDIT = (MOD, "hand_edit")
 OBJECT_EDIT = (MOD, "object_edit")
 
-#: The compact channel C: a palm position offset (3) and one closure per finger (index, middle, ring, thumb),
-#: as rates; the offset and closures they integrate are carried from step to step
+#: The compact channel C: a palm position offset (3) and one closure per finger (index, middle, ring, thumb)
 PALM = (MOD, "palm")
 GRIP = (MOD, "grip")
-COMPACT_EDIT = (MOD, "compact_edit")
 #: per finger of GRIP, the flexion joints it closes
 GRIP_JOINTS = (("if_mcp", "if_pip", "if_dip"), ("mf_mcp", "mf_pip", "mf_dip"), ("rf_mcp", "rf_pip", "rf_dip"),
                ("th_mcp", "th_ipl"))
@@ -112,9 +110,10 @@ class Channel:
       sampling an untrained modulator must leave the tracker's success intact, so each channel's is
       sized to what its edits cost (``python benchmarks/modulator_usage.py --init-check``: around
       kinematic replay on the planned-grasp ``small`` dataset under Table 3, 188 paired episodes,
-      sampling at 0.5 cost R 18.0 and T 6.8 completion points; R 0.05, T 0.2 and C 0.03 are the
-      largest scales measured within noise of the tracker alone, docs/training-log.md); O keeps 0.5
-      (its edits changed nothing measurable at 0.5);
+      sampling at 0.5 cost R 18.0, T 6.8 and C 24 completion points; R 0.05 (+0.6), T 0.2 (+1.0) and
+      C 0.03 (+3.6) are within the ±4-point noise of 188 episodes, while R 0.2 (−6.4) and C 0.1
+      (−7.8) are not; docs/modulation.md); O keeps 0.5 (around kinematic replay it acts on nothing;
+      around the pipeline's generalist it changed nothing measurable at 0.5);
     * :attr:`transform` — its transform class, bound by :mod:`adadex.transforms.modulation`.
     """
 
@@ -174,17 +173,13 @@ CHANNELS: Mapping[str, Channel] = _registry(
             edits="observation", init_scale=0.05),
     Channel("C", "compact reference edit: palm position offset (through the arm Jacobian) and grip",
             entries=((PALM, (3,)), (GRIP, (len(GRIP_JOINTS),))),
-            state=((COMPACT_EDIT, (3 + len(GRIP_JOINTS),)),),
-            fields=(Field("lambda_palm", 0.01, "λ_palm: the palm offset of the whole visible reference changes by up "
-                                              "to this much (m) per axis and step"),
-                    Field("palm_bound", 0.10, "the palm offset stays within ±this (m) per axis (Table 3 displaces "
-                                              "the object by N(0, 5 cm) per axis); the arm joints of each frame "
-                                              "are solved through the palm's Jacobian"),
-                    Field("lambda_grip", 0.03, "λ_grip: each finger's closure of its flexion joints (index, middle, "
-                                               "ring: mcp, pip, dip; thumb: mcp, ipl) changes by up to this much "
-                                               "(rad) per step"),
-                    Field("grip_bound", 0.3, "each finger's closure stays within ±this (rad)")),
-            edits="observation", init_scale=0.3),
+            fields=(Field("lambda_palm", 0.10, "λ_palm: the palm of the whole visible reference moves by up to "
+                                              "this far (m) per axis, the arm joints solved through the palm's "
+                                              "Jacobian; Table 3 displaces the object by N(0, 5 cm) per axis"),
+                    Field("lambda_grip", 0.3, "λ_grip: each finger's flexion joints (index, middle, ring: mcp, pip, "
+                                              "dip; thumb: mcp, ipl) of the visible reference close (+) or open (−) "
+                                              "by up to this much (rad)")),
+            edits="observation", init_scale=0.03),
     Channel("O", "object latent",
             entries=((LATENT, (LATENT_DIM,)),),
             fields=(Field("lambda_latent", 0.25, "λ_latent: f̃ = clip(f + λ·a, −1, 1) (the latent is tanh-bounded). "

@@ -14,7 +14,6 @@ reference, nor the state of the servos, nor where in the episode it is. The view
                                        object poses (4×7)
 ``edit``               140 (R only)    the accumulated reference edit at t, t+1, t+2, t+4, t+12: joints
                                        (5×22), object position + rotation vector (5×6)
-``compact``            7 (C only)      channel C's carried palm offset (3) and finger closures (4)
 ``start_offset``       3               where the object started the episode minus where the reference
                                        had it (Table 3 moves it by N(0, 5 cm) per axis)
 ``servo_lag``          22              joint targets minus joint positions
@@ -47,7 +46,7 @@ from tensordict import TensorDictBase
 from adadex.envs.observation import (JOINT_POS, JOINT_TARGET, OBJECT_POSE, OBJECT_START, OBS_DIM, OBSERVATION,
                                      REF_JOINT_POS, REF_OBJECT_POSE, REF_OBJECT_START, REF_OFFSETS)
 from adadex.errors import check_number
-from adadex.modules.channels import CHANNELS, COMPACT_EDIT, HAND_EDIT, MOD, OBJECT_EDIT, ModulationLayout
+from adadex.modules.channels import HAND_EDIT, MOD, OBJECT_EDIT, ModulationLayout
 from adadex.quat import quat_conj, quat_diff, quat_from_rotvec, quat_mul
 from adadex.sim.robot import NUM_JOINTS
 
@@ -73,8 +72,6 @@ class ViewLayout:
                  ("original_future", _FUTURE * (NUM_JOINTS + 7))]
         if "R" in self.channels:
             parts.append(("edit", len(REF_OFFSETS) * (NUM_JOINTS + 6)))
-        if "C" in self.channels:
-            parts.append(("compact", dict(CHANNELS["C"].state)[COMPACT_EDIT][0]))
         parts += [("start_offset", 3), ("servo_lag", NUM_JOINTS), ("last_action", self.action_dim), ("phase", 1),
                   ("history", self.history * FRAME_DIM)]
         self.parts = tuple(parts)
@@ -144,10 +141,6 @@ def view_features(td: TensorDictBase, layout: ViewLayout) -> torch.Tensor:
     if "R" in layout.channels:
         hand, ob = _edits(td)
         parts["edit"] = torch.cat([hand.reshape(*lead, -1), ob.reshape(*lead, -1)], -1)
-    if "C" in layout.channels:
-        compact = td.get(COMPACT_EDIT, None)
-        parts["compact"] = joint_pos.new_zeros(*lead, dict(CHANNELS["C"].state)[COMPACT_EDIT][0]) \
-            if compact is None else compact
     return torch.cat([parts[name] for name, _ in layout.parts], -1)
 
 

@@ -14,8 +14,7 @@ input to the env's action spec (entries under ``"modulation"``, in [−1, 1]) an
   leaving the env shows the edited reference (structured entries and the 273-D vector), the
   reward still scores the original one. ``persistent=False`` edits the current step only.
 * :class:`CompactModulation` (C): R in 7 numbers — the visible reference's palm moved by an offset
-  (through the arm Jacobian) and each finger's flexion closed or opened; the action changes the
-  offset and closures, which are carried from step to step.
+  (through the arm Jacobian) and each finger's flexion closed or opened; absolute, not carried.
 * :class:`LatentModulation` (O): the object latent becomes f̃ = clip(f + λ · a, −1, 1).
 * :class:`ActionModulation` (T): action ← action + bound · clip(Δa, −1, 1).
 * :class:`TrackerInTheLoop`: runs a frozen tracker (deterministic, no gradient) on the modulated
@@ -47,8 +46,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adadex.envs.observation import OBJECT_LATENT, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, REF_OFFSETS, \
     flat_from_tensordict
-from adadex.modules.channels import COMPACT_EDIT, GRIP_JOINTS, HAND_EDIT, MOD, OBJECT_EDIT, Channel, \
-    ModulationConfig, ModulationLayout, bind_transform
+from adadex.modules.channels import GRIP_JOINTS, HAND_EDIT, MOD, OBJECT_EDIT, Channel, ModulationConfig, \
+    ModulationLayout, bind_transform
 from adadex.modules.modulator_view import VIEW, ViewLayout, next_view_state, view_features
 from adadex.quat import quat_from_rotvec, quat_mul, rotvec_from_quat
 from adadex.sim.robot import JOINT_NAMES, NUM_JOINTS
@@ -263,18 +262,15 @@ def shift_edit(edit: torch.Tensor) -> torch.Tensor:
 
 class CompactModulation(ChannelTransform, channel="C"):
     """Channel C, the compact reference edit: 7 numbers instead of R's 112. The palm of every visible
-    reference frame (offsets 0, 1, 2, 4, 12) moves by an offset — the arm joints of each frame solved
-    through the palm's Jacobian without turning it (:class:`adadex.modules.anchor.PalmShift`) — and
-    each finger's flexion joints close by a closure (index, middle, ring, thumb). The action is the
-    *change* of offset and closures, ``λ_palm · a_palm`` and ``λ_grip · a_grip`` per step, within
-    ±``palm_bound`` / ±``grip_bound``; the offset and closures are carried from step to step,
-    ``("modulation", "compact_edit")`` (7, zero at reset; the modulator's view shows them).
-
-    Why rates: reaching an object that Table 3 moved is one offset held for many steps. As an absolute
-    per-step offset, exploration noise only shook the palm (an untrained modulator sampled at scale
-    0.1 cost replay 7.8 completion points) and 250 k frames of PPO learned nothing; as a rate, the
-    same noise wanders the palm smoothly over centimetres, and each step's change persists, so its
-    effect on the rest of the episode reaches PPO's advantage. The reward scores the original reference.
+    reference frame (offsets 0, 1, 2, 4, 12) moves by ``λ_palm · a_palm`` (m, base frame) — the arm
+    joints of each frame solved through the palm's Jacobian without turning it
+    (:class:`adadex.modules.anchor.PalmShift`) — and each finger's flexion joints close by
+    ``λ_grip · a_grip`` (index, middle, ring, thumb). The edit is absolute, not carried: the action
+    says where the reference is this step, so reaching an object that Table 3 moved is one offset
+    read off the view's start offset. (Tried as a rate, the offset carried and changed by the action:
+    sampled at scale 0.3 it cost replay 13.6 completion points, and 250 k frames of PPO drifted the
+    offsets until replay completed 40.9 % instead of 79.7 %; docs/modulation.md.) The reward scores
+    the original reference.
     """
 
     def __init__(self, config: ModulationConfig = ModulationConfig()):
@@ -287,29 +283,13 @@ class CompactModulation(ChannelTransform, channel="C"):
             mask[f, [JOINT_NAMES.index(j) for j in joints]] = 1.0
         self._grip = mask
 
-    def state_shapes(self) -> dict:
-        return dict(self.channel.state)
-
-    def next_state(self, td: TensorDictBase) -> dict:
-        """The offset and closures reached this step (written by the inverse path)."""
-        edit = td.get(COMPACT_EDIT, None)
-        if edit is None:
-            edit = td.get(REF_JOINT_POS).new_zeros(*td.batch_size, *self.channel.state[0][1])
-        return {COMPACT_EDIT: edit}
-
     def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
         a = self._inputs(td)
         if a is None:
             return td
-        c = self.config
+        palm, grip = a[0] * self.config.lambda_palm, a[1] * self.config.lambda_grip
         ref = td.get(REF_JOINT_POS)                       # (…, 5, 22)
         lead, k = ref.shape[:-2], ref.shape[-2]
-        prev = td.get(COMPACT_EDIT, None)
-        if prev is None:
-            prev = ref.new_zeros(*lead, 3 + len(GRIP_JOINTS))
-        palm = (prev[..., :3] + c.lambda_palm * a[0]).clamp(-c.palm_bound, c.palm_bound)
-        grip = (prev[..., 3:] + c.lambda_grip * a[1]).clamp(-c.grip_bound, c.grip_bound)
-        td.set(COMPACT_EDIT, torch.cat([palm, grip], -1))
         edit = (grip @ self._grip.to(grip))[..., None, :].expand(*lead, k, NUM_JOINTS).clone()
         q = ref[..., :6].reshape(-1, 6)
         shift = palm[..., None, :].expand(*lead, k, 3).reshape(-1, 3)

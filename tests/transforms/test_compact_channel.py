@@ -82,31 +82,6 @@ def test_compact_channel_in_the_chain_and_the_policy_graph(tiny_dataset):
     assert a["modulation", "sample"].abs().max() > 0.1
 
 
-def test_offsets_integrate_within_their_bounds_and_reset(tiny_dataset):
-    """The action is a rate: offsets add up step by step, stop at their bounds, and start from zero
-    in a world that resets."""
-    from adadex.modules.channels import COMPACT_EDIT
-
-    cfg = ModulationConfig(lambda_palm=0.04, palm_bound=0.1, lambda_grip=0.2, grip_bound=0.3)
-    env = TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None, seed=3), CompactModulation(cfg))
-    td = env.reset()
-    assert (td[COMPACT_EDIT] == 0).all()
-    push = {"action": torch.zeros(2, 22), PALM: torch.tensor([[1.0, -0.5, 0.0]] * 2),
-            GRIP: torch.tensor([[1.0, 0.0, 0.0, -1.0]] * 2)}
-    seen = []
-    for _ in range(3):
-        td.update(push)
-        td = env.step(td)["next"]
-        seen.append(td[COMPACT_EDIT][0].clone())
-    torch.testing.assert_close(seen[0], torch.tensor([0.04, -0.02, 0.0, 0.2, 0.0, 0.0, -0.2]))
-    torch.testing.assert_close(seen[1], torch.tensor([0.08, -0.04, 0.0, 0.3, 0.0, 0.0, -0.3]))
-    torch.testing.assert_close(seen[2], torch.tensor([0.1, -0.06, 0.0, 0.3, 0.0, 0.0, -0.3]))
-    td["_reset"] = torch.tensor([[True], [False]])
-    td = env.reset(td)
-    assert (td[COMPACT_EDIT][0] == 0).all() and torch.equal(td[COMPACT_EDIT][1], seen[2])
-    env.close()
-
-
 @pytest.mark.parametrize("field", ["lambda_palm", "lambda_grip"])
 def test_compact_bounds_are_checked(field):
     with pytest.raises(ValueError, match=field):

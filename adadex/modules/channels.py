@@ -110,10 +110,10 @@ class Channel:
       sampling an untrained modulator must leave the tracker's success intact, so each channel's is
       sized to what its edits cost (``python benchmarks/modulator_usage.py --init-check``: around
       kinematic replay on the planned-grasp ``small`` dataset under Table 3, 188 paired episodes,
-      sampling at 0.5 cost R 18.0, T 6.8 and C 24 completion points; R 0.05 (+0.6), T 0.2 (+1.0) and
-      C 0.03 (+3.6) are within the ±4-point noise of 188 episodes, while R 0.2 (−6.4) and C 0.1
-      (−7.8) are not; docs/modulation.md); O keeps 0.5 (around kinematic replay it acts on nothing;
-      around the pipeline's generalist it changed nothing measurable at 0.5);
+      sampling at 0.5 cost R 18.0 and T 6.8 completion points, C at 0.1 cost 7.8; R 0.05 (+0.6),
+      T 0.2 (+1.0) and C 0.03 (+3.6) are within the ±4-point noise of 188 episodes, while R 0.2
+      (−6.4) and C 0.1 are not; docs/modulation.md); O keeps 0.5 (around kinematic replay it acts on
+      nothing; around the pipeline's generalist it changed nothing measurable at 0.5);
     * :attr:`transform` — its transform class, bound by :mod:`adadex.transforms.modulation`.
     """
 

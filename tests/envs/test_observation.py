@@ -149,26 +149,34 @@ def test_object_frame_hand_tracking_rewards_meeting_a_displaced_object():
         RewardConfig(object_frame=1.5)
 
 
-def test_success_term_pays_for_the_frames_completion_counts():
-    """``w_success`` adds exactly its weight on the frames that meet the paper's success thresholds
-    (world frame: an object and palm both 12 cm off fail, 8 cm off pass) and nothing elsewhere."""
-    from adadex.envs.frame_errors import frame_errors, frame_success
+def _paid_per_frame(offsets, weights: dict, test):
+    """Palm and object moved together by ``offsets`` (m, one world each) from a reference at the
+    origin: (the frames ``test`` passes, the reward with ``weights`` minus the default one, its terms)."""
+    from adadex.envs.frame_errors import frame_errors
     from adadex.envs.reward import RewardConfig, tracking_reward
 
-    B = 3
-    rq, rlink, robj = _reference_at_origin(B)
+    rq, rlink, robj = _reference_at_origin(len(offsets))
     link, obj = rlink.clone(), robj.clone()
-    off = torch.tensor([0.0, 0.08, 0.12])          # world 0 on its reference; 1 and 2 moved with the object
+    off = torch.tensor(offsets)
     link[..., 0] += off[:, None]
     obj[:, 0] += off
     kw = dict(joint_pos=rq, link_pose=link, object_pose=obj, ref_joint_pos=rq, ref_link_pose=rlink,
               ref_object_pose=robj)
-    base, t0 = tracking_reward(RewardConfig(), **kw)
-    paid, t1 = tracking_reward(RewardConfig(w_success=2.5), **kw)
-    ok = frame_success(frame_errors(obj, robj, link[:, 0], rlink[:, 0], rq, rq))
+    base, _ = tracking_reward(RewardConfig(), **kw)
+    paid, terms = tracking_reward(RewardConfig(**weights), **kw)
+    return test(frame_errors(obj, robj, link[:, 0], rlink[:, 0], rq, rq)), paid - base, terms
+
+
+def test_success_term_pays_for_the_frames_completion_counts():
+    """``w_success`` adds exactly its weight on the frames that meet the paper's success thresholds
+    (world frame: an object and palm both 12 cm off fail, 8 cm off pass) and nothing elsewhere."""
+    from adadex.envs.frame_errors import frame_success
+    from adadex.envs.reward import RewardConfig
+
+    ok, extra, terms = _paid_per_frame([0.0, 0.08, 0.12], {"w_success": 2.5}, frame_success)
     assert ok.tolist() == [True, True, False]
-    assert torch.equal(t0["success"], ok.float()) and torch.equal(t1["success"], ok.float())
-    assert torch.allclose(paid - base, 2.5 * ok.float())
+    assert torch.equal(terms["success"], ok.float())
+    assert torch.allclose(extra, 2.5 * ok.float())
     with pytest.raises(ConfigError, match="w_success"):
         RewardConfig(w_success=float("nan"))
 
@@ -176,20 +184,9 @@ def test_success_term_pays_for_the_frames_completion_counts():
 def test_object_success_term_pays_only_with_the_object_within_5_cm():
     """``w_object_success`` pays on the frames that pass the paper's thresholds with the object within
     5 cm: the frame 8 cm off passes the paper's test and fails this one."""
-    from adadex.envs.frame_errors import frame_errors, object_success
-    from adadex.envs.reward import RewardConfig, tracking_reward
+    from adadex.envs.frame_errors import object_success
 
-    B = 3
-    rq, rlink, robj = _reference_at_origin(B)
-    link, obj = rlink.clone(), robj.clone()
-    off = torch.tensor([0.03, 0.08, 0.12])
-    link[..., 0] += off[:, None]
-    obj[:, 0] += off
-    kw = dict(joint_pos=rq, link_pose=link, object_pose=obj, ref_joint_pos=rq, ref_link_pose=rlink,
-              ref_object_pose=robj)
-    base, t0 = tracking_reward(RewardConfig(), **kw)
-    paid, t1 = tracking_reward(RewardConfig(w_object_success=3.0), **kw)
-    ok = object_success(frame_errors(obj, robj, link[:, 0], rlink[:, 0], rq, rq))
+    ok, extra, terms = _paid_per_frame([0.03, 0.08, 0.12], {"w_object_success": 3.0}, object_success)
     assert ok.tolist() == [True, False, False]
-    assert torch.equal(t1["object_success"], ok.float())
-    assert torch.allclose(paid - base, 3.0 * ok.float())
+    assert torch.equal(terms["object_success"], ok.float())
+    assert torch.allclose(extra, 3.0 * ok.float())

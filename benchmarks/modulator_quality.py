@@ -7,7 +7,10 @@ alone are evaluated on the unseen-trajectory test references under Table 3, ``--
 each, on the same draws (the same env seed for every row and seed). Printed per row: completion
 and object completion (the object within 5 cm: :func:`adadex.envs.frame_errors.object_success`),
 carried, T_o, and the paired difference to the tracker with its bootstrap interval over references,
-pooled across the seeds (:func:`adadex.eval.paired.paired_bootstrap`).
+pooled across the seeds (:func:`adadex.eval.paired.paired_bootstrap`), and the same against the
+modulator as the trainer initialised it (edits ≈ 0): under Table 3 any perturbation reshuffles which
+episodes succeed (an untrained modulator moved replay's completion by up to 3.4 points), so the
+difference to the untrained modulator is what training learned.
 
 A row is ``CHANNELS[:inputs[:init_scale]]``: ``C+T`` (the defaults: the view, each channel's own
 scale), ``R+O+T:observation:0.5`` (the modulator as it was before 2026-11-27). Every run is kept
@@ -120,18 +123,31 @@ def main(argv=None) -> dict:
             train_s = time.perf_counter() - t0
             mod = Modulator.load(trained["policy"])
             ev = evaluated(folder, make_policy(tracker, mod))
+            # the control: the same modulator as the trainer initialised it (its edits ≈ 0). Under Table 3
+            # any perturbation reshuffles which episodes succeed, so "trained − tracker alone" mixes what
+            # training learned with that reshuffle; "trained − untrained" does not
+            torch.manual_seed(seed)
+            fresh = Modulator(row["channels"], hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
+                              inputs=m.inputs, history=m.history)
+            ctl = evaluated(folder / "untrained", make_policy(tracker, fresh))
             per_seed.append({"seed": seed, "train_s": train_s, **{k: ev["summary"][k] for k in METRICS},
-                             "per_episode": ev["per_episode"]})
-        diffs = {}
-        for field, name in PAIRED.items():
+                             "untrained": {k: ctl["summary"][k] for k in METRICS},
+                             "per_episode": ev["per_episode"], "untrained_episodes": ctl["per_episode"]})
+        refs = np.concatenate([s["per_episode"]["reference"] for s in per_seed])
+        sid = np.concatenate([[s["seed"]] * len(s["per_episode"]["reference"]) for s in per_seed])
+
+        def paired(field, other):
             a_ = np.concatenate([100.0 * np.asarray(s["per_episode"][field], float) for s in per_seed])
-            b_ = np.concatenate([100.0 * np.asarray(base["per_episode"][field], float) for _ in per_seed])
-            refs = np.concatenate([s["per_episode"]["reference"] for s in per_seed])
-            sid = np.concatenate([[s["seed"]] * len(s["per_episode"]["reference"]) for s in per_seed])
+            b_ = np.concatenate([100.0 * np.asarray(other(s)[field], float) for s in per_seed])
             d = paired_bootstrap(a_, b_, refs, sid)
-            diffs[name] = {"diff": d["estimate"], "ci95": d["ci95"]}
-        entry = {**row, "per_seed": [{k: v for k, v in s.items() if k != "per_episode"} for s in per_seed],
-                 **{k: float(np.mean([s[k] for s in per_seed])) for k in METRICS}, "vs_tracker": diffs}
+            return {"diff": d["estimate"], "ci95": d["ci95"]}
+
+        diffs = {name: paired(field, lambda s: base["per_episode"]) for field, name in PAIRED.items()}
+        learned = {name: paired(field, lambda s: s["untrained_episodes"]) for field, name in PAIRED.items()}
+        bulky = ("per_episode", "untrained_episodes")
+        entry = {**row, "per_seed": [{k: v for k, v in s.items() if k not in bulky} for s in per_seed],
+                 **{k: float(np.mean([s[k] for s in per_seed])) for k in METRICS}, "vs_tracker": diffs,
+                 "vs_untrained": learned}
         result["rows"][row["name"]] = entry
         c, o = diffs["completion_pct"], diffs["object_completion_pct"]
         print(f"{row['name']:24s} completion {entry['completion_pct']:5.1f} % ({c['diff']:+.1f} [{c['ci95'][0]:+.1f}, "
@@ -139,6 +155,11 @@ def main(argv=None) -> dict:
               f"[{o['ci95'][0]:+.1f}, {o['ci95'][1]:+.1f}])  carried {entry['carried_pct']:5.1f} %  "
               f"T_o {entry['T_o']:.2f} cm  per seed completion "
               + " / ".join(f"{s['completion_pct']:.1f}" for s in per_seed), flush=True)
+        u, uo = learned["completion_pct"], learned["object_completion_pct"]
+        print(f"{'':24s} vs the same modulator untrained (completion "
+              + " / ".join(f"{s['untrained']['completion_pct']:.1f}" for s in per_seed)
+              + f"): completion {u['diff']:+.1f} [{u['ci95'][0]:+.1f}, {u['ci95'][1]:+.1f}], object "
+              f"{uo['diff']:+.1f} [{uo['ci95'][0]:+.1f}, {uo['ci95'][1]:+.1f}]", flush=True)
     result["wall_s"] = time.perf_counter() - t_start
     b = result["tracker_alone"]
     print(f"{'tracker alone':24s} completion {b['completion_pct']:5.1f} %  object {b['object_completion_pct']:5.1f} %  "

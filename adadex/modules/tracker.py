@@ -132,8 +132,9 @@ class Tracker(ActorCritic):
     @classmethod
     def replay(cls, hidden: Sequence[int] = (16,), max_action: float = 0.1, residual: float = 0.25) -> Tracker:
         """Kinematic replay as a tracker: a residual tracker whose correction is exactly zero (its
-        heads zeroed), so its deterministic action is replay's (to float32 rounding). A frozen tracker to modulate without
-        training one first, e.g. the cheap check that a modulator setting can learn.
+        heads zeroed), so its deterministic action is replay's (to float32 rounding). A frozen
+        tracker to modulate without training one first, e.g. the cheap check that a modulator
+        setting can learn.
 
         >>> import torch
         >>> from tensordict import TensorDict

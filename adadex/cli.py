@@ -148,6 +148,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line ``argv``; return the exit code. The one place the ``adadex`` command turns
+    an error into an exit code (:func:`adadex.errors.report_error`, for every subcommand alike): bad
+    input is one line and 2, anything else a bug, one line and 1; ``--debug`` raises it instead."""
     args = build_parser().parse_args(argv)
     try:
         return _dispatch(args)
@@ -156,7 +159,13 @@ def main(argv: list[str] | None = None) -> int:
 
         if args.debug:
             raise
-        return report_error(f"adadex {args.command}", e, hint="; run `adadex --debug …` for the traceback")
+        return report_error(_prog(args), e, hint="; run `adadex --debug …` for the traceback")
+
+
+def _prog(args) -> str:
+    """The command as the user typed it, for messages: ``adadex sysid fit``, ``adadex sim export``."""
+    sub = getattr(args, f"{args.command}_command", None)
+    return f"adadex {args.command}" + (f" {sub}" if sub else "")
 
 
 def _dispatch(args) -> int:

@@ -8,7 +8,9 @@ An output *folder* (a dataset, a comparison, a diagnosis) is written the same wa
 folder is complete or absent and never mixes files of two runs. Each carries a small marker file
 (:data:`OUTPUT_MARKER`) naming its kind; an existing target that is not an adadex output of the same
 kind (a folder of the user's own files, a file) is refused unless ``force=True``, so no user data is
-replaced by mistake. Temporary folders left by a killed run are removed on the next write.
+replaced by mistake. Temporary folders left by a killed run are removed on the next write, and so are
+the temporary files of a killed file write (named with the writer's process id, so that a write still
+running elsewhere keeps its own).
 
 An output *file* (an MJCF export, an excitation plan, a simulated recording) is guarded the same way
 (:func:`output_file`): it carries a marker beside it, ``.NAME`` + :data:`FILE_MARKER_SUFFIX`, naming
@@ -59,7 +61,48 @@ class OutputExistsError(AdadexError, FileExistsError):
 
 
 def temp_path(path: Path) -> Path:
-    return path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
+    """A fresh temporary sibling of the file ``path``: ``.NAME.p<pid>.<random>.tmp``. The writer's process id
+    in the name lets a later write of ``path`` tell a temporary a killed writer left (its process is gone)
+    from one being written now (:func:`clean_dead_temporaries`)."""
+    return path.parent / f".{path.name}.p{os.getpid()}.{secrets.token_hex(6)}.tmp"
+
+
+def _process_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    if os.name == "nt":                  # os.kill would end the process there: never judge, keep the file
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:                      # another user's process (EPERM) …: alive
+        return True
+    return True
+
+
+def clean_dead_temporaries(path) -> list[Path]:
+    """Remove the temporary files of ``path`` (:func:`temp_path`) whose writer's process is gone — what a
+    killed write (``adadex sysid fit`` stopped with ``kill -9``, a power cut) left beside it — and those
+    of earlier versions (``.NAME.<random>.tmp`` files, without a process id). Temporaries of a writer still
+    running, in this process or another, are kept. Returns the paths removed."""
+    path = Path(path)
+    pattern = re.compile(rf"^\.{re.escape(path.name)}\.(?:p(\d+)\.)?[0-9a-f]{{12}}\.tmp$")
+    removed = []
+    try:
+        entries = list(path.parent.iterdir())
+    except OSError:
+        return removed
+    for p in entries:
+        m = pattern.match(p.name)
+        if not m or p.is_dir() or (m.group(1) is not None and _process_alive(int(m.group(1)))):
+            continue
+        try:
+            p.unlink()
+            removed.append(p)
+        except OSError:
+            pass
+    return removed
 
 
 def _open_new(tmp: Path) -> BinaryIO:
@@ -69,7 +112,9 @@ def _open_new(tmp: Path) -> BinaryIO:
 
 
 def write_temp(path: Path, write: Callable[[BinaryIO], object]) -> Path:
-    """Write a temporary sibling of ``path`` with ``write(file)``; return its path (not yet renamed)."""
+    """Write a temporary sibling of ``path`` with ``write(file)``; return its path (not yet renamed).
+    Temporaries of ``path`` that killed writers left are removed first (:func:`clean_dead_temporaries`)."""
+    clean_dead_temporaries(path)
     tmp = temp_path(path)
     try:
         with _open_new(tmp) as f:

@@ -5,7 +5,8 @@
     python recipes/evaluate.py -m channels=none,R,R+T,R+O+T modulator=untrained   # an ablation
 
 Writes ``result.json`` (config, summary, per-reference results) to ``out``. A missing checkpoint or
-dataset, or a bad setting, is one line on stderr and exit code 2 (no traceback).
+dataset, a file that is not a checkpoint, or a bad setting (``channels``, ``split``/``part``,
+``max_worlds``) is one line on stderr and exit code 2 (no traceback), checked before any work.
 """
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from adadex.errors import ConfigError, exit_on_error
+from adadex.data.reference import ReferenceDataset, SplitError
+from adadex.errors import AdadexError, ConfigError, check_number, exit_on_error
 from adadex.envs.replay import replay_policy
 from adadex.envs.randomization import Randomization
 from adadex.eval.evaluate import evaluate, format_summary
@@ -48,8 +50,41 @@ def _checkpoint(path, key: str) -> str:
     return str(path)
 
 
+def _load(cls, path, key: str):
+    """``cls.load`` of the checkpoint ``key=path``; a file that is not one is one line naming the setting."""
+    try:
+        return cls.load(_checkpoint(path, key))
+    except (FileNotFoundError, AdadexError):
+        raise
+    except ValueError as e:             # the loaders' "not a readable … checkpoint" (torch's long reason cut)
+        raise ConfigError(f"{key}={path}: {str(e).split(' (')[0].removeprefix(f'{path}: ')}") from None
+
+
+#: The splits and parts a built dataset has (adadex.data.build)
+SPLITS, PARTS = ("unseen_trajectory", "unseen_object"), ("train", "test")
+
+
+def check_settings(cfg) -> None:
+    """The settings checked before any work (a dataset build, a checkpoint load), each error one line
+    naming the key: ``channels``, ``max_worlds``, ``split``/``part`` (against the dataset's own splits
+    when it exists)."""
+    try:
+        parse_channels(cfg.channels)
+    except ValueError as e:
+        raise ConfigError(f"channels={cfg.channels}: {e}") from None
+    check_number("max_worlds", cfg.max_worlds, low=1, integer=True)
+    if (Path(str(cfg.dataset)) / "index.json").is_file():
+        try:
+            ReferenceDataset(cfg.dataset).split(str(cfg.split), str(cfg.part))
+        except SplitError as e:
+            raise ConfigError(f"split={cfg.split} part={cfg.part}: {e}") from None
+    elif cfg.split not in SPLITS or cfg.part not in PARTS:
+        key, value, known = ("split", cfg.split, SPLITS) if cfg.split not in SPLITS else ("part", cfg.part, PARTS)
+        raise ConfigError(f"{key}={value}: no such {key}; known: {', '.join(known)}")
+
+
 def _modules(cfg):
-    tracker = replay_policy() if cfg.tracker == "replay" else Tracker.load(_checkpoint(cfg.tracker, "tracker"))
+    tracker = replay_policy() if cfg.tracker == "replay" else _load(Tracker, cfg.tracker, "tracker")
     channels = parse_channels(cfg.channels)
     if not channels:
         return tracker, None
@@ -58,7 +93,7 @@ def _modules(cfg):
     if cfg.modulator == "untrained":
         torch.manual_seed(int(cfg.seed))
         return tracker, Modulator(channels)
-    return tracker, Modulator.load(_checkpoint(cfg.modulator, "modulator"))
+    return tracker, _load(Modulator, cfg.modulator, "modulator")
 
 
 def keys() -> dict:
@@ -70,12 +105,13 @@ def keys() -> dict:
 def main(cfg: DictConfig) -> dict:
     with exit_on_error("recipes/evaluate.py"):      # input errors: one line, exit code 2
         check_keys(cfg, keys())
+        check_settings(cfg)
         return _evaluate(cfg)
 
 
 def _evaluate(cfg: DictConfig) -> dict:
+    tracker, modulator = _modules(cfg)          # before a dataset build: a bad checkpoint is found at once
     dataset = _dataset(cfg)
-    tracker, modulator = _modules(cfg)
     policy = make_policy(tracker, modulator, channels=cfg.channels,
                          config=ModulationConfig(**OmegaConf.to_container(cfg.modulation)))
     res = evaluate(policy, dataset, split=(cfg.split, cfg.part), max_worlds=int(cfg.max_worlds),
@@ -98,4 +134,4 @@ def _evaluate(cfg: DictConfig) -> dict:
 
 
 if __name__ == "__main__":
-    recipe_main(main, schema=keys())
+    recipe_main(main, schema=keys(), guard=check_settings)

@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections import Counter
 from pathlib import Path
+
+from adadex.errors import check_number
 
 
 def _cmd_build(a) -> int:
@@ -23,6 +24,8 @@ def _cmd_build(a) -> int:
     from adadex.data.object_contact import ObjectContact
     from adadex.data.synth import NoiseConfig
 
+    if a.limit is not None:             # before any work: 0 or -1 would build nothing, or all but one
+        check_number("--limit", a.limit, low=1, integer=True)
     p = PRESETS[a.preset]
     n = min(a.limit, p.base_instructions) if a.limit else p.base_instructions
     print(f"building preset {p.name!r}: {n} base instructions × {p.paraphrases} paraphrases on "
@@ -36,9 +39,14 @@ def _cmd_build(a) -> int:
 
 
 def _cmd_info(a) -> int:
-    from adadex.data.reference import ReferenceDataset
+    from adadex.data.reference import ReferenceDataset, check_frames
 
+    check_number("--head", a.head, integer=True)
     ds = ReferenceDataset(a.dir)
+    # The frames too, not only the index: a summary of a dataset with missing, truncated or damaged
+    # frames would say it is fine (the first problem is named: file, or reference and frame).
+    for start in range(0, len(ds), 256):        # in chunks: a large dataset is not read into memory at once
+        check_frames(ds, range(start, min(start + 256, len(ds))))
     verbs = Counter(e["meta"].get("verb", "?") for e in ds.entries)
     objects = Counter(e["object"] for e in ds.entries)
     summary = {
@@ -76,8 +84,7 @@ def _cmd_show(a) -> int:
 
 def _cmd_import(a) -> int:
     from adadex.data.hoi_import import ImportRejected, import_npz
-    from adadex.data.reference import save_dataset
-    from adadex.data.reference import is_dataset
+    from adadex.data.reference import DatasetError, is_dataset, save_dataset
     from adadex.data.object_contact import ObjectContact
     from adadex.data.retarget import Retargeter
     from adadex.io import check_output
@@ -93,7 +100,7 @@ def _cmd_import(a) -> int:
             rejected.append({"file": str(f), **e.rejection.as_dict()})
             print(f"rejected {f}: {e.rejection.reason}: {e.rejection.detail}")
     if not refs:
-        raise ValueError("no file passed the feasibility filter; nothing written")
+        raise DatasetError(f"{a.out}: no file passed the feasibility filter; nothing written")
     path = save_dataset(refs, a.out, info={"imported": [str(f) for f in a.files], "rejections": rejected},
                         force=a.force)
     print(f"wrote {path}: {len(refs)} references ({len(rejected)} rejected)")
@@ -144,15 +151,6 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    """Run a data subcommand, turning user errors into one-line messages."""
-    from adadex.errors import AdadexError
-    from adadex.sim.objects import UnknownObjectError
-
-    try:
-        return args.func(args)
-    except (AdadexError, ValueError, KeyError, IndexError, FileExistsError, FileNotFoundError, UnknownObjectError) as e:
-        if getattr(args, "debug", False):
-            raise
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
-        print(f"adadex data {args.data_command}: error: {msg}", file=sys.stderr)
-        return 2
+    """Run a data subcommand. Errors are reported by :func:`adadex.cli.main` through the one contract
+    (:func:`adadex.errors.report_error`): bad input one line and exit code 2, a bug exit code 1."""
+    return args.func(args)

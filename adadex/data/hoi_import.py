@@ -73,6 +73,28 @@ def _field(data, key: str, path: Path, default=None):
     return default
 
 
+#: Plausible frame rates of an imported file, Hz (inclusive): outside them ``fps`` is not frames per
+#: second (a period, a typo), and resampling would make absurdly many frames or almost none.
+FPS_RANGE = (1.0, 10_000.0)
+
+
+def _fps(data, path: Path) -> float:
+    """The file's ``fps``: one finite number in :data:`FPS_RANGE` (default: the control rate)."""
+    if "fps" not in data.files:
+        return float(CONTROL_HZ)
+    v = data["fps"]
+    if v.ndim != 0 and v.size != 1:
+        raise ReferenceError(f"{path}: fps: expected one number (frames per second), got an array of shape {v.shape}")
+    try:
+        fps = float(v.reshape(()).item()) if v.dtype.kind in "iuf" else float("nan")
+    except (TypeError, ValueError):
+        fps = float("nan")
+    lo, hi = FPS_RANGE
+    if not (np.isfinite(fps) and lo <= fps <= hi):
+        raise ReferenceError(f"{path}: fps: expected a frame rate in [{lo:g}, {hi:g}] Hz, got {v.reshape(-1)[0].item()!r}")
+    return fps
+
+
 def import_npz(path, *, object_name: str | None = None, instruction: str | None = None, group_id: int = 0,
                scale: float | str = "auto", retargeter: Retargeter | None = None,
                config: feasibility.FeasibilityConfig = feasibility.FeasibilityConfig()) -> Reference:
@@ -91,7 +113,7 @@ def import_npz(path, *, object_name: str | None = None, instruction: str | None 
         with data:
             kp = np.asarray(_field(data, "keypoints", path), dtype=np.float64)
             obj = np.asarray(_field(data, "object_pose", path), dtype=np.float64)
-            fps = float(_field(data, "fps", path, CONTROL_HZ))
+            fps = _fps(data, path)
             object_name = object_name or str(_field(data, "object_name", path, ""))
             instruction = instruction or str(_field(data, "instruction", path, path.stem))
     except FileNotFoundError:
@@ -110,14 +132,14 @@ def import_npz(path, *, object_name: str | None = None, instruction: str | None 
         kp = kp[:, 0]
     if kp.ndim != 3 or kp.shape[1:] != (21, 3):
         raise ReferenceShapeError(f"{path}: keypoints: expected shape (T, 21, 3), got {kp.shape}")
+    if len(kp) < 2:
+        raise ReferenceShapeError(f"{path}: keypoints: {len(kp)} frame(s); a motion needs at least 2")
     if obj.shape != (len(kp), 7):
         raise ReferenceShapeError(f"{path}: object_pose: expected shape ({len(kp)}, 7), got {obj.shape}")
     for name, arr in (("keypoints", kp), ("object_pose", obj)):
         bad = np.argwhere(~np.isfinite(arr))
         if len(bad):
             raise ReferenceValueError(f"{path}: {name}: non-finite value at frame {bad[0][0]}")
-    if not (np.isfinite(fps) and fps > 0):
-        raise ReferenceError(f"{path}: fps must be positive, got {fps}")
     norms = np.linalg.norm(obj[:, 3:], axis=1)
     if np.abs(norms - 1).max() > 1e-3:
         t = int(np.argmax(np.abs(norms - 1)))
@@ -125,7 +147,12 @@ def import_npz(path, *, object_name: str | None = None, instruction: str | None 
     if abs(fps - CONTROL_HZ) > 1e-6:
         kp, obj = resample(kp, obj, fps)
     rt = retargeter or Retargeter()
-    res = rt.retarget(kp, scale=scale, object_pose=obj, object_names=object_name)
+    try:
+        res = rt.retarget(kp, scale=scale, object_pose=obj, object_names=object_name)
+    except ReferenceError:
+        raise
+    except ValueError as e:            # the retargeter's checks of its input: a degenerate hand (all at one point) …
+        raise ReferenceError(f"{path}: keypoints: cannot be retargeted ({e})") from None
     ref = Reference.from_joint_positions(
         res.joint_pos, obj, object_name=object_name, instruction=instruction, group_id=group_id, fps=CONTROL_HZ,
         human_keypoints=kp, retarget_residual=res.residual, name=path.stem,

@@ -26,12 +26,14 @@ key                 shape        meaning
 ``time``            (T,)         seconds, uniform, strictly increasing, T ≥ 2
 ``joint_names``     (J,) str     a subset of JOINT_NAMES, any order, no duplicates, J ≥ 1
 ``command``         (S, T, J)    joint-position targets sent, rad, within the joint limits
-``joint_pos``       (S, T, J)    measured joint positions, rad
+``joint_pos``       (S, T, J)    measured joint positions, rad (the workbench takes them within
+                                 the joint limits ± MEASURED_RANGE_MARGIN: check_measured_range)
 ``joint_vel``       (S, T, J)    optional: measured joint velocities, rad/s
 ``sequence_labels`` (S,) str     optional: unique names, default ``seq0, seq1, …``
 ``initial_qpos``    (S, 22)      optional: configuration at t = time[0]; default: the first
                                  measured sample for recorded joints, HOME_QPOS for the rest
-``meta``            () str       optional: JSON object, free-form (how the data was made)
+``meta``            () str       optional: JSON object, free-form (how the data was made);
+                                 its ``sequences``, if any, one object per sequence
 =================== ============ ==========================================================
 
 All arrays are float64, strings are stored as numpy unicode arrays: files load with
@@ -88,6 +90,7 @@ from adadex.data.recording_csv import csv_file_name
 from adadex.data.recording_errors import (
     CommandLimitError,
     JointNameError,
+    MeasurementRangeError,
     NonFiniteValueError,
     RecordingError,
     RecordingFileError,
@@ -103,7 +106,7 @@ from adadex.sim.robot import HOME_QPOS, JOINT_NAMES, NUM_JOINTS, joint_index, jo
 __all__ = ["Recording", "load_recording", "from_csv", "to_csv", "csv_file_name", "LIMIT_TOLERANCE",
            "TIME_RELATIVE_TOLERANCE", "SAMPLE_PERIOD_RANGE", "INITIAL_QPOS_TOLERANCE", "REQUIRED_KEYS", "OPTIONAL_KEYS", "RecordingError", "RecordingShapeError",
            "NonFiniteValueError", "TimeAxisError", "JointNameError", "UnknownJointNameError", "CommandLimitError",
-           "RecordingFileError"]
+           "MeasurementRangeError", "RecordingFileError", "MEASURED_RANGE_MARGIN"]
 
 #: Commands may exceed the joint limits by this much (rad) before a recording is rejected.
 LIMIT_TOLERANCE = 1e-6
@@ -114,6 +117,10 @@ TIME_RELATIVE_TOLERANCE = 1e-6
 SAMPLE_PERIOD_RANGE = (1e-4, 1.0)
 #: ``initial_qpos`` may exceed the joint limits by this much (rad): it is often a measured sample.
 INITIAL_QPOS_TOLERANCE = 0.02
+#: Measured positions (``joint_pos``) are not held to the joint limits — a joint may be pushed past them,
+#: an encoder may be offset — but one farther than this outside them (rad, or m for a slide joint) is no
+#: reading of the joint: a unit slip (degrees, encoder counts) or a corrupt value, refused.
+MEASURED_RANGE_MARGIN = float(np.pi)
 
 REQUIRED_KEYS = ("time", "joint_names", "command", "joint_pos")
 OPTIONAL_KEYS = ("joint_vel", "sequence_labels", "initial_qpos", "meta")
@@ -239,7 +246,9 @@ class Recording:
         ``sequence_labels`` or a ``None`` ``initial_qpos`` counts as "default" and passes.
         """
         self._check_shapes()
-        self._check_joint_names()
+        self._check_joint_names()      # before initial_qpos's width, which depends on the model's joints
+        self._check_qpos_shape()
+        self._check_meta_sequences()
         self._check_labels()
         self._check_time()
         for name in ("command", "joint_pos", "joint_vel"):
@@ -279,7 +288,9 @@ class Recording:
         if self.sequence_labels and len(self.sequence_labels) != S:
             raise RecordingShapeError(
                 f"sequence_labels: expected {S} labels (one per sequence), got {len(self.sequence_labels)}")
-        W = self._width
+
+    def _check_qpos_shape(self) -> None:
+        S, W = self.num_sequences, self._width
         if self.initial_qpos is not None and self.initial_qpos.shape != (S, W):
             raise RecordingShapeError(
                 f"initial_qpos: expected shape (S, {W}) = {(S, W)} (or ({W},) for all sequences), "
@@ -293,6 +304,27 @@ class Recording:
             if n in seen:
                 raise JointNameError(f"joint_names: duplicate joint {n!r} at positions {seen[n]} and {i}")
             seen[n] = i
+
+    def _check_meta_sequences(self) -> None:
+        """``meta["sequences"]`` (one description per sequence, as :mod:`adadex.sysid.excite` writes) must
+        match the arrays: the workbench picks each joint's sequences and the held-out ones from it."""
+        seqs = self.meta.get("sequences")
+        if not seqs:                   # absent (or empty): the workbench treats every sequence alike
+            return
+        S = self.num_sequences
+        if not isinstance(seqs, list):
+            raise RecordingError(f"meta['sequences']: expected a list with one entry per sequence ({S}), "
+                                 f"got {type(seqs).__name__}")
+        if len(seqs) != S:
+            raise RecordingShapeError(f"meta['sequences']: {len(seqs)} entries, but the arrays hold {S} sequences "
+                                      f"(command has shape {self.command.shape}); one entry per sequence expected")
+        for i, entry in enumerate(seqs):
+            if not isinstance(entry, dict):
+                raise RecordingError(f"meta['sequences'][{i}]: expected an object (a dict), got "
+                                     f"{type(entry).__name__} {entry!r}")
+            joint = entry.get("joint")
+            if joint is not None and not isinstance(joint, str):
+                raise RecordingError(f"meta['sequences'][{i}]['joint']: expected a joint name, got {joint!r}")
 
     def _check_labels(self) -> None:
         seen: dict[str, int] = {}
@@ -364,6 +396,24 @@ class Recording:
             f"command: {value!r} rad for joint {self.joint_names[j]!r} in {self._where(s)} at time index {k} "
             f"(t={self.time[k]:g} s) is {side} limit {limit!r} rad (tolerance {LIMIT_TOLERANCE:g} rad); "
             f"{int(outside.sum())} command values are outside the limits in total")
+
+    def check_measured_range(self) -> Recording:
+        """``self`` if every measured position lies within the joint limits widened by
+        :data:`MEASURED_RANGE_MARGIN`; a :class:`MeasurementRangeError` naming the first one outside
+        (sequence, time index, joint) otherwise. Not part of :meth:`validate` — a recording may hold any
+        finite measurement — but what the workbench (``adadex sysid``) checks before comparing a model
+        with it: errors of 1e6 rad overflow its statistics."""
+        lim = (joint_limits() if self.robot is None else self.robot.limits)[self.joint_indices]
+        lo, hi = lim[:, 0] - MEASURED_RANGE_MARGIN, lim[:, 1] + MEASURED_RANGE_MARGIN
+        outside = (self.joint_pos < lo) | (self.joint_pos > hi)
+        if not outside.any():
+            return self
+        s, k, j = (int(i) for i in np.argwhere(outside)[0])
+        raise MeasurementRangeError(
+            f"joint_pos: {float(self.joint_pos[s, k, j]):g} rad measured for joint {self.joint_names[j]!r} in "
+            f"{self._where(s)} at time index {k} (t={self.time[k]:g} s) is outside the physical range "
+            f"[{lo[j]:g}, {hi[j]:g}] rad (the joint limits ± {MEASURED_RANGE_MARGIN:g}); is it in degrees or "
+            f"encoder counts? {int(outside.sum())} measured values are outside it in total")
 
     def _check_finite_qpos(self) -> None:
         bad = ~np.isfinite(self.initial_qpos)

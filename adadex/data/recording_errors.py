@@ -44,6 +44,10 @@ class CommandLimitError(RecordingError):
     """A command lies outside its joint's position limits."""
 
 
+class MeasurementRangeError(RecordingError):
+    """A measured position lies so far outside its joint's limits that it cannot be a reading of the joint."""
+
+
 class RecordingFileError(RecordingError):
     """A file that cannot be read as a recording: not an archive, missing or unexpected keys, bad CSV."""
 

@@ -111,6 +111,17 @@ class DatasetError(ReferenceError):
     """A folder that is not a readable reference dataset, or an inconsistent one."""
 
 
+class ReferenceIndexError(DatasetError, IndexError):
+    """A reference index outside the dataset (also an ``IndexError``, as a sequence's)."""
+
+
+class SplitError(DatasetError, KeyError):
+    """A split or part the dataset does not have (also a ``KeyError``)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
 def _array(value, name: str, shape_tail: tuple[int, ...], where: str) -> np.ndarray:
     try:
         arr = np.array(value, dtype=np.float64)
@@ -436,7 +447,8 @@ class ReferenceDataset(Sequence):
             return [self[j] for j in range(*i.indices(len(self)))]
         n = len(self)
         if not -n <= i < n:
-            raise IndexError(f"reference index {i} out of range for a dataset of {n}")
+            raise ReferenceIndexError(f"{self.path}: reference index {i} out of range for a dataset of {n} "
+                                      f"(0 … {n - 1})")
         i = operator.index(i) % n
         check_frames(self, [i])
         e = self.entries[i]
@@ -457,9 +469,9 @@ class ReferenceDataset(Sequence):
     def split(self, name: str, part: str) -> list[int]:
         """Indices of ``part`` (``"train"``/``"test"``) of split ``name`` (``"unseen_trajectory"`` …)."""
         if name not in self.splits:
-            raise KeyError(f"{self.path}: no split {name!r}; available: {sorted(self.splits)}")
+            raise SplitError(f"{self.path}: no split {name!r}; available: {sorted(self.splits)}")
         if part not in self.splits[name]:
-            raise KeyError(f"{self.path}: split {name!r} has no part {part!r}; available: "
+            raise SplitError(f"{self.path}: split {name!r} has no part {part!r}; available: "
                            f"{sorted(self.splits[name])}")
         return list(self.splits[name][part])
 

@@ -44,7 +44,8 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
-from adadex.data.reference import WINDOW_FRAMES, Reference, WindowTooShortError
+from adadex.data.reference import WINDOW_FRAMES, Reference, ReferenceError, WindowTooShortError
+from adadex.errors import ConfigError
 from adadex.io import atomic_write_bytes
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 from adadex.sim.scene import OBJECT_QPOS, TABLE_CENTER, TABLE_HALF_SIZE, build_scene_model
@@ -184,14 +185,14 @@ def plot_reference(ref: Reference, out, *, render: bool | None = None, frames: i
     """
     out = Path(out)
     if out.suffix.lower() != ".png":
-        raise ValueError(f"{out}: plot_reference writes PNG, so the file name must end in .png")
+        raise ConfigError(f"{out}: plot_reference writes PNG, so the file name must end in .png")
     if out.is_dir():
         raise IsADirectoryError(f"{out} is a directory; pass a file path ending in .png")
     if int(frames) < 1:
-        raise ValueError(f"frames must be at least 1, got {frames}")
+        raise ConfigError(f"frames must be at least 1, got {frames}")
     T = ref.num_frames
     if T < 2:
-        raise ValueError(f"reference {ref.name!r} has {T} frame(s); a path needs at least 2")
+        raise ReferenceError(f"reference {ref.name!r} has {T} frame(s); a path needs at least 2")
     window, window_note = _window(ref)
     images, idx, note = [], [], "not requested (render=False)"
     if render is not False:

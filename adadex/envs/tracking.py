@@ -73,7 +73,7 @@ from adadex.envs.latent import encoder_latent
 from adadex.envs.observation import LATENT_DIM, OBS_DIM, PRIVILEGED, REF_OFFSETS, flat_observation
 from adadex.envs.randomization import ModelRandomizer, Randomization
 from adadex.envs.reward import TERM_NAMES, RewardConfig, tracking_reward
-from adadex.errors import ConfigError, check_array, check_number, check_numbers
+from adadex.errors import ArrayError, ConfigError, check_array, check_number, check_numbers
 from adadex.geometry import Rotation, quat, rotation
 from adadex.sim.batched import MAX_OBJECT_SPEED, BatchedSim, flung
 from adadex.sim.effects import ModelBase
@@ -393,9 +393,28 @@ class TrackingEnv(EnvBase):
         out[PRIVILEGED] = self._td(out[PRIVILEGED])
         return self._td(out)
 
+    def step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """TorchRL's ``step`` with the action's shape checked first: TorchRL checks the tensordict's batch
+        size before :meth:`_step` runs, so an action of another batch shape would be refused by its batch
+        check, which names neither ``action`` nor the shape it must have."""
+        self._action(tensordict)
+        return super().step(tensordict)
+
+    def _action(self, tensordict: TensorDictBase):
+        """The tensordict's ``"action"``, of the action spec's shape; an :class:`ArrayError` naming it if not."""
+        want = tuple(self.action_spec.shape)
+        action = tensordict.get("action", None) if isinstance(tensordict, TensorDictBase) else None
+        if action is None:
+            raise ArrayError(f"action: missing from the tensordict given to step; expected a tensor of shape {want}")
+        got = tuple(getattr(action, "shape", ()))
+        if got != want:
+            raise ArrayError(f"action: expected shape {want}, got {got} (one row of {want[-1]} joint "
+                             f"targets per world, {want[0]} worlds)")
+        return action
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         cfg = self.config
-        action = check_array("action", tensordict.get("action").detach().cpu().numpy(), tuple(self.action_spec.shape))
+        action = check_array("action", self._action(tensordict).detach().cpu().numpy(), tuple(self.action_spec.shape))
         if self.randomize is not None:     # in units of the action bound, before it (as Isaac Gym's VecTask)
             noise = self._action_offset + self._step_rng.normal(0, self.randomize.action_noise_uncorrelated,
                                                                  action.shape)

@@ -118,11 +118,17 @@ class EffectInstance:
         if not isinstance(d, dict) or "effect" not in d or "joints" not in d:
             raise PatchError(f"an effect entry needs 'effect' and 'joints', got {d!r}")
         eff = get_effect(d["effect"])
+        joints = d["joints"]
+        if not isinstance(joints, (list, tuple)) or not joints or not all(isinstance(j, str) for j in joints):
+            # a string would be read letter by letter
+            raise PatchError(f"{eff.name}: 'joints' must be a non-empty list of joint names such as [\"if_pip\"], "
+                             f"got {json.dumps(joints, default=str)}")
         params = d.get("params", {})
+        if not isinstance(params, dict):
+            raise PatchError(f"{eff.name}: 'params' must be an object of parameter values, got {params!r}")
         unknown = set(params) - set(eff.param_names)
         if unknown:
             raise PatchError(f"{eff.name}: unknown parameters {sorted(unknown)}; it takes {list(eff.param_names)}")
-        joints = list(d["joints"])
         cols = []
         for p, absent in zip(eff.param_names, eff.absent_values()):
             v = np.asarray(params.get(p, absent), dtype=float)

@@ -30,18 +30,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
+from adadex.data.recording_errors import RecordingError
 from adadex.errors import AdadexError
 from adadex.io import check_output, check_output_file, output_file, output_folder
 from adadex.resources import asset
-from adadex.sim.effects import EFFECT_NAMES, EffectError
-from adadex.sim.model_source import ModelSourceError, same_model
+from adadex.sim.effects import EFFECT_NAMES
+from adadex.sim.model_source import same_model
 from adadex.sim.patch import ModelPatch, PatchError
-from adadex.sim.robot import UnknownJointError
 
 DEMO_RECORDING = asset("recordings", "demo.npz")
 
@@ -60,9 +59,13 @@ def _robot(model):
 
 
 def _load_rec(path, model=None):
-    from adadex.data.recording import load_recording
+    from adadex.data.recording import load_recording, prefixed
 
-    return load_recording(path, robot=_robot(model))
+    rec = load_recording(path, robot=_robot(model))
+    try:
+        return rec.check_measured_range()     # 1e6 rad is no measurement: refused before any replay
+    except RecordingError as e:
+        raise prefixed(e, path) from None
 
 
 def _load_patch(path, model=None) -> ModelPatch:
@@ -107,8 +110,12 @@ def _check_out(a, kind: str) -> None:
         check_output(a.out, kind, force=a.force, recognize=_RECOGNIZE[kind])
 
 
-def _floats(text: str) -> tuple[float, ...]:
-    return tuple(float(x) for x in text.split(",") if x)
+def _floats(text: str, option: str) -> tuple[float, ...]:
+    """Comma-separated numbers of ``option``; anything else is one line naming the option."""
+    try:
+        return tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise CliError(f"{option}: expected comma-separated numbers such as 0.5,1.5,3, got {text!r}") from None
 
 
 def _cmd_excite(a) -> int:
@@ -120,7 +127,7 @@ def _cmd_excite(a) -> int:
         check_output(folder, "plan", force=a.force)
     else:
         check_output_file(out, "plan", force=a.force)
-    plan = design_excitation(a.joints.split(","), freqs=_floats(a.freqs), amps=_floats(a.amps),
+    plan = design_excitation(a.joints.split(","), freqs=_floats(a.freqs, "--freqs"), amps=_floats(a.amps, "--amps"),
                              poses=tuple(a.poses.split(",")), kinds=tuple(a.kinds.split(",")),
                              duration=a.duration, rate=a.rate, robot=_robot(a.model))
     if folder is not None:
@@ -384,18 +391,7 @@ def add_parser(sub) -> None:
     q.set_defaults(func=_cmd_demo)
 
 
-USER_ERRORS = (CliError, PatchError, EffectError, UnknownJointError, FileNotFoundError, ModelSourceError)
-
-
 def run(args) -> int:
-    """Run a sysid subcommand, turning user errors into one-line messages."""
-    from adadex.data.recording import RecordingError
-    from adadex.sysid.excite import ExcitationError
-
-    try:
-        return args.func(args)
-    except (*USER_ERRORS, AdadexError, RecordingError, ExcitationError) as e:
-        if getattr(args, "debug", False):
-            raise
-        print(f"adadex sysid {args.sysid_command}: error: {e}", file=sys.stderr)
-        return 2
+    """Run a sysid subcommand. Errors are reported by :func:`adadex.cli.main` through the one contract
+    (:func:`adadex.errors.report_error`): bad input one line and exit code 2, a bug exit code 1."""
+    return args.func(args)

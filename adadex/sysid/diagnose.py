@@ -213,6 +213,8 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
              explained_at: float = 0.8, refine_top: int = 4, refine_passes: int = 1, nthread: int = 2,
              progress: bool = True) -> Diagnosis:
     """Diagnose ``recording``; see the module docstring. ``joints`` overrides the failing-joint search."""
+    if joints is not None:             # before any work: recorded joints, the first that is not named
+        joints = [recording.joint_names[j] for j in recording._select_joints(joints)]
     t0 = time.perf_counter()
     rep = Replayer(recording, nthread=nthread)
     base_patch = base_patch if base_patch is not None else ModelPatch(robot=rep.robot)

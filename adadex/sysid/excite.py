@@ -135,6 +135,15 @@ def design_excitation(joints, *, freqs=(0.5, 1.5, 3.0), amps=(0.25, 1.0), poses=
     for p in poses:
         if p not in base_poses:
             raise ExcitationError(f"unknown pose {p!r}; choose from {', '.join(base_poses)}")
+    for name, values in (("freqs", freqs), ("amps", amps), ("rate", (rate,)), ("duration", (duration,))):
+        try:
+            bad = [v for v in values if not np.isfinite(float(v))]
+        except (TypeError, ValueError):
+            raise ExcitationError(f"{name}: expected numbers, got {values!r}") from None
+        if bad:
+            raise ExcitationError(f"{name}: expected finite numbers, got {bad[0]!r}")
+    if not freqs or not amps:
+        raise ExcitationError(f"freqs and amps need at least one value each, got freqs={list(freqs)}, amps={list(amps)}")
     if rate <= 0 or duration <= 2 * RAMP_S:
         raise ExcitationError(f"rate must be > 0 and duration > {2 * RAMP_S} s (got rate={rate}, duration={duration})")
     if any(f <= 0 or f > rate / 4 for f in freqs):
@@ -172,8 +181,8 @@ def simulate_recording(plan: ExcitationPlan, patch: ModelPatch | None = None, *,
     """Replay ``plan`` on the model + ``patch`` and add N(0, noise²) sensor noise (rad), seeded."""
     from adadex.sysid.replay import Replayer
 
-    if noise < 0:
-        raise ExcitationError(f"noise must be >= 0, got {noise}")
+    if not (isinstance(noise, (int, float, np.floating, np.integer)) and np.isfinite(noise) and noise >= 0):
+        raise ExcitationError(f"noise: the sensor noise std must be a finite number ≥ 0 (rad), got {noise!r}")
     patch = patch if patch is not None else ModelPatch(robot=plan.robot)
     proto = plan.to_recording(plan.command.copy())
     q = Replayer(proto, nthread=nthread).simulate(patch)

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import torch
 
-from adadex.errors import AdadexError
-from adadex.io import atomic_write_text, check_output, output_folder
+from adadex.errors import ConfigError, check_number
+from adadex.io import OutputExistsError, atomic_write_text, check_output, output_folder
 from adadex.modules.encoder import load_encoder
 from adadex.train.encoder import (
     PLOT_OBJECTS,
@@ -37,10 +37,15 @@ def _summary_line(label: str, summary: dict) -> str:
 
 
 def _cmd_train(a) -> int:
-    check_settings(a.steps, a.batch_size, a.points, a.lr)
+    try:
+        check_settings(a.steps, a.batch_size, a.points, a.lr)
+    except ValueError as e:             # its checks of the settings (plain ValueErrors): bad input, one line
+        raise ConfigError(str(e)) from None
+    if a.threads is not None:
+        check_number("--threads", a.threads, low=1, integer=True)
     out = Path(a.out)
     if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out} exists and is not a folder")
+        raise OutputExistsError(f"--out {out} exists and is not a folder")
     if a.threads:
         torch.set_num_threads(a.threads)
     print(f"training the point-cloud encoder: {a.steps} steps, batch {a.batch_size}, {a.points} points, "
@@ -117,12 +122,6 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    """Run an encoder subcommand, turning user errors into one-line messages (exit status 2)."""
-    import sys
-
-    try:
-        return args.func(args)
-    except (AdadexError, ValueError, FileNotFoundError, KeyError) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
-        print(f"adadex encoder {args.encoder_command}: error: {msg}", file=sys.stderr)
-        return 2
+    """Run an encoder subcommand. Errors are reported by :func:`adadex.cli.main` through the one contract
+    (:func:`adadex.errors.report_error`): bad input one line and exit code 2, a bug exit code 1."""
+    return args.func(args)

@@ -31,6 +31,10 @@ class ConfigError(AdadexError, ValueError):
     """A configuration value is out of range or of the wrong type."""
 
 
+class CheckpointError(AdadexError, ValueError):
+    """A checkpoint that cannot be read, is of another kind, or does not belong to this run."""
+
+
 class ArrayError(AdadexError, ValueError):
     """An input array (an action, say) has the wrong shape or non-finite values."""
 

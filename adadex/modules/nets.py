@@ -21,7 +21,7 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 
-from adadex.errors import ConfigError
+from adadex.errors import CheckpointError, ConfigError
 from adadex.io import atomic_write
 
 
@@ -261,10 +261,10 @@ class ActorCritic(nn.Module):
         try:
             blob = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as e:  # torch raises several types for a damaged file
-            raise ValueError(f"{path}: not a readable {cls.kind} checkpoint ({e})") from e
+            raise CheckpointError(f"{path}: not a readable {cls.kind} checkpoint ({e})") from e
         kind = blob.get("kind") if isinstance(blob, dict) else None
         if kind != cls.kind:
-            raise ValueError(f"{path}: not a {cls.kind} checkpoint (kind={kind!r})")
+            raise CheckpointError(f"{path}: not a {cls.kind} checkpoint (kind={kind!r})")
         config = cls.upgrade_config(dict(blob["config"]))
         unknown = sorted(set(changes) - set(config))
         if unknown:

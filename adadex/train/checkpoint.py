@@ -28,14 +28,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from adadex.errors import AdadexError
+from adadex.errors import AdadexError, CheckpointError  # noqa: F401  (CheckpointError: importable from here too)
 from adadex.io import atomic_write
 
 CHECKPOINT = "checkpoint.pt"
-
-
-class CheckpointError(AdadexError, ValueError):
-    """A checkpoint that cannot be read or does not belong to this run."""
 
 
 def rng_state() -> dict:

@@ -205,6 +205,13 @@ class ModulatorSettings:
         if not Path(self.tracker).is_file():
             raise ConfigError(f"ModulatorSettings.tracker: no tracker checkpoint at {self.tracker!r} "
                               f"(train or distill one first)")
+        from adadex.errors import CheckpointError
+        from adadex.modules.tracker import Tracker
+
+        try:                               # before any work: the recipe loads it first in the collector
+            Tracker.load(self.tracker)
+        except CheckpointError as e:
+            raise ConfigError(f"ModulatorSettings.tracker: {e}") from None
 
 
 def randomization_with(changes: dict, where: str):

@@ -357,6 +357,10 @@ def test_modulator_needs_an_existing_tracker(tmp_path):
 
     with pytest.raises(ConfigError, match="no tracker checkpoint"):
         ModulatorSettings(tracker=str(tmp_path / "missing.pt"))
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(ConfigError, match="ModulatorSettings.tracker: .*garbage.pt: not a readable tracker"):
+        ModulatorSettings(tracker=str(garbage))
 
 
 def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
@@ -407,6 +411,7 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
 
 REFUSALS = [   # (recipe, arguments, what its one line of stderr says)
     ("train_modulator.py", ["tracker=/nonexistent/generalist.pt"], "no tracker checkpoint"),
+    ("train_modulator.py", ["tracker=README.md"], "README.md: not a readable tracker checkpoint"),
     ("train_specialist.py", ["group=999"], "semantic group 999"),
     ("train_ppo.py", ["collector.backend=slurm"], "backend must be 'local' or 'ray'"),
     ("train_ppo.py", ["+reward.w_alvie=1.0"], "RewardConfig: unknown keys ['w_alvie']"),

@@ -61,7 +61,7 @@ def _unit_box(batch: torch.Size, shape, device) -> Bounded:
 
 
 class CarriedState:
-    """What a transform that carries state from step to step shares (R's persistent edit, C's offset,
+    """What a transform that carries state from step to step shares (R's persistent edit and
     the modulator's view): its :meth:`state_shapes` become observation and state specs; each step
     writes :meth:`next_state` of the step's input (after the inverse path) into the next observation,
     then shows it (:meth:`_call`); a reset zeroes the state of the worlds that reset and keeps the

@@ -39,6 +39,14 @@ class ArrayError(AdadexError, ValueError):
     """An input array (an action, say) has the wrong shape or non-finite values."""
 
 
+class UnknownKeyError(AdadexError, KeyError):
+    """A name or entry the caller gave is unknown, or an input (a tensordict, a dict) lacks one it needs."""
+
+
+class ConfigTypeError(AdadexError, TypeError):
+    """A setting or argument is of the wrong kind (an object where another is expected)."""
+
+
 def check_number(name: str, value, *, low: float = 0.0, high: float = math.inf, integer: bool = False,
                  strict_low: bool = False):
     """Return ``value`` if it is a finite real number in ``[low, high]`` (``(low, high]`` with

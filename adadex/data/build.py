@@ -39,6 +39,7 @@ from adadex.data.planned_grasp import PlannedGraspError, plan_hold
 from adadex.data.reference import Reference, is_dataset, save_dataset
 from adadex.data.retarget import Retargeter
 from adadex.data.synth import VERBS, HumanMotion, NoiseConfig, Synthesizer, make_instruction
+from adadex.errors import ConfigError
 from adadex.io import check_output
 from adadex.sim.objects import OBJECT_NAMES, held_out_objects
 
@@ -196,7 +197,7 @@ def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfi
     """
     if isinstance(preset, str):
         if preset not in PRESETS:
-            raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
+            raise ConfigError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}")
         preset = PRESETS[preset]
     check_output(out, "dataset", force=force, recognize=is_dataset, option="force=True (--force on the command line)")
     report = BuildReport(preset.name, seed)

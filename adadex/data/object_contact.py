@@ -41,7 +41,7 @@ import mujoco
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from adadex.errors import check_numbers
+from adadex.errors import ArrayError, ConfigError, check_numbers
 from adadex.sim.objects import get_object
 from adadex.sim.robot import NUM_JOINTS, robot_mjcf_path
 from adadex.sim.scene import OBJECT_BODY, OBJECT_QPOS, build_scene_model, descends
@@ -76,11 +76,11 @@ class ObjectContact:
         check_numbers("ObjectContact", self, asdict(self))
         for name in ("keep_out", "contact", "squeeze", "damping"):
             if getattr(self, name) < 0:
-                raise ValueError(f"ObjectContact.{name} must be ≥ 0, got {getattr(self, name)}")
+                raise ConfigError(f"ObjectContact.{name} must be ≥ 0, got {getattr(self, name)}")
         if self.iters < 1:
-            raise ValueError(f"ObjectContact.iters must be ≥ 1, got {self.iters}")
+            raise ConfigError(f"ObjectContact.iters must be ≥ 1, got {self.iters}")
         if not self.reach > 0:
-            raise ValueError(f"ObjectContact.reach must be > 0, got {self.reach}")
+            raise ConfigError(f"ObjectContact.reach must be > 0, got {self.reach}")
 
     def activation(self, human_tip_distance: np.ndarray) -> np.ndarray:
         """Contact weight in [0, 1] from a human fingertip's distance to the surface."""
@@ -155,7 +155,7 @@ def hand_object_overlap(joint_pos: np.ndarray, object_pose: np.ndarray, object_n
     """
     q, pose = np.asarray(joint_pos, float), np.asarray(object_pose, float)
     if q.ndim != 2 or q.shape[1] != NUM_JOINTS or pose.shape != (len(q), 7):
-        raise ValueError(f"expected joint_pos (T, {NUM_JOINTS}) and object_pose (T, 7), got {q.shape} and {pose.shape}")
+        raise ArrayError(f"expected joint_pos (T, {NUM_JOINTS}) and object_pose (T, 7), got {q.shape} and {pose.shape}")
     model = build_scene_model(object_name)
     model.geom_margin[:] = margin
     data = mujoco.MjData(model)

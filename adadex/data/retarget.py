@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from adadex.data.object_contact import ObjectContact, hand_collision_spheres, hull_planes
+from adadex.errors import ArrayError, ConfigError
 from adadex.geometry import rotation
 from adadex.sim.kinematics import RobotKinematics
 from adadex.sim.robot import HOME_QPOS, JOINT_NAMES, NUM_JOINTS, joint_limits
@@ -122,10 +123,10 @@ class Retargeter:
         w = dict(DEFAULT_WEIGHTS, **(weights or {}))
         unknown = set(w) - set(DEFAULT_WEIGHTS)
         if unknown:
-            raise ValueError(f"unknown keypoint kinds in weights: {sorted(unknown)}; "
-                             f"expected {sorted(DEFAULT_WEIGHTS)}")
+            raise ConfigError(f"unknown keypoint kinds in weights: {sorted(unknown)}; "
+                              f"expected {sorted(DEFAULT_WEIGHTS)}")
         if iters < 1 or first_iters < 1:
-            raise ValueError(f"iters and first_iters must be ≥ 1, got {iters}, {first_iters}")
+            raise ConfigError(f"iters and first_iters must be ≥ 1, got {iters}, {first_iters}")
         self.iters, self.first_iters = iters, first_iters
         self.smooth, self.damping, self.max_step, self.retry_above = smooth, damping, max_step, retry_above
         self.fk = RobotKinematics()
@@ -222,19 +223,19 @@ class Retargeter:
         if single:
             kp = kp[None]
         if kp.ndim != 4 or kp.shape[2:] != (len(ROBOT_POINTS), 3):
-            raise ValueError(f"keypoints: expected shape (T, 21, 3) or (B, T, 21, 3), got {np.shape(keypoints)}")
+            raise ArrayError(f"keypoints: expected shape (T, 21, 3) or (B, T, 21, 3), got {np.shape(keypoints)}")
         if not np.isfinite(kp).all():
             b, t = np.argwhere(~np.isfinite(kp))[0][:2]
-            raise ValueError(f"keypoints: non-finite value in sequence {b} at frame {t}")
+            raise ArrayError(f"keypoints: non-finite value in sequence {b} at frame {t}")
         B, T = kp.shape[:2]
         if isinstance(scale, str):
             if scale != "auto":
-                raise ValueError(f"scale must be a number or 'auto', got {scale!r}")
+                raise ConfigError(f"scale must be a number or 'auto', got {scale!r}")
             s = self.robot_length / np.median(hand_length(kp), axis=1)
         else:
             s = np.broadcast_to(np.asarray(scale, dtype=np.float64), (B,)).copy()
         if not (np.isfinite(s).all() and (s > 0).all()):
-            raise ValueError(f"scale must be positive and finite, got {s}")
+            raise ConfigError(f"scale must be positive and finite, got {s}")
         wrist = kp[:, :, :1]
         target = torch.as_tensor(wrist + s[:, None, None, None] * (kp - wrist))[:, :, list(_MATCHED)]
 
@@ -289,19 +290,19 @@ class Retargeter:
         if object_pose is None and object_names is None:
             return None
         if object_pose is None or object_names is None:
-            raise ValueError("object_pose and object_names go together: give both or neither")
+            raise ConfigError("object_pose and object_names go together: give both or neither")
         B, T = kp.shape[:2]
         pose = np.asarray(object_pose, dtype=np.float64)
         pose = np.broadcast_to(pose, (B, *pose.shape)) if pose.ndim == 2 else pose
         if pose.shape != (B, T, 7):
-            raise ValueError(f"object_pose: expected shape ({T}, 7) or ({B}, {T}, 7) to match the keypoints, "
+            raise ArrayError(f"object_pose: expected shape ({T}, 7) or ({B}, {T}, 7) to match the keypoints, "
                              f"got {np.shape(object_pose)}")
         if not np.isfinite(pose).all():
             b, t = np.argwhere(~np.isfinite(pose))[0][:2]
-            raise ValueError(f"object_pose: non-finite value in sequence {b} at frame {t}")
+            raise ArrayError(f"object_pose: non-finite value in sequence {b} at frame {t}")
         names = [object_names] * B if isinstance(object_names, str) else list(object_names)
         if len(names) != B:
-            raise ValueError(f"object_names: expected one name or {B}, got {len(names)}")
+            raise ConfigError(f"object_names: expected one name or {B}, got {len(names)}")
         if self.contact is None:
             return None
         planes = [hull_planes(n) for n in names]

@@ -38,7 +38,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Slerp
 
 from adadex.data.human_hand import ANGLE_LIMITS, NUM_ANGLES, TIP_INDEX, HumanHand
-from adadex.errors import check_numbers
+from adadex.errors import ConfigError, check_numbers
 from adadex.geometry import Rotation, compose, first_hits, inverse, quat, rotation, slerp_poses
 from adadex.sim.objects import get_object
 from adadex.sim.scene import CONTROL_HZ, OBJECT_HOME_XY, REST_GAP
@@ -133,7 +133,7 @@ def _category(name: str) -> str:
 def make_instruction(verb: str, object_name: str, seed: int) -> Instruction:
     """A base instruction: ``verb`` on ``object_name`` with parameters drawn from ``seed``."""
     if verb not in VERBS:
-        raise ValueError(f"unknown verb {verb!r}; expected one of {VERBS}")
+        raise ConfigError(f"unknown verb {verb!r}; expected one of {VERBS}")
     get_object(object_name)  # raises UnknownObjectError with suggestions
     rng = np.random.default_rng([seed, VERBS.index(verb)])
     side = str(rng.choice(["left", "right"]))
@@ -228,7 +228,7 @@ class Synthesizer:
     def paraphrases(self, base: Instruction, n: int, seed: int) -> list[Instruction]:
         """``n`` (≤ 10) variants of ``base``: the first is ``base`` itself, the rest change text and motion."""
         if not 1 <= n <= 10:
-            raise ValueError(f"paraphrases per instruction must be in 1..10, got {n}")
+            raise ConfigError(f"paraphrases per instruction must be in 1..10, got {n}")
         rng = np.random.default_rng([seed, 7])
         out = [base]
         for k in range(1, n):
@@ -492,7 +492,7 @@ class Synthesizer:
             if best is not None and best.residual < 0.012:
                 break
         if best is None:
-            raise ValueError(f"no grasp fits {instr.object_name!r} for {instr.text!r}")
+            raise ConfigError(f"no grasp fits {instr.object_name!r} for {instr.text!r}")
         return best
 
     def _solve_grasp(self, mesh, o0, hand: HumanHand, top, fingers: np.ndarray, rng):

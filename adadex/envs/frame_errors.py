@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import torch
 
 from adadex.arrays import namespace
+from adadex.errors import ConfigError
 from adadex.quat import quat_angle_between
 from adadex.sim.robot import ARM_JOINTS, NUM_JOINTS
 
@@ -86,9 +87,9 @@ class Thresholds:
         for k in ("position", "rotation", "finger", "object_position", "carry_motion", "carry_fraction"):
             v = getattr(self, k)
             if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"Thresholds.{k} must be a positive number, got {v}")
+                raise ConfigError(f"Thresholds.{k} must be a positive number, got {v}")
         if self.carry_fraction > 1:
-            raise ValueError(f"Thresholds.carry_fraction must be in (0, 1], got {self.carry_fraction}")
+            raise ConfigError(f"Thresholds.carry_fraction must be in (0, 1], got {self.carry_fraction}")
 
 
 def frame_success(errors: dict, thresholds: Thresholds = Thresholds()):

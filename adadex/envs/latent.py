@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from adadex.envs.observation import LATENT_DIM
+from adadex.errors import ArrayError, ConfigError, UnknownKeyError
 from adadex.resources import asset
 from adadex.sim.objects import get_object
 
@@ -97,9 +98,9 @@ class EncoderLatents:
                 with np.load(self.path, allow_pickle=False) as f:
                     names, latents = [str(n) for n in f["names"]], np.asarray(f["latents"], dtype=np.float32)
             except (OSError, KeyError, ValueError) as e:
-                raise ValueError(f"{self.path}: not a latent table ({type(e).__name__}: {e})") from e
+                raise ConfigError(f"{self.path}: not a latent table ({type(e).__name__}: {e})") from e
             if latents.shape != (len(names), LATENT_DIM) or not np.isfinite(latents).all():
-                raise ValueError(f"{self.path}: latents must be finite with shape ({len(names)}, {LATENT_DIM}), "
+                raise ArrayError(f"{self.path}: latents must be finite with shape ({len(names)}, {LATENT_DIM}), "
                                  f"got {latents.shape}")
             latents.setflags(write=False)
             self._table = dict(zip(names, latents))
@@ -109,7 +110,8 @@ class EncoderLatents:
         z = self.table.get(object_name)
         if z is None:
             get_object(object_name)   # an unknown object is named as such
-            raise KeyError(f"{self.path}: no latent for {object_name!r} (retrain or re-export the encoder's latents)")
+            raise UnknownKeyError(f"{self.path}: no latent for {object_name!r} "
+                                  "(retrain or re-export the encoder's latents)")
         return z
 
     def __repr__(self) -> str:

@@ -43,6 +43,7 @@ from __future__ import annotations
 import torch
 
 from adadex.arrays import namespace
+from adadex.errors import ArrayError
 from adadex.quat import quat_diff
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 
@@ -106,7 +107,7 @@ def flat_observation(joint_pos: torch.Tensor, link_pose: torch.Tensor, object_po
                           ("object_pose", object_pose, _TAILS[2]), ("latent", latent, _TAILS[3]),
                           ("ref_joint_pos", ref_joint_pos, _TAILS[4]), ("ref_object_pose", ref_object_pose, _TAILS[5])):
         if tuple(x.shape) != lead + tail:
-            raise ValueError(f"{name}: expected shape {tuple(lead + tail)}, got {tuple(x.shape)}")
+            raise ArrayError(f"{name}: expected shape {tuple(lead + tail)}, got {tuple(x.shape)}")
     ref_obj_now = ref_object_pose[..., 0, :]
     return namespace(joint_pos).concatenate([
         joint_pos,

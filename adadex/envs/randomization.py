@@ -56,7 +56,7 @@ from dataclasses import asdict, dataclass, field, fields
 import mujoco
 import numpy as np
 
-from adadex.errors import check_number
+from adadex.errors import ConfigError, ConfigTypeError, check_number
 from adadex.sim.effects import EffectError, get_effect, set_const
 from adadex.sim.patch import EffectInstance, ModelPatch
 from adadex.sim.robot import JOINT_NAMES
@@ -154,15 +154,15 @@ class Randomization:
             if isinstance(v, tuple):
                 lo, hi = v
                 if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi):
-                    raise ValueError(f"Randomization.{f.name} must be a range 0 ≤ low ≤ high, got {v}")
+                    raise ConfigError(f"Randomization.{f.name} must be a range 0 ≤ low ≤ high, got {v}")
                 if f.name == "object_restitution" and hi >= 1:
-                    raise ValueError(f"Randomization.{f.name} must stay below 1, got {v}")
+                    raise ConfigError(f"Randomization.{f.name} must stay below 1, got {v}")
             else:
                 check_number(f"Randomization.{f.name}", v)
         if self.object_scale_levels < 1:
-            raise ValueError(f"object_scale_levels must be ≥ 1, got {self.object_scale_levels}")
+            raise ConfigError(f"object_scale_levels must be ≥ 1, got {self.object_scale_levels}")
         if not all(isinstance(r, EffectRange) for r in self.effects):
-            raise TypeError("Randomization.effects must be EffectRange objects")
+            raise ConfigTypeError("Randomization.effects must be EffectRange objects")
         self.effect_ranges()           # the Table 3 ranges must lie inside their effects' bounds
 
     @classmethod

@@ -42,6 +42,7 @@ from tqdm.auto import tqdm
 
 from adadex.data.reference import ReferenceDataset
 from adadex.envs.tracking import TrackingConfig, TrackingEnv, episode_references
+from adadex.errors import ConfigError
 from adadex.eval.metrics import ERROR_NAMES, Thresholds, from_rollout, summarize
 from adadex.eval.reward_check import episode_returns, spearman_by_episode
 
@@ -73,20 +74,20 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
     (fields: ``reference``, ``name``, ``repeat`` and :data:`EPISODE_FIELDS`, plus ``return``).
     """
     if max_worlds < 1:
-        raise ValueError(f"max_worlds must be ≥ 1, got {max_worlds}")
+        raise ConfigError(f"max_worlds must be ≥ 1, got {max_worlds}")
     ds = dataset if isinstance(dataset, ReferenceDataset) else ReferenceDataset(dataset)
     if references is not None:
         refs = [int(i) for i in references]
         usable = set(episode_references(ds, None, config.window))
         bad = [i for i in refs if i not in usable]
         if bad or not refs:
-            raise ValueError(f"{ds.path}: references must be a non-empty list of dataset indices with a "
-                             f"{config.window}-frame episode window; not usable: {bad[:10]}")
+            raise ConfigError(f"{ds.path}: references must be a non-empty list of dataset indices with a "
+                              f"{config.window}-frame episode window; not usable: {bad[:10]}")
         split = None
     else:
         refs = episode_references(ds, split, config.window)
     if not refs:
-        raise ValueError(f"{ds.path}: no reference in split {split} has a {config.window}-frame episode window")
+        raise ConfigError(f"{ds.path}: no reference in split {split} has a {config.window}-frame episode window")
     steps = config.window - 1
     chunks = [refs[i:i + max_worlds] for i in range(0, len(refs), max_worlds)]
     per_chunks, names, rollouts, returns = [], [], [], []

@@ -28,6 +28,7 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adadex.envs.observation import LAYOUT, OBJECT_LATENT, OBSERVATION
+from adadex.errors import ConfigError, UnknownKeyError
 from adadex.io import atomic_write
 
 
@@ -47,9 +48,9 @@ def latent_smoothness(policy, observations: TensorDictBase, *, eps: float = 0.05
     Returns ``{"rho": (N·P,) tensor, "mean", "median", "p95", "max", "eps"}``.
     """
     if not eps > 0 or perturbations < 1:
-        raise ValueError(f"need eps > 0 and perturbations ≥ 1, got eps={eps}, perturbations={perturbations}")
+        raise ConfigError(f"need eps > 0 and perturbations ≥ 1, got eps={eps}, perturbations={perturbations}")
     if OBSERVATION not in observations.keys():
-        raise KeyError("observations must hold the flat 'observation' entry")
+        raise UnknownKeyError("observations must hold the flat 'observation' entry")
     reads = dict.fromkeys([OBSERVATION, OBJECT_LATENT, *getattr(policy, "in_keys", ())])
     base = observations.reshape(-1).select(*[k for k in reads if k in observations.keys(True)]).clone()
     n = base.batch_size[0]

@@ -53,6 +53,7 @@ import math
 import torch
 
 from adadex.envs.frame_errors import ERROR_NAMES, Thresholds, frame_errors, frame_success, object_success
+from adadex.errors import ArrayError, UnknownKeyError
 
 __all__ = ["ERROR_NAMES", "Thresholds", "frame_errors", "frame_success", "from_rollout", "object_success",
            "reference_motion_from_rollout", "summarize", "trajectory_metrics"]
@@ -61,10 +62,10 @@ __all__ = ["ERROR_NAMES", "Thresholds", "frame_errors", "frame_success", "from_r
 def _check(errors: dict) -> tuple[int, int]:
     missing = [k for k in ERROR_NAMES if k not in errors]
     if missing:
-        raise KeyError(f"errors lack {missing}; expected {ERROR_NAMES}")
+        raise UnknownKeyError(f"errors lack {missing}; expected {ERROR_NAMES}")
     shapes = {k: tuple(errors[k].shape) for k in ERROR_NAMES}
     if len(set(shapes.values())) != 1 or len(next(iter(shapes.values()))) != 2:
-        raise ValueError(f"errors must all have shape (B, T); got {shapes}")
+        raise ArrayError(f"errors must all have shape (B, T); got {shapes}")
     return next(iter(shapes.values()))
 
 
@@ -91,7 +92,7 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
     n = valid.sum(1)
     target = n if lengths is None else torch.as_tensor(lengths).to(n.dtype)
     if (target < n).any():
-        raise ValueError("lengths must be at least the number of valid frames of each trajectory")
+        raise ArrayError("lengths must be at least the number of valid frames of each trajectory")
     out: dict[str, torch.Tensor] = {}
     for k in ERROR_NAMES:
         e = torch.where(valid, errors[k].to(torch.float64), 0.0)
@@ -107,7 +108,7 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
     if reference_motion is not None:
         motion = torch.as_tensor(reference_motion)
         if tuple(motion.shape) != (B, T):
-            raise ValueError(f"reference_motion must have the errors' shape {(B, T)}, got {tuple(motion.shape)}")
+            raise ArrayError(f"reference_motion must have the errors' shape {(B, T)}, got {tuple(motion.shape)}")
         moving = motion > thresholds.carry_motion
         near = valid & (errors["T_o"] <= thresholds.object_position)
         m = moving.sum(1)
@@ -176,7 +177,7 @@ def from_rollout(td, *, errors_key=("next", "privileged", "errors"), lengths: to
     where that is not possible.
     """
     if td.batch_dims < 2:
-        raise ValueError(f"expected a rollout of batch shape [..., T] with time last, got {list(td.batch_size)}")
+        raise ArrayError(f"expected a rollout of batch shape [..., T] with time last, got {list(td.batch_size)}")
     if td.batch_dims > 2:
         td = td.reshape(-1, td.batch_size[-1])
     errs = td.get(errors_key)

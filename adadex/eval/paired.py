@@ -42,6 +42,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from adadex.errors import ArrayError, ConfigError
+
 RESAMPLES = 2000
 CONFIDENCE = 0.95
 
@@ -52,7 +54,7 @@ def _strata(values, reference_ids, seed_ids) -> tuple[np.ndarray, list[tuple[np.
     refs = np.asarray(reference_ids).reshape(-1)
     seeds = np.zeros(len(v), dtype=np.int64) if seed_ids is None else np.asarray(seed_ids).reshape(-1)
     if not (len(v) == len(refs) == len(seeds)):
-        raise ValueError(f"values, reference_ids and seed_ids must be equally long; got {len(v)}, {len(refs)}, "
+        raise ArrayError(f"values, reference_ids and seed_ids must be equally long; got {len(v)}, {len(refs)}, "
                          f"{len(seeds)}")
     keep = np.isfinite(v)
     v, refs, seeds = v[keep], refs[keep], seeds[keep]
@@ -79,9 +81,9 @@ def bootstrap_mean(values, reference_ids, seed_ids=None, *, resamples: int = RES
     "resamples"}``; the estimate and interval are NaN (interval ``None``) without a finite value.
     """
     if int(resamples) < 1:
-        raise ValueError(f"resamples must be ≥ 1, got {resamples}")
+        raise ConfigError(f"resamples must be ≥ 1, got {resamples}")
     if not 0 < confidence < 1:
-        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+        raise ConfigError(f"confidence must be in (0, 1), got {confidence}")
     seeds, strata = _strata(values, reference_ids, seed_ids)
     out = {"episodes": int(sum(c.sum() for _, c in strata)), "references": [len(c) for _, c in strata],
            "seeds": len(strata), "resamples": int(resamples)}
@@ -110,7 +112,7 @@ def paired_bootstrap(per_episode_a, per_episode_b, reference_ids, seed_ids=None,
     (:func:`pair_episodes` lines two rows' ``per_episode`` records up)."""
     a, b = np.asarray(per_episode_a, dtype=np.float64), np.asarray(per_episode_b, dtype=np.float64)
     if a.shape != b.shape:
-        raise ValueError(f"paired_bootstrap: A and B must hold the same episodes, got shapes {a.shape} and {b.shape}")
+        raise ArrayError(f"paired_bootstrap: A and B must hold the same episodes, got shapes {a.shape} and {b.shape}")
     return bootstrap_mean(a - b, reference_ids, seed_ids, resamples=resamples, confidence=confidence, seed=seed)
 
 
@@ -131,7 +133,7 @@ def pair_episodes(a: Sequence[Mapping], b: Sequence[Mapping], field: str, *, sca
     :func:`adadex.eval.metrics.summarize` drops them.
     """
     if len(a) != len(b):
-        raise ValueError(f"pair_episodes: {len(a)} seeds of A against {len(b)} of B")
+        raise ArrayError(f"pair_episodes: {len(a)} seeds of A against {len(b)} of B")
     va, vb, refs, seeds = [], [], [], []
     for s, (ea, eb) in enumerate(zip(a, b)):
         index_b = {k: i for i, k in enumerate(episode_keys(eb))}

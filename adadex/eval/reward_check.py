@@ -32,6 +32,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from adadex.errors import ArrayError
 from adadex.eval.metrics import from_rollout
 
 #: metrics the return is correlated with (keys of :func:`adadex.eval.metrics.trajectory_metrics`)
@@ -43,7 +44,7 @@ def episode_returns(td, reward_key=("next", "reward")) -> torch.Tensor | None:
     :func:`~adadex.eval.metrics.from_rollout` orders them): its rewards summed up to and including
     its first ``("next", "done")``. ``None`` when the rollout holds no rewards."""
     if td.batch_dims < 2:
-        raise ValueError(f"expected a rollout of batch shape [..., T] with time last, got {list(td.batch_size)}")
+        raise ArrayError(f"expected a rollout of batch shape [..., T] with time last, got {list(td.batch_size)}")
     if reward_key not in td.keys(include_nested=True):
         return None
     if td.batch_dims > 2:
@@ -61,7 +62,7 @@ def spearman(x, y) -> float:
 
     x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     if x.shape != y.shape or x.ndim != 1:
-        raise ValueError(f"spearman: expected two 1-D sequences of one length, got {x.shape} and {y.shape}")
+        raise ArrayError(f"spearman: expected two 1-D sequences of one length, got {x.shape} and {y.shape}")
     keep = np.isfinite(x) & np.isfinite(y)
     x, y = x[keep], y[keep]
     if len(x) < 3 or np.all(x == x[0]) or np.all(y == y[0]):

@@ -58,7 +58,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 
 from adadex.envs.observation import LATENT_DIM, REF_OFFSETS
-from adadex.errors import check_numbers
+from adadex.errors import ArrayError, ConfigError, UnknownKeyError, check_numbers
 from adadex.sim.robot import NUM_JOINTS
 
 FUTURE = len(REF_OFFSETS) - 1          # future offsets the R channel edits: t+1, t+2, t+4, t+12
@@ -218,10 +218,10 @@ def parse_channels(channels: str | tuple | list) -> tuple[str, ...]:
         parts = [str(p).strip().upper() for p in channels]
     unknown = [p for p in parts if p not in CHANNELS]
     if unknown:
-        raise ValueError(f"unknown modulation channel(s) {unknown} in {channels!r}; "
-                         f"use a '+'-joined subset of {'/'.join(CHANNELS)} or 'none'")
+        raise ConfigError(f"unknown modulation channel(s) {unknown} in {channels!r}; "
+                          f"use a '+'-joined subset of {'/'.join(CHANNELS)} or 'none'")
     if len(set(parts)) != len(parts):
-        raise ValueError(f"modulation channel repeated in {channels!r}")
+        raise ConfigError(f"modulation channel repeated in {channels!r}")
     return tuple(c for c in CHANNELS if c in parts)
 
 
@@ -259,7 +259,7 @@ class ModulationLayout:
     def split(self, flat):
         """``(…, D)`` tensor → {entry key: (…, *shape) tensor} for the active channels."""
         if flat.shape[-1] != self.dim:
-            raise ValueError(f"modulation action for channels {self.name} must have {self.dim} entries, "
+            raise ArrayError(f"modulation action for channels {self.name} must have {self.dim} entries, "
                              f"got shape {tuple(flat.shape)}")
         lead = flat.shape[:-1]
         return {key: flat[..., sl].reshape(*lead, *shape) for key, sl, shape in self.segments}
@@ -274,7 +274,7 @@ def entry_shape(key) -> tuple[int, ...]:
         for k, shape in channel.entries:
             if k == key:
                 return shape
-    raise KeyError(f"no modulation channel has the entry {key!r}")
+    raise UnknownKeyError(f"no modulation channel has the entry {key!r}")
 
 
 def _config_class(channels: Mapping[str, Channel]) -> type:

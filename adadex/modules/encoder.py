@@ -55,7 +55,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from adadex.envs.observation import LATENT_DIM, OBJECT_LATENT
-from adadex.errors import AdadexError
+from adadex.errors import AdadexError, ArrayError
 from adadex.io import atomic_write
 from adadex.sim.objects import OBJECT_NAMES, get_object
 
@@ -84,7 +84,7 @@ def chamfer_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     to the arg-min), at a fraction of the cost, since cdist's backward touches all N × M pairs.
     """
     if a.dim() != 3 or b.dim() != 3 or a.shape[-1] != 3 or b.shape[-1] != 3 or a.shape[0] != b.shape[0]:
-        raise ValueError(f"chamfer_distance expects (B, N, 3) and (B, M, 3), got {tuple(a.shape)} and {tuple(b.shape)}")
+        raise ArrayError(f"chamfer_distance expects (B, N, 3) and (B, M, 3), got {tuple(a.shape)} and {tuple(b.shape)}")
     with torch.no_grad():
         d = torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist")  # exact: 0 for equal points
         a_to_b, b_to_a = d.argmin(2), d.argmin(1)

@@ -94,7 +94,7 @@ class Modulator(ActorCritic):
         super().__init__()
         self.layout = ModulationLayout(channels)
         if not self.layout.dim:
-            raise ValueError("a Modulator needs at least one channel (R, O or T); for 'none' use the tracker alone")
+            raise ConfigError("a Modulator needs at least one channel (R, O or T); for 'none' use the tracker alone")
         check_number("Modulator.loc_bound", loc_bound)
         if inputs not in INPUTS:
             raise ConfigError(f"Modulator.inputs must be one of {INPUTS}, got {inputs!r}")

@@ -45,7 +45,7 @@ from tensordict import TensorDictBase
 
 from adadex.envs.observation import (JOINT_POS, JOINT_TARGET, OBJECT_POSE, OBJECT_START, OBS_DIM, OBSERVATION,
                                      REF_JOINT_POS, REF_OBJECT_POSE, REF_OBJECT_START, REF_OFFSETS)
-from adadex.errors import check_number
+from adadex.errors import UnknownKeyError, check_number
 from adadex.modules.channels import HAND_EDIT, MOD, OBJECT_EDIT, ModulationLayout
 from adadex.quat import quat_conj, quat_diff, quat_from_rotvec, quat_mul
 from adadex.sim.robot import NUM_JOINTS
@@ -124,8 +124,8 @@ def view_features(td: TensorDictBase, layout: ViewLayout) -> torch.Tensor:
     state = {k: td.get(k, None) for k in layout.state_shapes()}
     if any(v is None for v in state.values()):
         missing = [k for k, v in state.items() if v is None]
-        raise KeyError(f"the modulator's view needs its state {missing} in the tensordict: run it on "
-                       "TransformedEnv(env, modulation(…, view=…)) or add policy.primer() to the env")
+        raise UnknownKeyError(f"the modulator's view needs its state {missing} in the tensordict: run it on "
+                              "TransformedEnv(env, modulation(…, view=…)) or add policy.primer() to the env")
     parts = {
         "observation": td.get(OBSERVATION),
         "original_error": torch.cat([joint_pos - orig_q[..., 0, :], obj[..., :3] - orig_o[..., 0, :3],

@@ -21,7 +21,7 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 
-from adadex.errors import CheckpointError, ConfigError
+from adadex.errors import ArrayError, CheckpointError, ConfigError, ConfigTypeError
 from adadex.io import atomic_write
 
 
@@ -43,7 +43,7 @@ class Normalizer(nn.Module):
         entries (the std below ``eps``) get scale 1 so they pass unchanged up to the shift."""
         x = samples.reshape(-1, samples.shape[-1]).to(self.loc.dtype)
         if x.shape[0] < 2 or not torch.isfinite(x).all():
-            raise ValueError(f"Normalizer.fit needs ≥ 2 finite samples, got shape {tuple(samples.shape)}")
+            raise ArrayError(f"Normalizer.fit needs ≥ 2 finite samples, got shape {tuple(samples.shape)}")
         return self.set_statistics(x.mean(0), x.std(0))
 
     @torch.no_grad()
@@ -78,7 +78,7 @@ class GaussianHeads(nn.Module):
             nn.init.zeros_(h.bias)
         scales = [init_scale] * len(head_sizes) if isinstance(init_scale, (int, float)) else list(init_scale)
         if len(scales) != len(head_sizes):
-            raise ValueError(f"GaussianHeads: {len(scales)} initial scales for {len(head_sizes)} heads")
+            raise ConfigError(f"GaussianHeads: {len(scales)} initial scales for {len(head_sizes)} heads")
         # parameter-free: the state dict is the same whatever the scales
         self.extracts = [NormalParamExtractor(scale_mapping=f"biased_softplus_{float(s)}") for s in scales]
         self.head_sizes = tuple(head_sizes)
@@ -193,7 +193,7 @@ class SamplingPolicy(TensorDictModuleBase):
         super().__init__()
         parts = getattr(actor, "_sampling_parts", None)
         if parts is None:
-            raise TypeError(f"SamplingPolicy needs an actor built by make_actor, got {type(actor).__name__}")
+            raise ConfigTypeError(f"SamplingPolicy needs an actor built by make_actor, got {type(actor).__name__}")
         self.actor = actor
         self.in_keys, self.out_keys = list(actor.in_keys), list(actor.out_keys)
         sampler = actor.module[-1]                  # the ProbabilisticTensorDictModule: its output keys
@@ -312,7 +312,7 @@ class ObservationMoments:
         """Merge ``samples`` (…, dim) into the statistics."""
         x = samples.reshape(-1, samples.shape[-1]).double()
         if not torch.isfinite(x).all():
-            raise ValueError("ObservationMoments.update: the observations hold non-finite values")
+            raise ArrayError("ObservationMoments.update: the observations hold non-finite values")
         n, mean = x.shape[0], x.mean(0)
         m2 = ((x - mean) ** 2).sum(0)
         if self.count == 0:
@@ -332,7 +332,7 @@ class ObservationMoments:
     def apply(self, module: nn.Module) -> None:
         """Give every :class:`Normalizer` inside ``module`` these statistics (its ``eps`` rule kept)."""
         if self.count < 2:
-            raise ValueError(f"ObservationMoments.apply needs ≥ 2 samples, got {self.count}")
+            raise ArrayError(f"ObservationMoments.apply needs ≥ 2 samples, got {self.count}")
         for m in module.modules():
             if isinstance(m, Normalizer):
                 m.set_statistics(self.mean, self.std)

@@ -40,6 +40,7 @@ import mujoco
 import numpy as np
 from mujoco import rollout as mj_rollout
 
+from adadex.errors import ArrayError, ConfigError
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 from adadex.sim.scene import CONTROL_HZ
 
@@ -107,25 +108,25 @@ class BatchedSim(RolloutPool):
                  *, nthread: int = 1, substeps: int | None = None):
         if isinstance(models, mujoco.MjModel):
             if batch_size is None or batch_size < 1:
-                raise ValueError(f"batch_size must be a positive integer with a single model, got {batch_size!r}")
+                raise ConfigError(f"batch_size must be a positive integer with a single model, got {batch_size!r}")
             self._models = [models] * batch_size
         else:
             self._models = list(models)
             if batch_size is not None and batch_size != len(self._models):
-                raise ValueError(f"batch_size={batch_size} but {len(self._models)} models were given")
+                raise ConfigError(f"batch_size={batch_size} but {len(self._models)} models were given")
         if nthread < 0:
-            raise ValueError(f"nthread must be >= 0, got {nthread}")
+            raise ConfigError(f"nthread must be >= 0, got {nthread}")
         m0 = self._models[0]
         if substeps is None:
             substeps = max(1, int(round(1.0 / (CONTROL_HZ * m0.opt.timestep))))
         if substeps < 1:
-            raise ValueError(f"substeps must be >= 1, got {substeps}")
+            raise ConfigError(f"substeps must be >= 1, got {substeps}")
         self.nstate = mujoco.mj_stateSize(m0, FULLPHYSICS)
         for i, m in enumerate(self._models[1:], start=1):
             # The thread-local MjData are sized for model 0, so structure must match exactly.
             if m.signature != m0.signature:
-                raise ValueError(f"model {i} differs in structure from model 0 (signature {m.signature} "
-                                 f"!= {m0.signature}); per-world models may differ only in parameters")
+                raise ConfigError(f"model {i} differs in structure from model 0 (signature {m.signature} "
+                                  f"!= {m0.signature}); per-world models may differ only in parameters")
         self.batch_size = len(self._models)
         self.nthread = nthread
         self.substeps = substeps
@@ -164,8 +165,8 @@ class BatchedSim(RolloutPool):
         key = self._size_key(big)
         for m in models:
             if any(a > b for a, b in zip(self._size_key(m), key)):
-                raise ValueError(f"no single model bounds the data sizes (nC, nbvh, nbvhdynamic) of all worlds: "
-                                 f"{self._size_key(m)} vs {key}")
+                raise ConfigError(f"no single model bounds the data sizes (nC, nbvh, nbvhdynamic) of all worlds: "
+                                  f"{self._size_key(m)} vs {key}")
         self._data_key = key
         return [mujoco.MjData(big) for _ in range(max(1, self.nthread))]
 
@@ -175,14 +176,14 @@ class BatchedSim(RolloutPool):
         worlds = [int(w) for w in worlds]
         models = list(models)
         if len(worlds) != len(models):
-            raise ValueError(f"{len(worlds)} worlds but {len(models)} models")
+            raise ConfigError(f"{len(worlds)} worlds but {len(models)} models")
         sig = self._models[0].signature
         for w, m in zip(worlds, models):
             if not 0 <= w < self.batch_size:
                 raise IndexError(f"world {w} out of range for batch_size={self.batch_size}")
             if m.signature != sig:
-                raise ValueError(f"model for world {w} differs in structure (signature {m.signature} != {sig}); "
-                                 f"build scenes with uniform_layout=True to swap objects")
+                raise ConfigError(f"model for world {w} differs in structure (signature {m.signature} != {sig}); "
+                                  f"build scenes with uniform_layout=True to swap objects")
         for w, m in zip(worlds, models):
             self._models[w] = m
         if any(a > b for m in models for a, b in zip(self._size_key(m), self._data_key)):
@@ -227,7 +228,7 @@ class BatchedSim(RolloutPool):
         """Advance every world by one control step with ``ctrl`` (B, nu) held constant."""
         ctrl = np.asarray(ctrl, dtype=np.float64)
         if ctrl.shape != (self.batch_size, self._ctrl.shape[2]):
-            raise ValueError(f"ctrl must have shape {(self.batch_size, self._ctrl.shape[2])}, got {ctrl.shape}")
+            raise ArrayError(f"ctrl must have shape {(self.batch_size, self._ctrl.shape[2])}, got {ctrl.shape}")
         self._ctrl[:] = ctrl[:, None, :]
         t_expected = self.state[:, 0] + self.substeps * self.timestep
         self._pool.rollout(self._models, self._datas, self.state, self._ctrl, control_spec=CTRL_SPEC,

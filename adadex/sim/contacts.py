@@ -21,6 +21,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from adadex.errors import ConfigError
+
 
 def body_contact_forces(model: mujoco.MjModel, data: mujoco.MjData, body: int | str) -> dict[str, float]:
     """Normal force (N) on ``body`` from each geom touching it in ``data``'s current contacts.
@@ -31,11 +33,11 @@ def body_contact_forces(model: mujoco.MjModel, data: mujoco.MjData, body: int | 
     if isinstance(body, str):
         bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
         if bid < 0:
-            raise ValueError(f"body {body!r} is not in the model")
+            raise ConfigError(f"body {body!r} is not in the model")
     else:
         bid = int(body)
         if not 0 <= bid < model.nbody:
-            raise ValueError(f"body id {bid} out of range (the model has {model.nbody} bodies)")
+            raise ConfigError(f"body id {bid} out of range (the model has {model.nbody} bodies)")
     out: dict[str, float] = {}
     f6 = np.zeros(6)
     for i in range(data.ncon):

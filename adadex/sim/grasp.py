@@ -27,6 +27,7 @@ import mujoco
 import numpy as np
 from scipy.optimize import least_squares
 
+from adadex.errors import ConfigError
 from adadex.geometry import first_hits
 from adadex.sim.batched import BatchedSim, flung
 from adadex.sim.ik import IKError, solve_arm_ik
@@ -223,7 +224,7 @@ def scripted_grasp_lift(object_name: str = "cube_050", *, lift: float = 0.10, ho
     from adadex.sim import objects
 
     if axis not in PINCH_AXES:
-        raise ValueError(f"axis must be one of {sorted(PINCH_AXES)}, got {axis!r}")
+        raise ConfigError(f"axis must be one of {sorted(PINCH_AXES)}, got {axis!r}")
     info = objects.get_object(object_name)
     model = model if model is not None else build_scene_model(object_name)
     obj0 = np.array([OBJECT_HOME_XY[0], OBJECT_HOME_XY[1], info.half_height])

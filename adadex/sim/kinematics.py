@@ -21,6 +21,7 @@ import pytorch_kinematics as pk
 import pytorch_kinematics.mjcf as pk_mjcf
 import torch
 
+from adadex.errors import ArrayError, ConfigError
 from adadex.sim.robot import JOINT_NAMES, NUM_JOINTS, TRACKED_SITES, robot_mjcf_path
 
 
@@ -44,7 +45,7 @@ class RobotKinematics:
         names = self.chain.get_joint_parameter_names()
         missing = sorted(set(JOINT_NAMES) - set(names))
         if missing:
-            raise ValueError(f"{path} lacks joints {missing}")
+            raise ConfigError(f"{path} lacks joints {missing}")
         # Column permutation from adadex order to the chain's own order.
         self._perm = torch.tensor([JOINT_NAMES.index(n) for n in names], device=device)
         self.dtype, self.device = dtype, device
@@ -52,7 +53,7 @@ class RobotKinematics:
     def link_poses(self, q: torch.Tensor) -> torch.Tensor:
         """(…, 22) joint positions → (…, 5, 7) poses (position, w-first quaternion) in the robot base frame."""
         if q.shape[-1] != NUM_JOINTS:
-            raise ValueError(f"expected joint vectors of size {NUM_JOINTS}, got shape {tuple(q.shape)}")
+            raise ArrayError(f"expected joint vectors of size {NUM_JOINTS}, got shape {tuple(q.shape)}")
         lead = q.shape[:-1]
         qf = q.reshape(-1, NUM_JOINTS).to(dtype=self.dtype, device=self.device)[:, self._perm]
         frames = self.chain.forward_kinematics(qf, frame_indices=self.chain.get_frame_indices(*TRACKED_SITES))
@@ -91,7 +92,7 @@ class RevoluteChainJacobian:
         names = chain.get_frame_names(exclude_fixed=True)
         kinds = {chain.find_frame(n).joint.joint_type for n in names}
         if kinds != {"revolute"}:
-            raise ValueError(f"RevoluteChainJacobian needs revolute joints only, the chain has {sorted(kinds)}")
+            raise ConfigError(f"RevoluteChainJacobian needs revolute joints only, the chain has {sorted(kinds)}")
         with torch.no_grad():
             zero = torch.zeros(1, len(names), dtype=chain.dtype, device=chain.device)
             frames = chain.forward_kinematics(zero, end_only=False)
@@ -119,7 +120,7 @@ class RevoluteChainJacobian:
         the (n, 4, 4) end pose."""
         n, dof = q.shape
         if dof != len(self.axes):
-            raise ValueError(f"expected joint vectors of size {len(self.axes)}, got shape {tuple(q.shape)}")
+            raise ArrayError(f"expected joint vectors of size {len(self.axes)}, got shape {tuple(q.shape)}")
         s, c = torch.sin(q)[..., None, None], torch.cos(q)[..., None, None]
         rot = torch.eye(3, dtype=q.dtype, device=q.device) + s * self._k + (1 - c) * self._k2   # Rodrigues
         local = self.folds[:dof].expand(n, dof, 4, 4).clone()

@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from adadex.errors import AdadexError
+from adadex.errors import AdadexError, ConfigError
 
 if TYPE_CHECKING:
     import trimesh
@@ -518,7 +518,7 @@ def add_object_geoms(spec: mujoco.MjSpec, body: mujoco.MjsBody, name: str, *,
     color = list(rgba) if rgba is not None else list(_CATEGORY_RGBA[info.category])
     prefix = f"{body.name}_" if body.name else ""
     if not (np.isfinite(scale) and scale > 0):
-        raise ValueError(f"scale must be a positive number, got {scale}")
+        raise ConfigError(f"scale must be a positive number, got {scale}")
     for i, part in enumerate(_parts(info)):
         mesh_name = f"{name}_part{i}" if scale == 1.0 else f"{name}_x{scale:.4f}_part{i}"
         if spec.mesh(mesh_name) is None:
@@ -529,7 +529,7 @@ def add_object_geoms(spec: mujoco.MjSpec, body: mujoco.MjsBody, name: str, *,
                       conaffinity=1, rgba=color)
     n = len(_parts(info))
     if pad_to is not None and pad_to < n:
-        raise ValueError(f"pad_to={pad_to} is less than the {n} parts of {name!r}")
+        raise ConfigError(f"pad_to={pad_to} is less than the {n} parts of {name!r}")
     for i in range(n, pad_to or 0):
         # Placeholders are meshes with a mesh asset each: the model structure counts geom types and meshes.
         if spec.mesh(f"adadex_pad{i}") is None:

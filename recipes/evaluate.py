@@ -4,7 +4,9 @@
     python recipes/evaluate.py tracker=t.pt modulator=m.pt channels=R+O+T
     python recipes/evaluate.py -m channels=none,R,R+T,R+O+T modulator=untrained   # an ablation
 
-Writes ``result.json`` (config, summary, per-reference results) to ``out``. A missing checkpoint or
+Writes ``result.json`` (config, summary, per-reference results) to ``out``. An ``out`` holding anything
+but an earlier ``evaluate.py`` output (its marker) is refused before any work, nothing written, not even
+Hydra's ``.hydra/`` (``force=true`` writes into it); an earlier output is replaced. A missing checkpoint or
 dataset, a file that is not a checkpoint, or a bad setting (``channels``, ``split``/``part``,
 ``max_worlds``) is one line on stderr and exit code 2 (no traceback), checked before any work.
 """
@@ -24,11 +26,19 @@ from adadex.envs.replay import replay_policy
 from adadex.envs.randomization import Randomization
 from adadex.eval.evaluate import evaluate, format_summary
 from adadex.eval.latent_smoothness import latent_smoothness, plot_latent_smoothness
-from adadex.io import atomic_write_text
+from adadex.io import atomic_write_text, output_kind
 from adadex.modules.channels import ModulationConfig, parse_channels
 from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
-from adadex.train.recipe import check_keys, modulation_keys, recipe_main, yaml_keys
+from adadex.train.recipe import (
+    EVALUATION,
+    check_keys,
+    check_recipe_out,
+    claim_recipe_out,
+    modulation_keys,
+    recipe_main,
+    yaml_keys,
+)
 from adadex.transforms.policy import make_policy
 
 
@@ -96,6 +106,12 @@ def _modules(cfg):
     return tracker, _load(Modulator, cfg.modulator, "modulator")
 
 
+def guard(cfg) -> None:
+    """What is checked before Hydra starts: the settings (:func:`check_settings`), then ``out``."""
+    check_settings(cfg)
+    check_recipe_out(cfg, EVALUATION)
+
+
 def keys() -> dict:
     """What the recipe accepts: evaluate.yaml's keys, ModulationConfig's fields under ``modulation``."""
     return yaml_keys(Path(__file__).with_name("evaluate.yaml"), modulation=modulation_keys())
@@ -106,6 +122,10 @@ def main(cfg: DictConfig) -> dict:
     with exit_on_error("recipes/evaluate.py"):      # input errors: one line, exit code 2
         check_keys(cfg, keys())
         check_settings(cfg)
+        earlier = output_kind(Path(str(cfg.out))) == EVALUATION
+        claim_recipe_out(cfg, EVALUATION)              # someone else's folder: refused, before any work
+        if earlier and not cfg.smoothness:             # an earlier output's figure would not match the result
+            (Path(str(cfg.out)) / "smoothness.png").unlink(missing_ok=True)
         return _evaluate(cfg)
 
 
@@ -134,4 +154,4 @@ def _evaluate(cfg: DictConfig) -> dict:
 
 
 if __name__ == "__main__":
-    recipe_main(main, schema=keys(), guard=check_settings)
+    recipe_main(main, schema=keys(), guard=guard)

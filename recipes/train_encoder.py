@@ -4,7 +4,9 @@
     python recipes/train_encoder.py steps=50 out=/tmp/enc # a quick run
 
 Writes ``encoder.pt``, ``encoder.json`` (metrics) and ``reconstructions.png`` to ``out``; the same
-as ``adadex encoder train``.
+as ``adadex encoder train``. An ``out`` holding anything but an earlier ``train_encoder.py`` output (its
+marker) is refused before any work, nothing written, not even Hydra's ``.hydra/`` (``force=true``
+writes into it); an earlier output is replaced.
 """
 
 from __future__ import annotations
@@ -17,7 +19,19 @@ from omegaconf import DictConfig
 
 from adadex.errors import exit_on_error
 from adadex.train.encoder import save_training_run, train_encoder
-from adadex.train.recipe import check_keys, recipe_main, yaml_keys
+from adadex.train.recipe import (
+    ENCODER_TRAINING,
+    check_keys,
+    check_recipe_out,
+    claim_recipe_out,
+    recipe_main,
+    yaml_keys,
+)
+
+
+def guard(cfg) -> None:
+    """The output guard, before Hydra starts (nothing written when refused)."""
+    check_recipe_out(cfg, ENCODER_TRAINING)
 
 
 def keys() -> dict:
@@ -29,6 +43,7 @@ def keys() -> dict:
 def main(cfg: DictConfig) -> dict:
     with exit_on_error("recipes/train_encoder.py"):      # input errors: one line, exit code 2
         check_keys(cfg, keys())
+        claim_recipe_out(cfg, ENCODER_TRAINING)        # someone else's folder: refused, before any work
         if cfg.threads:
             torch.set_num_threads(int(cfg.threads))
         model, history = train_encoder(steps=int(cfg.steps), batch_size=int(cfg.batch_size), points=int(cfg.points),
@@ -42,4 +57,4 @@ def main(cfg: DictConfig) -> dict:
 
 
 if __name__ == "__main__":
-    recipe_main(main, schema=keys(), config_name="encoder")
+    recipe_main(main, schema=keys(), guard=guard, config_name="encoder")

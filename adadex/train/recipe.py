@@ -13,9 +13,10 @@ runs):
   ``+preset=tiny`` on a training recipe) is refused with one line naming it and the known ones. What
   is known comes from the config dataclasses (:func:`dataclass_keys`; :data:`TRAIN_KEYS` for the PPO
   recipes), not from a second list kept by hand;
-* **the output guard** — the recipe's ``guard`` (for a training run :func:`check_training_out`) on the
-  composed config, so a user's folder, a finished run without ``resume=true``, a resume without a
-  checkpoint or with other settings are refused before anything is written.
+* **the output guard** — the recipe's ``guard`` (for a training run :func:`check_training_out`; for
+  ``evaluate.py`` and ``train_encoder.py`` :func:`check_recipe_out`) on the composed config, so a user's
+  folder, a finished run without ``resume=true``, a resume without a checkpoint or with other settings
+  are refused before anything is written.
 
 The same checks run again inside the recipe (for ``-m`` multiruns, whose composed configs exist only
 there). Errors follow the one contract of :func:`adadex.errors.report_error`: bad input is one line
@@ -246,6 +247,35 @@ def hydra_files(out) -> tuple[str, ...]:
         return tuple(n for n in (hc.output_subdir, f"{hc.job.name}.log") if n)
     except Exception:            # noqa: BLE001 - no Hydra run: nothing of Hydra's to ignore
         return ()
+
+
+# ----------------------------------------------------------------------------------------------
+# Recipes whose out= folder is written as they go (evaluate.py, train_encoder.py)
+
+#: the output kinds of those recipes (the marker in their ``out`` folder, :mod:`adadex.io`)
+EVALUATION = "evaluation"
+ENCODER_TRAINING = "encoder training run"
+
+
+def check_recipe_out(cfg, kind: str) -> Path:
+    """The output guard of a recipe of ``kind`` whose ``out`` folder is written file by file (``evaluate.py``,
+    ``train_encoder.py``), as ``guard`` of :func:`recipe_main` and again inside the recipe: ``out`` absent,
+    empty, an earlier output of the same recipe (its marker), or ``force=true``; anything else (someone
+    else's files, a file) is refused with one line naming it and ``force=true``
+    (:func:`adadex.io.check_output_dir`). Writes nothing; the recipe marks it (:func:`claim_recipe_out`)."""
+    from adadex.io import check_output_dir
+
+    out = Path(str(cfg.get("out")))
+    return check_output_dir(out, kind, force=bool(cfg.get("force", False)), option="force=true",
+                            ignore=hydra_files(out))
+
+
+def claim_recipe_out(cfg, kind: str) -> Path:
+    """:func:`check_recipe_out`, then mark ``out`` as the recipe's output (before its work: a rerun may
+    replace it)."""
+    from adadex.io import mark_output_dir
+
+    return mark_output_dir(check_recipe_out(cfg, kind), kind)
 
 
 def run(cfg: Mapping, *, name: str, prog: str | None = None) -> dict:

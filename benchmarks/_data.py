@@ -1,9 +1,17 @@
 """What the benchmarks share: a dataset to measure on (the given folder, or the ``tiny`` preset built
-into a temporary folder) and where results go."""
+into a temporary folder) and where results go.
+
+Every benchmark writes its JSON result through :func:`write_result`, guarded as one adadex output file
+(:mod:`adadex.io`, kind ``"benchmark NAME"``, a marker beside it): an earlier result of the same benchmark
+is replaced; anything else at ``--out`` (a file of the user's, another benchmark's result, a folder) is
+refused with one line and exit code 2 unless ``--force``. :func:`check_result` runs the same check before
+the benchmark's work, so a refusal costs nothing. Results in :data:`RESULTS` written before the markers
+existed (no marker beside them; the folder is the benchmarks' own and not tracked) count as earlier results."""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import tempfile
 from pathlib import Path
 
@@ -22,3 +30,40 @@ def dataset_or_tiny(dataset: Path | None):
         path = Path(tmp) / "tiny"
         build_dataset("tiny", path, seed=4, progress=False)
         yield path
+
+
+def _kind(name: str) -> str:
+    return f"benchmark {name}"
+
+
+def _unmarked_in_results(path: Path) -> bool:
+    """An unmarked file in :data:`RESULTS`: a result written before the markers existed."""
+    from adadex.io import file_marker
+
+    path = Path(path)
+    return path.resolve().parent == RESULTS and not file_marker(path).exists()
+
+
+def check_result(path, *, name: str, force: bool = False) -> Path:
+    """Refuse ``path`` as the result file of the benchmark ``name`` unless it is absent, an earlier result
+    of it, or ``force``: ``SystemExit(2)`` after one line on stderr (``benchmarks/NAME.py: error: …``, as
+    :func:`adadex.errors.report_error` reports bad input). Call it right after parsing the arguments."""
+    from adadex.errors import AdadexError, report_error
+    from adadex.io import check_output_file
+
+    try:
+        return check_output_file(path, _kind(name), force=force, recognize=_unmarked_in_results)
+    except AdadexError as e:
+        raise SystemExit(report_error(f"benchmarks/{name}.py", e)) from None
+
+
+def write_result(path, result: dict, *, name: str, force: bool = False, indent: int = 1,
+                 ensure_ascii: bool = True) -> Path:
+    """Write ``result`` as JSON to ``path`` (atomically, parent folders made) and mark it as the benchmark
+    ``name``'s, so its next run may replace it; checked first (:func:`check_result`)."""
+    from adadex.io import atomic_write_text, mark_file
+
+    path = check_result(path, name=name, force=force)
+    atomic_write_text(path, json.dumps(result, indent=indent, ensure_ascii=ensure_ascii))
+    mark_file(path, _kind(name))
+    return path

@@ -15,13 +15,12 @@ For a checkpoint (default: the shipped ``assets/encoder/encoder.pt``):
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import torch
 
-from adadex.io import atomic_write_text
+from _data import check_result, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -45,7 +44,10 @@ def main(argv=None) -> dict:
     p.add_argument("--checkpoint", type=Path, default=SHIPPED_ENCODER)
     p.add_argument("--repeats", type=int, default=50)
     p.add_argument("--out", type=Path, default=RESULTS / "encoder_quality.json")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
+    check_result(a.out, name="encoder_quality", force=a.force)      # before any work: refuse a file not ours
 
     model, meta = load_encoder(a.checkpoint)
     per_object = evaluate_encoder(model)
@@ -73,7 +75,7 @@ def main(argv=None) -> dict:
                        "points_per_object": n, "threads": 1},
         "per_object": per_object,
     }
-    atomic_write_text(a.out, json.dumps(result, indent=1, ensure_ascii=False))
+    write_result(a.out, result, name="encoder_quality", force=a.force, indent=1, ensure_ascii=False)
 
     print(f"encoder {a.checkpoint} ({meta.get('steps')} steps, seed {meta.get('seed')})")
     print(f"{'':<18}{'train cm²':>10}{'RMS mm':>8}{'held-out cm²':>14}{'RMS mm':>8}")

@@ -24,16 +24,14 @@ Without ``--dataset`` the ``tiny`` preset is built into a temporary folder first
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from _data import RESULTS, dataset_or_tiny
+from _data import RESULTS, dataset_or_tiny, check_result, write_result
 
-from adadex.io import atomic_write_text
 
 
 
@@ -45,7 +43,10 @@ def main(argv=None) -> dict:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--repeats", type=int, default=30)
     p.add_argument("--out", type=Path, default=RESULTS / "env_throughput.json")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
+    check_result(a.out, name="env_throughput", force=a.force)      # before any work: refuse a file not ours
     torch.set_num_threads(1)
 
     from torchrl.envs import GymEnv
@@ -117,7 +118,7 @@ def main(argv=None) -> dict:
         "per_repeat_frames_per_s": fps.round(1).tolist(),
         "targets": {"env_over_sim": 0.85, "env_over_gym": 7.0},
     }
-    atomic_write_text(a.out, json.dumps(result, indent=1))
+    write_result(a.out, result, name="env_throughput", force=a.force, indent=1)
     print(f"B = {B}, {a.threads} threads, {N} steps; {a.repeats} interleaved repeats (best frames/s; median ratio "
           f"over repeats, range in brackets):")
     print(f"  BatchedSim (physics only) {best[1]:9.0f} frames/s")

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from _data import check_result, write_result
 from adadex.io import atomic_write_text
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -72,7 +73,10 @@ def main(argv=None) -> dict:
     p.add_argument("--ppo", default="", help="PPOConfig settings, e.g. 'lr=1e-4,desired_kl=0'")
     p.add_argument("--reward", default="", help="RewardConfig changes for training, e.g. 'w_object_success=3'")
     p.add_argument("--out", type=Path, default=RESULTS / "modulator_quality.json")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
+    check_result(a.out, name="modulator_quality", force=a.force)      # before any work: refuse a file not ours
     rows = [parse_row(r) for r in a.rows.split(",")]
     seeds = [int(s) for s in a.seeds.split(",")]
     ppo = {"desired_kl": 0.0, "update_threads": 1}      # as the pipeline trains its modulators
@@ -165,7 +169,7 @@ def main(argv=None) -> dict:
     print(f"{'tracker alone':24s} completion {b['completion_pct']:5.1f} %  object {b['object_completion_pct']:5.1f} %  "
           f"carried {b['carried_pct']:5.1f} %  T_o {b['T_o']:.2f} cm ({len(episodes)} episodes per seed)")
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(a.out, json.dumps(result, indent=1))
+    write_result(a.out, result, name="modulator_quality", force=a.force, indent=1)
     print(f"wrote {a.out}")
     return result
 

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from adadex.io import atomic_write_text
+from _data import check_result, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -167,19 +167,17 @@ def main(argv=None) -> dict:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--references", type=int, default=0, help="first N test references (0: all; trained: 16)")
     p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
-    if a.init_check:
-        if a.dataset is None:
-            p.error("--init-check needs --dataset")
-        result = init_check(a)
-        out = a.out or RESULTS / "modulator_init_check.json"
-    else:
-        if a.run is None:
-            p.error("give --run (a finished pipeline run) or --init-check")
-        result = trained_vs_untrained(a)
-        out = a.out or RESULTS / "modulator_usage.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out, json.dumps(result, indent=1))
+    if a.init_check and a.dataset is None:
+        p.error("--init-check needs --dataset")
+    if not a.init_check and a.run is None:
+        p.error("give --run (a finished pipeline run) or --init-check")
+    out = a.out or RESULTS / ("modulator_init_check.json" if a.init_check else "modulator_usage.json")
+    check_result(out, name="modulator_usage", force=a.force)      # before any work: refuse a file not ours
+    result = init_check(a) if a.init_check else trained_vs_untrained(a)
+    write_result(out, result, name="modulator_usage", force=a.force, indent=1)
     print(f"wrote {out}")
     return result
 

@@ -14,15 +14,13 @@ Networks have the default sizes (512, 256, 128); torch runs on one thread, MuJoC
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import torch
 
-from _data import RESULTS, dataset_or_tiny
+from _data import RESULTS, dataset_or_tiny, check_result, write_result
 
-from adadex.io import atomic_write_text
 
 
 
@@ -33,7 +31,10 @@ def main(argv=None) -> dict:
     p.add_argument("--steps", type=int, default=100)
     p.add_argument("--channels", default="R+O+T")
     p.add_argument("--out", type=Path, default=RESULTS / "policy_throughput.json")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
+    check_result(a.out, name="policy_throughput", force=a.force)      # before any work: refuse a file not ours
     torch.set_num_threads(1)
 
     from torchrl.envs import TransformedEnv
@@ -72,7 +73,7 @@ def main(argv=None) -> dict:
             fps[name] = a.worlds * a.steps / best
     result = {"worlds": a.worlds, "steps": a.steps, "channels": a.channels, "frames_per_s": fps,
               "modulated_over_tracker": {k: v / fps["tracker"] for k, v in fps.items()}}
-    atomic_write_text(a.out, json.dumps(result, indent=1))
+    write_result(a.out, result, name="policy_throughput", force=a.force, indent=1)
     print(f"B = {a.worlds}, {a.steps} steps, channels {a.channels} (best of 3):")
     for k, v in fps.items():
         print(f"  {k:<16} {v:7.0f} frames/s   {v / fps['tracker']:.2f} × tracker alone")

@@ -11,7 +11,6 @@ acceptance rate and the rejection reasons, and the retargeting residuals of acce
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -21,7 +20,7 @@ import numpy as np
 from adadex.data.build import PRESETS, build_dataset
 from adadex.data.reference import ReferenceDataset
 from adadex.data.retarget import Retargeter
-from adadex.io import atomic_write_text
+from _data import check_result, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -32,7 +31,10 @@ def main(argv=None) -> dict:
     p.add_argument("--limit", type=int, default=None, help="only the first N base instructions")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=RESULTS / "reference_build.json")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
+    check_result(a.out, name="reference_build", force=a.force)      # before any work: refuse a file not ours
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         report = build_dataset(a.preset, Path(tmp) / "ds", seed=a.seed, limit=a.limit)
@@ -63,7 +65,7 @@ def main(argv=None) -> dict:
         "max_tip_error_m_median": float(np.median(tip)),
         "open_and_read_one_s": open_read,
     }
-    atomic_write_text(a.out, json.dumps(result, indent=1))
+    write_result(a.out, result, name="reference_build", force=a.force, indent=1)
     print(f"{a.preset}: {report.accepted}/{report.candidates} accepted ({100 * result['acceptance_rate']:.0f} %), "
           f"rejected {dict(report.rejected)}")
     print(f"  {result['references_per_s']:.2f} references/s over {wall:.0f} s; "

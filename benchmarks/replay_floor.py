@@ -17,10 +17,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 from pathlib import Path
 
-from adadex.io import atomic_write_text
+from _data import check_result, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,7 +35,10 @@ def main(argv=None) -> dict:
                    help="with --randomize: multiply Table 3's action-noise stds by this (default 1)")
     p.add_argument("--max-worlds", type=int, default=64, help="worlds stepped together (default 64)")
     p.add_argument("--out", type=Path, default=RESULTS / "replay_floor.json")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
+    check_result(a.out, name="replay_floor", force=a.force)      # before any work: refuse a file not ours
 
     from adadex.data.build import build_dataset
     from adadex.envs.randomization import Randomization
@@ -59,7 +61,7 @@ def main(argv=None) -> dict:
               "randomize": a.randomize, "action_noise_scale": a.action_noise_scale if a.randomize else None,
               "steps": res["steps"], "wall_s": res["wall_s"], **summary,
               "per_reference": res["per_reference"]}
-    atomic_write_text(a.out, json.dumps(result, indent=1))
+    write_result(a.out, result, name="replay_floor", force=a.force, indent=1)
     noise = f", action noise × {a.action_noise_scale:g}" if a.randomize and a.action_noise_scale != 1 else ""
     print(f"kinematic replay on {res['references']} references of {a.split}/{a.part}"
           f"{' with randomization' if a.randomize else ''}{noise} ({res['wall_s']:.0f} s):")

@@ -41,16 +41,13 @@ The group defaults to ``benchmarks/specialist_quality.py``'s (the first of the l
 from __future__ import annotations
 
 import argparse
-import json
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from _data import RESULTS
-
-from adadex.io import atomic_write_text
+from _data import RESULTS, check_result, write_result
 
 #: the object counts as lifted by the reference once it is this far above its start (m)
 REF_LIFT = 0.01
@@ -213,7 +210,7 @@ def _scripted_text(g: dict) -> str:
         f" (squeezing along {g['axis']})"
 
 
-def _all_groups(ds, refs: list[int], out_path: Path) -> dict:
+def _all_groups(ds, refs: list[int], out_path: Path, force: bool = False) -> dict:
     """Kinematic replay of every reference (nominal physics) and the scripted grasp of every object:
     per semantic group, how many references the replay carries (the object rises at least half as
     high as the reference's; only references whose object rises more than ``REF_LIFT``) and whether
@@ -250,7 +247,7 @@ def _all_groups(ds, refs: list[int], out_path: Path) -> dict:
     print(f"replay carries {out['carried']} of the {out['rising']} references whose object rises "
           f"({len(refs)} references, {len(groups)} groups); the scripted grasp lifts {len(liftable)} of "
           f"{len(grasps)} objects ≥ {100 * SCRIPTED_LIFT:.0f} cm (along x or across)")
-    atomic_write_text(out_path, json.dumps(out, indent=1))
+    write_result(out_path, out, name="replay_grasp", force=force, indent=1)
     print(f"wrote {out_path}")
     return out
 
@@ -267,8 +264,11 @@ def main(argv=None) -> dict:
                    help="instead: replay every training reference and grasp every object, one line per group")
     p.add_argument("--out", type=Path, default=None,
                    help="default: results/replay_grasp.json (replay_grasp_groups.json with --all-groups)")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
     a.out = a.out or RESULTS / ("replay_grasp_groups.json" if a.all_groups else "replay_grasp.json")
+    check_result(a.out, name="replay_grasp", force=a.force)      # before any work: refuse a file not ours
     torch.set_num_threads(1)
 
     from tensordict.nn import TensorDictModule
@@ -285,7 +285,7 @@ def main(argv=None) -> dict:
     ds = ReferenceDataset(a.dataset)
     train_refs = episode_references(ds, ("unseen_trajectory", "train"))
     if a.all_groups:
-        return _all_groups(ds, train_refs, a.out)
+        return _all_groups(ds, train_refs, a.out, a.force)
     counts = Counter(ds.entries[i]["group"] for i in train_refs)
     group = a.group if a.group is not None else min(g for g, n in counts.items() if n == max(counts.values()))
     refs = [i for i in train_refs if ds.entries[i]["group"] == group]
@@ -331,7 +331,7 @@ def main(argv=None) -> dict:
                     mark = " (grasp)" if r["step"] == row["grasp_step"] else " (lift)" if r["step"] == row["lift_step"] else ""
                     print(f"    step {r['step']:3d}{mark}: object moved ({', '.join(f'{x:5.1f}' for x in r['object_cm'])}) cm; "
                           + (", ".join(f"{k} {v:.1f} N" for k, v in r["forces_N"].items()) or "nothing touches it"))
-    atomic_write_text(a.out, json.dumps(out, indent=1))
+    write_result(a.out, out, name="replay_grasp", force=a.force, indent=1)
     print(f"wrote {a.out}")
     return out
 

@@ -13,7 +13,6 @@ Target: BatchedSim ≥ 0.95 × the per-control-step rollout figure.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -24,7 +23,7 @@ import numpy as np
 from mujoco import rollout as mj_rollout
 from tqdm import tqdm
 
-from adadex.io import atomic_write_text
+from _data import check_result, write_result
 from adadex.sim.batched import CTRL_SPEC, FULLPHYSICS, BatchedSim
 from adadex.sim.robot import joint_limits
 from adadex.sim.scene import PHYSICS_TIMESTEP, SUBSTEPS, build_scene_model, home_state
@@ -110,7 +109,10 @@ def main(argv=None) -> dict:
     p.add_argument("--repeats", type=int, default=5, help="best of N")
     p.add_argument("--object", default="cube_050")
     p.add_argument("--out", type=Path, default=RESULTS / "sim_throughput.json")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
+    check_result(a.out, name="sim_throughput", force=a.force)      # before any work: refuse a file not ours
 
     model = build_scene_model(a.object)
     ctrls = _ctrl_sequence(model, a.steps, a.worlds)
@@ -138,7 +140,7 @@ def main(argv=None) -> dict:
         "target_met": bool(ratio >= 0.95),
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "mujoco": mujoco.__version__},
     }
-    atomic_write_text(a.out, json.dumps(out, indent=2))
+    write_result(a.out, out, name="sim_throughput", force=a.force, indent=2)
     print(f"sim throughput, B={a.worlds}, {a.threads} threads, {SUBSTEPS} substeps/control step "
           f"(control steps/s, all worlds):")
     for k, v in res.items():

@@ -44,14 +44,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 from collections import Counter
 from pathlib import Path
 
 import torch
 
-from adadex.io import atomic_write_text
+from _data import check_result, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 LIFT = 0.03          # m: an object counts as lifted once it rose this far above its start
@@ -213,7 +212,10 @@ def main(argv=None) -> dict:
     p.add_argument("--ppo", action="append", default=[], metavar="KEY=VALUE",
                    help="a PPOConfig setting for both runs, e.g. desired_kl=0.016 (repeatable)")
     p.add_argument("--out", type=Path, default=RESULTS / "specialist_quality.json")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
+    check_result(a.out, name="specialist_quality", force=a.force)      # before any work: refuse a file not ours
     if a.eval_anchor_release is not None and (a.eval_anchor_reach is None or not a.eval_anchor_release > 0):
         p.error(f"--eval-anchor-release {a.eval_anchor_release} needs --eval-anchor-reach and a release > 0 (m)")
     torch.set_num_threads(1)
@@ -324,7 +326,7 @@ def main(argv=None) -> dict:
             out[name]["eval_reach"] = score_with_reach(name, res["tracker"], out["replay"])
         out[name]["train_wall_s"] = time.perf_counter() - t0
         out[name]["train_frames"] = res["frames"]
-        atomic_write_text(a.out, json.dumps(out, indent=1))
+        write_result(a.out, out, name="specialist_quality", force=a.force, indent=1)
     r, s = out["replay"], out["specialist"]
     out["completion_gain_points"] = s["completion_pct"] - r["completion_pct"]
     out["completion_gain_ci95"] = _paired_gain(per_episode["specialist"], per_episode["replay"])
@@ -333,7 +335,7 @@ def main(argv=None) -> dict:
     out["T_o_ratio"] = s["T_o"] / r["T_o"]
     if "undisplaced_completion_pct" in s:
         out["completion_headroom_pct"] = _headroom(s, r)
-    atomic_write_text(a.out, json.dumps(out, indent=1))
+    write_result(a.out, out, name="specialist_quality", force=a.force, indent=1)
     print(f"specialist vs replay: completion {s['completion_pct']:.1f} vs {r['completion_pct']:.1f} % "
           f"({out['completion_gain_points']:+.1f} points, 95 % interval paired by episode "
           f"{_interval(out['completion_gain_ci95'])}, target ≥ +15); T_o {s['T_o']:.1f} vs {r['T_o']:.1f} cm "

@@ -15,13 +15,12 @@ Target: the whole diagnosis under 5 minutes on 2 cores.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-from adadex.io import atomic_write_text
+from _data import check_result, write_result
 from adadex.sim.effects import EFFECT_NAMES, get_effect
 from adadex.sim.patch import ModelPatch
 from adadex.sim.robot import JOINT_NAMES, joint_group
@@ -54,7 +53,10 @@ def main(argv=None) -> dict:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--out", type=Path, default=RESULTS / "sysid_diagnosis.json")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
+    check_result(a.out, name="sysid_diagnosis", force=a.force)      # before any work: refuse a file not ours
 
     truth = truth_patch(a.seed)
     plan = design_excitation(JOINT_NAMES, freqs=(0.5, 2.0), amps=(0.3, 1.0), kinds=("sine", "chirp"), duration=2.0)
@@ -90,7 +92,7 @@ def main(argv=None) -> dict:
            "simulate_seconds": t_sim, "diagnosis_seconds": t_diag, "stage_seconds": d.stage_times_s,
            "target_seconds": 300,
            "target_met": bool(t_diag <= 300), "cases": rows}
-    atomic_write_text(a.out, json.dumps(out, indent=2))
+    write_result(a.out, out, name="sysid_diagnosis", force=a.force, indent=2)
     print(f"{'joint':<8} {'truth':<18} {'value':>8}  {'top-1':<18} {'fitted':>8}  {'ok':<3} {'held-out red.':>13}")
     for r in rows:
         print(f"{r['joint']:<8} {r['truth_effect']:<18} {r['truth_value']:8.4g}  {str(r['top1_effect']):<18} "

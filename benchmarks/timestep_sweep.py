@@ -10,7 +10,6 @@ depths (lift achieved, slip in the palm). adadex uses the largest step at which 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -18,7 +17,7 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from adadex.io import atomic_write_text
+from _data import check_result, write_result
 from adadex.sim import objects
 from adadex.sim.grasp import scripted_grasp_lift
 from adadex.sim.scene import OBJECT_QPOS, PhysicsOptions, build_scene_model, home_state
@@ -48,7 +47,10 @@ def main(argv=None) -> dict:
     p.add_argument("--hz", type=float, nargs="+", default=[60.0, 90.0, 120.0])
     p.add_argument("--squeeze", type=float, nargs="+", default=[0.004, 0.008, 0.012, 0.016])
     p.add_argument("--out", type=Path, default=RESULTS / "timestep_sweep.json")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
+    check_result(a.out, name="timestep_sweep", force=a.force)      # before any work: refuse a file not ours
     rows = []
     for hz in a.hz:
         opts = PhysicsOptions(timestep=1.0 / hz)
@@ -74,7 +76,7 @@ def main(argv=None) -> dict:
     passing = [r["physics_hz"] for r in rows if r["passes"]]
     out = {"benchmark": "timestep_sweep", "control_hz": 12.0, "rows": rows,
            "lowest_passing_physics_hz": min(passing) if passing else None}
-    atomic_write_text(a.out, json.dumps(out, indent=2))
+    write_result(a.out, out, name="timestep_sweep", force=a.force, indent=2)
     print(f"{'Hz':>5} {'pen mm':>7} {'settled':>8} {'grasps held (lift cm / slip mm)':<50} pass")
     for r in rows:
         gs = " ".join(f"{100 * g['lift_m']:.1f}/{1000 * g['slip_m']:.0f}" for g in r["grasps"])

@@ -85,7 +85,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -93,9 +92,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from _data import RESULTS, dataset_or_tiny
+from _data import RESULTS, dataset_or_tiny, check_result, write_result
 
-from adadex.io import atomic_write_text
 from adadex.train.config import START_METHODS
 
 
@@ -315,7 +313,10 @@ def main(argv=None) -> dict:
     p.add_argument("--no-ray", action="store_true")
     p.add_argument("--start-method", choices=START_METHODS, default="forkserver",
                    help="how local MultiSync workers start (CollectorConfig.start_method)")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
+    check_result(a.out, name="train_throughput", force=a.force)      # before any work: refuse a file not ours
     torch.set_num_threads(1)
 
     from torchrl.collectors import MultiSyncCollector
@@ -438,7 +439,7 @@ def main(argv=None) -> dict:
     res["collection_ceiling"] = physics_ms / (physics_ms + res["collector_floor_ms"])
     split_ms = physics_ms / res["split_physics_speedup"]             # one step of a split worker, physics alone
     res["collection_split_ceiling"] = res["split_physics_speedup"] * split_ms / (split_ms + res["collector_floor_half_ms"])
-    atomic_write_text(a.out, json.dumps(res, indent=1))
+    write_result(a.out, res, name="train_throughput", force=a.force, indent=1)
     print(f"physics of the collected motion {res['physics_fps']:.0f} frames/s (replayed exactly: "
           f"{res['physics_replay_exact']}; inside the collection {res['physics_in_collection_fps']:.0f}; "
           f"worlds holding still {res['physics_static_fps']:.0f})")

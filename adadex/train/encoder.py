@@ -224,21 +224,35 @@ def train_encoder(objects: Sequence[str] | None = None, *, steps: int = TrainSet
 # A training run's files
 
 
+#: The kind of an encoder training run's output folder (the same as the ``train_encoder`` recipe's).
+TRAINING_KIND = "encoder training run"
+
+
+def is_training_output(path) -> bool:
+    """``path`` is a folder a training run wrote: its ``encoder.json`` carries :data:`TRAINING_KIND`."""
+    d = json.loads((Path(path) / "encoder.json").read_text(encoding="utf-8"))
+    return isinstance(d, dict) and d.get("adadex_output") == TRAINING_KIND
+
+
 def save_training_run(out, model: PointCloudAutoencoder, history: dict) -> dict[str, Path]:
     """Write a training run's ``encoder.pt``, ``latents.npz`` (every registry object's latent, the
     environment's table), ``encoder.json`` (metrics) and ``reconstructions.png`` to ``out``.
 
     ``encoder.json`` holds the checkpoint's metadata (settings, objects, train / held-out Chamfer per
     object and means) plus the untrained model's Chamfer, the :func:`resampling_floor` and the
-    evaluation curve.
+    evaluation curve, and the marker ``"adadex_output": TRAINING_KIND`` by which a rerun of ``adadex
+    encoder train --out`` recognizes the folder as an earlier output (:func:`is_training_output`).
     """
     out = Path(out)
     meta = {**history["meta"], "threads": torch.get_num_threads()}
     floor = summarize_evaluation(resampling_floor(meta["objects"] + meta["held_out"], points=model.config.points))
-    report = {**meta, "initial": history["initial"], "resampling_floor": floor, "evals": history["evals"]}
+    report = {"adadex_output": TRAINING_KIND, **meta, "initial": history["initial"], "resampling_floor": floor,
+              "evals": history["evals"]}
+    # encoder.json (with the marker) first: a rerun after a run killed while writing the rest recognizes the folder
+    metrics = atomic_write_text(out / "encoder.json", json.dumps(report, indent=1, ensure_ascii=False))
     return {"checkpoint": save_encoder(out / "encoder.pt", model, meta),
             "latents": save_latents(out / "latents.npz", object_latents(model)),
-            "metrics": atomic_write_text(out / "encoder.json", json.dumps(report, indent=1, ensure_ascii=False)),
+            "metrics": metrics,
             "figure": plot_reconstructions(model, PLOT_OBJECTS, out / "reconstructions.png")}
 
 

@@ -1,6 +1,12 @@
 """The ``adadex encoder train|eval`` command (registered by :mod:`adadex.cli`): argument handling
 and reports over :mod:`adadex.train.encoder`.
 
+``train --out DIR`` is written in place, file by file (:func:`adadex.io.check_output_dir`, before any
+work): an existing DIR that is not empty and not an earlier training run's (a folder of the user's
+files) is refused unless ``--force``; a file at DIR always is. An earlier run is recognized by the
+marker in its ``encoder.json`` (``"adadex_output": "encoder training run"``) or the folder marker the
+``train_encoder`` recipe writes, never by its file names.
+
 ``eval --out DIR`` is written as one unit (:func:`adadex.io.output_folder`): an existing DIR that is
 not an earlier ``encoder eval`` output is refused before any work unless ``--force``. An earlier output
 is recognized by the marker the command writes into its ``eval.json`` (``"adadex_output":
@@ -15,16 +21,18 @@ from pathlib import Path
 import torch
 
 from adadex.errors import ConfigError, check_number
-from adadex.io import OutputExistsError, atomic_write_text, check_output, output_folder
+from adadex.io import atomic_write_text, check_output, check_output_dir, output_folder
 from adadex.modules.encoder import load_encoder
 from adadex.train.encoder import (
     PLOT_OBJECTS,
+    TRAINING_KIND,
     TrainSettings,
     check_settings,
     evaluate_encoder,
     plot_reconstructions,
     resampling_floor,
     save_training_run,
+    is_training_output,
     summarize_evaluation,
     train_encoder,
 )
@@ -44,14 +52,14 @@ def _cmd_train(a) -> int:
     if a.threads is not None:
         check_number("--threads", a.threads, low=1, integer=True)
     out = Path(a.out)
-    if out.exists() and not out.is_dir():
-        raise OutputExistsError(f"--out {out} exists and is not a folder")
+    check_output_dir(out, TRAINING_KIND, force=a.force, recognize=is_training_output)     # before any work
     if a.threads:
         torch.set_num_threads(a.threads)
     print(f"training the point-cloud encoder: {a.steps} steps, batch {a.batch_size}, {a.points} points, "
           f"lr {a.lr}, seed {a.seed}, {torch.get_num_threads()} threads → {out}")
     model, history = train_encoder(steps=a.steps, batch_size=a.batch_size, points=a.points, lr=a.lr,
                                    seed=a.seed, progress=not a.quiet)
+    check_output_dir(out, TRAINING_KIND, force=a.force, recognize=is_training_output)     # nothing new there since
     paths = save_training_run(out, model, history)
     print(f"trained in {history['seconds']:.0f} s")
     print("untrained: Chamfer " + "; ".join(f"{k} {v:.4f} cm²" for k, v in history["initial"].items()))
@@ -111,6 +119,8 @@ def add_parser(sub) -> None:
     t.add_argument("--lr", type=float, default=d.lr)
     t.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     t.add_argument("--quiet", action="store_true", help="no progress bar")
+    t.add_argument("--force", action="store_true", help="write into --out even if it is not an earlier output of "
+                   "`adadex encoder train`")
     t.set_defaults(func=_cmd_train)
     e = esub.add_parser("eval", help="per-object Chamfer of a checkpoint on all 80 objects; eval.json and "
                                      "reconstructions.png")

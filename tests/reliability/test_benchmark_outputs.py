@@ -1,0 +1,156 @@
+"""The benchmarks and ``adadex encoder train --out`` guard their outputs with the one guard (:mod:`adadex.io`).
+
+Every benchmark writes its JSON result through ``benchmarks/_data.py``'s ``write_result`` (checked first,
+right after its arguments are parsed, by ``check_result``): an earlier result of the same benchmark is
+replaced, anything else refused with one line and exit code 2 unless ``--force``. ``encoder train --out``
+refuses a folder of the user's files before any work. No benchmark is run to completion here.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import json
+from pathlib import Path
+
+import pytest
+
+from adadex.cli import main
+
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
+
+
+class _Reached(BaseException):
+    """Raised by a trap: the work was reached (BaseException, so no error handler turns it into a code)."""
+
+
+def _trap(monkeypatch, target: str) -> None:
+    def work(*a, **k):
+        raise _Reached(target)
+    monkeypatch.setattr(target, work)
+
+
+def _tree(folder: Path) -> dict:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture
+def bench(monkeypatch):
+    """Import a benchmark script as its own ``python benchmarks/NAME.py`` run would (``_data`` importable)."""
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+
+    def load(name: str):
+        return importlib.import_module(name)
+    return load
+
+
+# ------------------------------------------------------------------------------------------ the helper
+
+
+def test_write_result_refuses_a_users_file_replaces_its_own(bench, tmp_path, capsys):
+    data = bench("_data")
+    mine = tmp_path / "my_notes.json"
+    mine.write_bytes(b'{"my": "notes"}\n')
+    before = mine.read_bytes()
+    with pytest.raises(SystemExit) as e:
+        data.write_result(mine, {"x": 1}, name="demo", force=False)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("benchmarks/demo.py: error: ") and str(mine) in err and "--force" in err
+    assert mine.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["my_notes.json"]
+    with pytest.raises(SystemExit):
+        data.check_result(mine, name="demo")                         # the check alone refuses the same way
+    assert mine.read_bytes() == before
+
+    out = tmp_path / "result.json"                                  # its own earlier result: replaced
+    data.write_result(out, {"run": 1}, name="demo", force=False)
+    data.write_result(out, {"run": 2}, name="demo", force=False)
+    assert json.loads(out.read_text()) == {"run": 2}
+    with pytest.raises(SystemExit) as e:                             # another benchmark's result: refused
+        data.write_result(out, {"run": 3}, name="other", force=False)
+    assert e.value.code == 2 and json.loads(out.read_text()) == {"run": 2}
+    out.write_text('{"edited": true}')                              # edited by hand since: refused
+    with pytest.raises(SystemExit):
+        data.check_result(out, name="demo")
+
+    data.write_result(mine, {"forced": True}, name="demo", force=True)    # --force: replaced, then its own
+    assert json.loads(mine.read_text()) == {"forced": True}
+    data.write_result(mine, {"again": True}, name="demo", force=False)
+    assert json.loads(mine.read_text()) == {"again": True}
+
+    folder = tmp_path / "a_folder"                                  # a folder: never replaced, even forced
+    folder.mkdir()
+    with pytest.raises(SystemExit) as e:
+        data.check_result(folder, name="demo", force=True)
+    assert e.value.code == 2 and folder.is_dir()
+
+
+def test_unmarked_results_in_the_results_folder_are_earlier_results(bench):
+    data = bench("_data")
+    assert data._unmarked_in_results(data.RESULTS / "demo.json")
+    assert not data._unmarked_in_results(Path("/elsewhere/demo.json"))
+
+
+# ------------------------------------------------------------------------------------------ a real benchmark
+
+
+def test_benchmark_refuses_a_users_file_before_any_work(bench, tmp_path, monkeypatch, capsys):
+    sweep = bench("timestep_sweep")
+    _trap(monkeypatch, "timestep_sweep.settle_stats")                 # its first work
+    mine = tmp_path / "my_notes.json"
+    mine.write_text('{"mine": 1}')
+    before = _tree(tmp_path)
+    with pytest.raises(SystemExit) as e:
+        sweep.main(["--hz", "60", "--out", str(mine)])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and str(mine) in err and "--force" in err
+    assert _tree(tmp_path) == before
+    with pytest.raises(_Reached):                                     # --force: the work starts
+        sweep.main(["--hz", "60", "--out", str(mine), "--force"])
+    assert _tree(tmp_path) == before
+
+
+@pytest.mark.parametrize("script", sorted(p.stem for p in BENCHMARKS.glob("*.py") if p.stem != "_data"))
+def test_every_benchmark_has_force_and_writes_through_the_helper(script):
+    text = (BENCHMARKS / f"{script}.py").read_text(encoding="utf-8")
+    assert '"--force"' in text and "check_result(" in text and "write_result(" in text
+    assert "json.dump(" not in text and "atomic_write_text(a.out" not in text
+
+
+# ------------------------------------------------------------------------------------------ encoder train --out
+
+
+def test_encoder_train_out_refuses_a_users_folder(tmp_path, monkeypatch, capsys):
+    from adadex.io import check_output_dir
+    from adadex.train.encoder import TRAINING_KIND, is_training_output
+
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "encoder.pt").write_text("my weights")
+    (mine / "notes.txt").write_text("my notes")
+    before = _tree(tmp_path)
+    _trap(monkeypatch, "adadex.train.encoder_cli.train_encoder")
+    capsys.readouterr()
+    assert main(["encoder", "train", "--steps", "1", "--out", str(mine), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and str(mine) in err and "--force" in err, err
+    assert _tree(tmp_path) == before
+
+    a_file = tmp_path / "a_file"                                     # a file: refused even with --force
+    a_file.write_text("x")
+    assert main(["encoder", "train", "--out", str(a_file), "--force", "--quiet"]) == 2
+    assert a_file.read_text() == "x"
+    capsys.readouterr()
+
+    with pytest.raises(_Reached):                                     # --force: the work starts
+        main(["encoder", "train", "--steps", "1", "--out", str(mine), "--force", "--quiet"])
+
+    earlier = tmp_path / "earlier"                                  # an earlier run (its encoder.json's marker)
+    earlier.mkdir()
+    (earlier / "encoder.json").write_text(json.dumps({"adadex_output": TRAINING_KIND}))
+    (earlier / "encoder.pt").write_text("old weights")
+    assert check_output_dir(earlier, TRAINING_KIND, recognize=is_training_output) == earlier
+    with pytest.raises(_Reached):
+        main(["encoder", "train", "--steps", "1", "--out", str(earlier), "--quiet"])

@@ -122,15 +122,16 @@ def main(cfg: DictConfig) -> dict:
     with exit_on_error("recipes/evaluate.py"):      # input errors: one line, exit code 2
         check_keys(cfg, keys())
         check_settings(cfg)
-        earlier = output_kind(Path(str(cfg.out))) == EVALUATION
-        claim_recipe_out(cfg, EVALUATION)              # someone else's folder: refused, before any work
-        if earlier and not cfg.smoothness:             # an earlier output's figure would not match the result
-            (Path(str(cfg.out)) / "smoothness.png").unlink(missing_ok=True)
+        check_recipe_out(cfg, EVALUATION)              # someone else's folder: refused, before any work
         return _evaluate(cfg)
 
 
 def _evaluate(cfg: DictConfig) -> dict:
     tracker, modulator = _modules(cfg)          # before a dataset build: a bad checkpoint is found at once
+    earlier = output_kind(Path(str(cfg.out))) == EVALUATION
+    claim_recipe_out(cfg, EVALUATION)           # marked only once the inputs loaded: a refusal writes nothing
+    if earlier and not cfg.smoothness:          # an earlier output's figure would not match the result
+        (Path(str(cfg.out)) / "smoothness.png").unlink(missing_ok=True)
     dataset = _dataset(cfg)
     policy = make_policy(tracker, modulator, channels=cfg.channels,
                          config=ModulationConfig(**OmegaConf.to_container(cfg.modulation)))

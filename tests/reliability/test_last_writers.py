@@ -16,9 +16,6 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -27,33 +24,10 @@ from adadex.errors import AdadexError
 from adadex.train.config import CollectorConfig, PolicyConfig, PPOConfig, TrainConfig
 from adadex.train.logs import METRICS, RunLog
 
+from tests.reliability.recipe_runs import refused, run_recipes
+
 ROOT = Path(__file__).resolve().parents[2]
 
-#: runs each case ``[script, args, watched folder]`` as ``python <script> <args>`` would, one after the
-#: other in one interpreter; prints per case [exit code, stderr, the watched folder's files before, after]
-_RUN = """
-import contextlib, hashlib, io, json, runpy, sys
-from pathlib import Path
-
-def tree(folder):
-    if folder is None or not Path(folder).exists():
-        return None
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(Path(folder).rglob("*")) if p.is_file()}
-
-results = []
-for script, args, watched in json.loads(sys.argv[1]):
-    before = tree(watched)
-    err, code = io.StringIO(), 0
-    sys.argv = [script, *args]
-    with contextlib.redirect_stderr(err):
-        try:
-            runpy.run_path(script, run_name="__main__")
-        except SystemExit as e:
-            code = e.code
-    results.append([code, err.getvalue(), before, tree(watched)])
-print(json.dumps(results))
-"""
 
 
 def _user_folder(path: Path, files: dict[str, str]) -> Path:
@@ -86,31 +60,17 @@ def recipes(tiny_dataset, tmp_path_factory):
         "evaluate_over_encoder": (evaluate, [*ev, f"out={tmp / 'enc'}"], tmp / "enc"),
         "evaluate_force": (evaluate, [*ev, f"out={ev_user}", "force=true"], None),
     }
-    res = subprocess.run([sys.executable, "-c", _RUN, json.dumps(list(cases.values()), default=str)],
-                         capture_output=True, text=True, timeout=600, cwd=tmp,
-                         env={**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "disabled"})
-    assert res.returncode == 0, res.stderr[-3000:]
-    out = dict(zip(cases, json.loads(res.stdout.splitlines()[-1])))
+    out = run_recipes(cases, tmp, "disabled")
     return {"tmp": tmp, "ev_user": ev_user, "enc_user": enc_user,
-            **{k: {"code": v[0], "err": v[1], "before": v[2], "after": v[3]} for k, v in out.items()}}
-
-
-def _refused(r: dict, *fragments: str) -> str:
-    """One line on stderr holding every fragment, exit code 2, the watched folder byte for byte unchanged."""
-    lines = [line for line in r["err"].splitlines() if line.strip()]
-    assert r["code"] == 2 and len(lines) == 1 and "Traceback" not in r["err"], r["err"][-2000:]
-    for f in fragments:
-        assert f in lines[0], (f, lines[0])
-    assert r["before"] is not None and r["before"] == r["after"], "the refusal wrote into the folder"
-    return lines[0]
+            **out}
 
 
 def test_evaluate_and_train_encoder_refuse_a_user_folder(recipes):
-    _refused(recipes["evaluate_user"], str(recipes["ev_user"]), "force=true")
-    _refused(recipes["encoder_user"], str(recipes["enc_user"]), "force=true")
+    refused(recipes["evaluate_user"], str(recipes["ev_user"]), "force=true", existed=True)
+    refused(recipes["encoder_user"], str(recipes["enc_user"]), "force=true", existed=True)
     assert sorted(p.name for p in recipes["enc_user"].iterdir()) == ["encoder.json", "encoder.pt"]
     # another recipe's output is not theirs either
-    _refused(recipes["evaluate_over_encoder"], str(recipes["tmp"] / "enc"), "force=true")
+    refused(recipes["evaluate_over_encoder"], str(recipes["tmp"] / "enc"), "force=true", existed=True)
 
 
 def test_evaluate_and_train_encoder_replace_their_own_output(recipes):

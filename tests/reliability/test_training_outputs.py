@@ -17,10 +17,6 @@ run of 512 frames (and its continuation), which the refusals of a finished run n
 from __future__ import annotations
 
 import hashlib
-import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -31,36 +27,13 @@ from adadex.io import OutputExistsError
 from adadex.train.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from adadex.train.config import PPOConfig, TrainConfig
 
+from tests.reliability.recipe_runs import refused, run_recipes
+
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ["build_preset=null", "total_frames=512", "ppo.frames_per_batch=256", "ppo.minibatch_size=128", "ppo.epochs=1",
         "ppo.update_threads=1", "collector.worlds=8", "collector.env_threads=1", "policy.hidden=[32,32]",
         "eval_max_references=0", "wandb=false", "progress=false"]
 
-#: runs each case ``[script, args, watched folder]`` as ``python <script> <args>`` would, one after the
-#: other in one interpreter; prints per case [exit code, stderr, the watched folder's files before, after]
-_RUN = """
-import contextlib, hashlib, io, json, runpy, sys
-from pathlib import Path
-
-def tree(folder):
-    if folder is None or not Path(folder).exists():
-        return None
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(Path(folder).rglob("*")) if p.is_file()}
-
-results = []
-for script, args, watched in json.loads(sys.argv[1]):
-    before = tree(watched)
-    err, code = io.StringIO(), 0
-    sys.argv = [script, *args]
-    with contextlib.redirect_stderr(err):
-        try:
-            runpy.run_path(script, run_name="__main__")
-        except SystemExit as e:
-            code = e.code
-    results.append([code, err.getvalue(), before, tree(watched)])
-print(json.dumps(results))
-"""
 
 
 def _tree(folder: Path) -> dict:
@@ -109,29 +82,15 @@ def runs(tiny_dataset, tmp_path_factory):
                                     "wandb=false"], None),
         "force": (ppo, [*base, f"out={run}", "force=true"], None),
     }
-    res = subprocess.run([sys.executable, "-c", _RUN, json.dumps(list(cases.values()), default=str)],
-                         capture_output=True, text=True, timeout=600, cwd=tmp,
-                         env={**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "offline"})
-    assert res.returncode == 0, res.stderr[-3000:]
-    out = dict(zip(cases, json.loads(res.stdout.splitlines()[-1])))
+    out = run_recipes(cases, tmp, "offline")
     return {"tmp": tmp, "user": user, "table": table, "run": run, "empty": empty, "distill_user": distill_user,
-            **{k: {"code": v[0], "err": v[1], "before": v[2], "after": v[3]} for k, v in out.items()}}
-
-
-def _refused(r: dict, *fragments: str) -> str:
-    """One line on stderr holding every fragment, exit code 2, the watched folder unchanged."""
-    lines = [line for line in r["err"].splitlines() if line.strip()]
-    assert r["code"] == 2 and len(lines) == 1 and "Traceback" not in r["err"], r["err"][-2000:]
-    for f in fragments:
-        assert f in lines[0], (f, lines[0])
-    assert r["before"] == r["after"], "the refusal wrote into the folder"
-    return lines[0]
+            **out}
 
 
 def test_a_user_folder_is_refused_by_the_training_recipes_and_the_pipeline(runs):
     for case, folder in (("user_folder", runs["user"]), ("pipeline_user_folder", runs["table"]),
                          ("distill_user_folder", runs["distill_user"])):
-        _refused(runs[case], str(folder), "force=true")
+        refused(runs[case], str(folder), "force=true")
     # byte for byte the user's, and nothing added (no checkpoint, no .hydra/, no log)
     assert sorted(p.name for p in runs["user"].iterdir()) == ["metrics.csv", "thesis.tex"]
     assert (runs["user"] / "metrics.csv").read_text() == "iteration,mine\n1,42\n"
@@ -141,7 +100,7 @@ def test_a_user_folder_is_refused_by_the_training_recipes_and_the_pipeline(runs)
 
 def test_a_finished_run_is_refused_without_resume(runs):
     assert runs["first_run"]["code"] == 0, runs["first_run"]["err"][-2000:]
-    _refused(runs["finished_again"], str(runs["run"]), "finished", "resume=true", "force=true")
+    refused(runs["finished_again"], str(runs["run"]), "finished", "resume=true", "force=true")
     # resume=true on it: nothing to do, the run unchanged (Hydra records the command in .hydra/ and its log)
     r = runs["resume_finished"]
     assert r["code"] == 0, r["err"][-2000:]
@@ -149,8 +108,8 @@ def test_a_finished_run_is_refused_without_resume(runs):
     assert run_files(r["before"]) == run_files(r["after"]) and "checkpoint.pt" in r["after"]
 
 
-def test_resume_without_a_checkpoint_is_refused(runs):
-    _refused(runs["resume_nothing"], str(runs["empty"]), "no checkpoint")
+def test_resume_without_a_checkpoint_isrefused(runs):
+    refused(runs["resume_nothing"], str(runs["empty"]), "no checkpoint")
     assert not any(runs["empty"].iterdir())
     line = [x for x in runs["distill_resume_nothing"]["err"].splitlines() if x.strip()]
     assert runs["distill_resume_nothing"]["code"] == 2 and len(line) == 1 and "no checkpoint" in line[0], line
@@ -158,9 +117,9 @@ def test_resume_without_a_checkpoint_is_refused(runs):
 
 
 def test_resume_with_settings_that_change_the_result_is_refused_naming_them(runs):
-    line = _refused(runs["resume_other_lr"], "ppo.lr")
+    line = refused(runs["resume_other_lr"], "ppo.lr")
     assert "0.0003" in line and "0.001" in line
-    line = _refused(runs["resume_other_net"], "policy.hidden", "seed")
+    line = refused(runs["resume_other_net"], "policy.hidden", "seed")
     assert "ppo.lr" not in line
 
 
@@ -175,7 +134,7 @@ def test_settings_that_do_not_change_the_result_continue_and_force_starts_over(r
                                               ("plus_ppo_foo", "'ppo.foo'", "known under ppo"),
                                               ("plus_preset", "'preset'", "known: ")])
 def test_unknown_keys_are_refused_naming_them_and_the_known_ones(runs, case, key, known):
-    line = _refused(runs[case], key, known)
+    line = refused(runs[case], key, known)
     assert ("lr" if "ppo" in key else "total_frames") in line
     assert not (runs["tmp"] / "foo").exists()
 

@@ -100,6 +100,7 @@ from adadex.data.recording_errors import (
     prefixed,
     unknown_joint,
 )
+from adadex.errors import ConfigTypeError
 from adadex.io import atomic_write
 from adadex.sim.robot import HOME_QPOS, JOINT_NAMES, NUM_JOINTS, joint_index, joint_limits
 
@@ -704,5 +705,5 @@ def to_csv(rec: Recording, directory) -> list[Path]:
     ``meta`` are not written (see :mod:`adadex.data.recording_csv`).
     """
     if not isinstance(rec, Recording):
-        raise TypeError(f"to_csv: expected a Recording, got {type(rec).__name__}")
+        raise ConfigTypeError(f"to_csv: expected a Recording, got {type(rec).__name__}")
     return recording_csv.write_csv(rec, directory)

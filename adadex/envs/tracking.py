@@ -99,7 +99,7 @@ class TrackingConfig:
 
     def __post_init__(self):
         if self.window < max(REF_OFFSETS) + 2:
-            raise ValueError(f"window must be at least {max(REF_OFFSETS) + 2} frames, got {self.window}")
+            raise ConfigError(f"window must be at least {max(REF_OFFSETS) + 2} frames, got {self.window}")
         check_numbers("TrackingConfig", self,
                       ("max_action", "terminate_object_error", "terminate_palm_error", "object_lift", "max_object_speed"))
 
@@ -188,7 +188,7 @@ class TrackingEnv(EnvBase):
         self.config = config
         self.latent_fn = latent_fn
         if draw not in ("random", "cycle"):
-            raise ValueError(f"draw must be 'random' or 'cycle', got {draw!r}")
+            raise ConfigError(f"draw must be 'random' or 'cycle', got {draw!r}")
         self.draw = draw
         self._resets = np.zeros(num_worlds, dtype=np.int64)
         self.randomize = randomize
@@ -273,16 +273,16 @@ class TrackingEnv(EnvBase):
         if references is not None:
             bad = [i for i in references if not 0 <= int(i) < len(self.dataset)]
             if bad or not len(references):
-                raise ValueError(f"{self.dataset.path}: references must be a non-empty list of indices in "
+                raise ConfigError(f"{self.dataset.path}: references must be a non-empty list of indices in "
                                  f"[0, {len(self.dataset)}), got {list(references)[:10]}")
             usable = set(episode_references(self.dataset, None, self.config.window))
             short = [int(i) for i in references if int(i) not in usable]
             if short:
-                raise ValueError(f"{self.dataset.path}: references {short} have no {self.config.window}-frame window")
+                raise ConfigError(f"{self.dataset.path}: references {short} have no {self.config.window}-frame window")
             return [int(i) for i in references]
         ok = episode_references(self.dataset, split, self.config.window)
         if not ok:
-            raise ValueError(f"{self.dataset.path}: no reference in split {split} has a "
+            raise ConfigError(f"{self.dataset.path}: no reference in split {split} has a "
                              f"{self.config.window}-frame episode window")
         return ok
 

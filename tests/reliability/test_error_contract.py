@@ -22,9 +22,7 @@ SCANNED = ("adadex/eval", "adadex/modules", "adadex/data", "adadex/envs", "adade
            "adadex/quat.py", "adadex/geometry.py", "adadex/arrays.py")
 
 #: files not swept yet (edited by others at the time of the sweep); to be brought under the scan
-NOT_YET = {"adadex/data/cli.py", "adadex/data/recording.py", "adadex/data/recording_csv.py",
-           "adadex/data/recording_errors.py", "adadex/data/hoi_import.py", "adadex/data/reference.py",
-           "adadex/data/show.py", "adadex/envs/tracking.py", "adadex/sim/patch.py", "adadex/sim/model_source.py"}
+NOT_YET: set[str] = set()       # files not scanned yet (none since every package was swept)
 
 BUILTINS = ("ValueError", "KeyError", "TypeError")
 
@@ -40,6 +38,13 @@ ALLOWED = {
     # the shipped robot MJCF has its fingertip geoms and every hand geom below a chain link
     ("adadex/data/object_contact.py", "hand_collision_spheres", "ValueError"),
     ("adadex/data/object_contact.py", "_in_chain_frame", "ValueError"),
+    # json.dumps' default= hook must raise TypeError for an object it cannot encode
+    ("adadex/data/recording.py", "_json_default", "TypeError"),
+    ("adadex/data/reference.py", "_json_default", "TypeError"),
+    # flow control inside a try whose except turns it into the module's AdadexError
+    ("adadex/data/reference.py", "check_splits", "TypeError"),
+    ("adadex/data/reference.py", "ReferenceDataset.__init__", "KeyError"),
+    ("adadex/data/hoi_import.py", "import_npz", "ValueError"),
 }
 
 

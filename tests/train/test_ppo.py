@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 import os
 import re
 import signal
@@ -411,40 +410,22 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
 
 REFUSALS = [   # (recipe, arguments, what its one line of stderr says)
     ("train_modulator.py", ["tracker=/nonexistent/generalist.pt"], "no tracker checkpoint"),
-    ("train_modulator.py", ["tracker=README.md"], "README.md: not a readable tracker checkpoint"),
+    ("train_modulator.py", [f"tracker={ROOT / 'README.md'}"], "README.md: not a readable tracker checkpoint"),
     ("train_specialist.py", ["group=999"], "semantic group 999"),
     ("train_ppo.py", ["collector.backend=slurm"], "backend must be 'local' or 'ray'"),
     ("train_ppo.py", ["+reward.w_alvie=1.0"], "RewardConfig: unknown keys ['w_alvie']"),
     ("train_ppo.py", ["+randomization.object_mass=[1.3,0.7]"], "object_mass must be a range"),
 ]
 
-#: runs each recipe as ``python recipes/<recipe> …`` would (``__main__``, its arguments in sys.argv), one
-#: after the other in one interpreter, and prints [exit code, stderr] of each: one import of torch and
-#: TorchRL for all the cases instead of one each
-_RUN_RECIPES = """
-import contextlib, io, json, runpy, sys
-results = []
-for script, args in json.loads(sys.argv[1]):
-    err, code = io.StringIO(), 0
-    sys.argv = [script, *args]
-    with contextlib.redirect_stderr(err):
-        try:
-            runpy.run_path(script, run_name="__main__")
-        except SystemExit as e:
-            code = e.code
-    results.append([code, err.getvalue()])
-print(json.dumps(results))
-"""
-
-
 def test_recipes_refuse_bad_input_in_one_line(tiny_dataset, tmp_path):
-    cases = [[str(ROOT / "recipes" / recipe), [f"dataset={tiny_dataset}", f"out={tmp_path / str(i)}", "wandb=false",
-                                              "progress=false", *args]]
-             for i, (recipe, args, _) in enumerate(REFUSALS)]
-    res = subprocess.run([sys.executable, "-c", _RUN_RECIPES, json.dumps(cases)], capture_output=True, text=True,
-                         timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
-    assert res.returncode == 0 and res.stderr == "", res.stderr[-2000:]      # nothing else on the process's stderr
-    for i, ((recipe, _, fragment), (code, err)) in enumerate(zip(REFUSALS, json.loads(res.stdout.splitlines()[-1]))):
+    from tests.reliability.recipe_runs import run_recipes
+
+    cases = {i: (str(ROOT / "recipes" / recipe), [f"dataset={tiny_dataset}", f"out={tmp_path / str(i)}", "wandb=false",
+                                                 "progress=false", *args], None)
+             for i, (recipe, args, _) in enumerate(REFUSALS)}
+    results = run_recipes(cases, tmp_path, "disabled", quiet=True)     # nothing else on the process's stderr
+    for i, (recipe, _, fragment) in enumerate(REFUSALS):
+        code, err = results[i]["code"], results[i]["err"]
         lines = [line for line in err.splitlines() if line.strip()]
         assert code == 2, (recipe, err[-2000:])
         assert len(lines) == 1 and fragment in lines[0] and "Traceback" not in err, (recipe, err[-2000:])

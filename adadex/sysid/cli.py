@@ -80,34 +80,19 @@ def _load_patch(path, model=None) -> ModelPatch:
         raise CliError(f"{path}: not a readable model patch ({type(e).__name__}: {e})") from None
 
 
-def _is_file_of(*keys: str):
-    """A recognizer of adadex outputs that are single files (.npz archives or JSON) holding ``keys``."""
-    def recognize(path: Path) -> bool:
-        if path.suffix == ".npz":
-            with np.load(path, allow_pickle=False) as z:
-                return all(k in z.files for k in keys)
-        d = json.loads(path.read_text(encoding="utf-8"))
-        return isinstance(d, dict) and all(k in d for k in keys)
-    return recognize
-
-
-def _is_report(path: Path) -> bool:
-    with open(path, "rb") as f:
-        head = f.read(4096)
-    return head.lower().startswith(b"<!doctype html>") and b"adadex" in head
-
-
-#: What an earlier output of each command looks like (outputs written before markers existed, single files).
-#: Recordings (``simulate``) and plans (``excite``) are recognized by their marker only: a user's own
-#: ``.npz`` has the same keys.
-_RECOGNIZE = {"compare": lambda p: (p / "compare.json").is_file(), "diagnosis": lambda p: (p / "diagnosis.json").is_file(),
-              "patch": _is_file_of("effects"), "report": _is_report}
+#: What an earlier output folder of each command looks like when it was written before markers existed.
+#: The single files (patches, reports, recordings, plans) are recognized by their marker only: a user's
+#: own JSON with ``effects`` or ``.npz`` with the recording's keys looks the same inside.
+_RECOGNIZE = {"compare": lambda p: (p / "compare.json").is_file(), "diagnosis": lambda p: (p / "diagnosis.json").is_file()}
 
 
 def _check_out(a, kind: str) -> None:
     """Refuse ``a.out`` before any work if it is not an earlier output of this kind (``--force`` replaces it)."""
     if a.out:
-        check_output(a.out, kind, force=a.force, recognize=_RECOGNIZE[kind])
+        if kind in _RECOGNIZE:
+            check_output(a.out, kind, force=a.force, recognize=_RECOGNIZE[kind])
+        else:
+            check_output_file(a.out, kind, force=a.force)
 
 
 def _floats(text: str, option: str) -> tuple[float, ...]:
@@ -265,7 +250,8 @@ def _cmd_fit(a) -> int:
         if not len(patch):
             # nothing missing (or nothing found): the result is the starting patch, unchanged
             base = _load_patch(a.patch, a.model)
-            base.save(a.out)
+            with output_file(a.out, "patch", force=a.force):
+                base.save(a.out)
             print(f"{a.accept}: nothing to add (verdict {diag.verdict}, no effect selected); wrote {a.out} "
                   f"with {'the effects of ' + str(a.patch) if a.patch else 'no effects'}")
             return 0
@@ -273,7 +259,8 @@ def _cmd_fit(a) -> int:
         patch = fit_patch(rec, [_parse_add(s) for s in a.add], base_patch=_load_patch(a.patch, a.model),
                           nthread=a.threads)
     patch = _load_patch(a.patch, a.model) + patch if a.patch and a.accept else patch
-    patch.save(a.out)
+    with output_file(a.out, "patch", force=a.force):
+        patch.save(a.out)
     print(f"wrote {a.out}: {patch.describe()}")
     _print_stages(rec, patch, a.threads)
     return 0
@@ -296,7 +283,8 @@ def _cmd_report(a) -> int:
         rep = Replayer(rec, nthread=a.threads)
         pd = [identify_pd(rep, j, sequences_moving(rec, j), method=m)
               for j in tqdm(rec.joint_names, desc="kp/kd fits", unit="joint") for m in ("cma", "lsq")]
-    path = write_report(rec, _load_patch(a.patch, a.model), a.out, diagnosis=d, nthread=a.threads, pd_results=pd)
+    with output_file(a.out, "report", force=a.force):
+        path = write_report(rec, _load_patch(a.patch, a.model), a.out, diagnosis=d, nthread=a.threads, pd_results=pd)
     print(f"wrote {path}")
     return 0
 

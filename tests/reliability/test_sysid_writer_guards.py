@@ -108,3 +108,24 @@ def test_simulate_replaces_its_own_recording_and_force_replaces_anything(tmp_pat
     arrays["joint_pos"] = arrays["joint_pos"] + 0.01           # e.g. their calibration offset
     np.savez(rec, **arrays)
     _refused(argv, rec, capsys, tmp_path)
+
+
+# ------------------------------------------------------------------------------- sysid fit and report
+
+
+def test_fit_and_report_refuse_a_users_file_that_looks_like_theirs(tmp_path, capsys):
+    """A user's JSON with ``effects`` and a user's HTML page that names adadex are not earlier outputs:
+    only the marker the command wrote says so. Its own earlier patch is replaced."""
+    plan, rec = tmp_path / "plan.npz", tmp_path / "rec.npz"
+    assert main(["sysid", "excite", *EXCITE, "--out", str(plan)]) == 0
+    assert main(["sysid", "simulate", str(plan), "--noise", "0", "--threads", "1", "--out", str(rec)]) == 0
+    notes = tmp_path / "my_effects.json"
+    notes.write_text('{"effects": ["my own list"]}\n')
+    page = tmp_path / "my_page.html"
+    page.write_text("<!DOCTYPE html><title>my notes on adadex</title>\n")
+    _refused(["sysid", "fit", str(rec), "--add", "damping:if_dip", "--out", str(notes)], notes, capsys, tmp_path)
+    _refused(["sysid", "report", str(rec), "--out", str(page)], page, capsys, tmp_path)
+    patch = tmp_path / "patch.json"
+    assert main(["sysid", "fit", str(rec), "--add", "damping:if_dip", "--out", str(patch)]) == 0
+    assert main(["sysid", "fit", str(rec), "--add", "armature:if_dip", "--out", str(patch)]) == 0   # its own
+    assert "armature" in patch.read_text()

@@ -107,10 +107,11 @@ def _edits(td: TensorDictBase):
     return hand, obj
 
 
-def original_reference(td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+def original_reference(td: TensorDictBase, edits=None) -> tuple[torch.Tensor, torch.Tensor]:
     """The reference before R's carried edit: (joints (…, 5, 22), object poses (…, 5, 7)), undoing
-    :func:`adadex.transforms.modulation.ReferenceModulation`'s edit (shift, left rotation)."""
-    hand, obj = _edits(td)
+    :func:`adadex.transforms.modulation.ReferenceModulation`'s edit (shift, left rotation);
+    ``edits``: that edit at the observed offsets when the caller already read it."""
+    hand, obj = _edits(td) if edits is None else edits
     ref_q, ref_o = td.get(REF_JOINT_POS), td.get(REF_OBJECT_POSE)
     q = quat_mul(quat_conj(quat_from_rotvec(obj[..., 3:])), ref_o[..., 3:])
     return ref_q - hand, torch.cat([ref_o[..., :3] - obj[..., :3], q], dim=-1)
@@ -120,7 +121,8 @@ def view_features(td: TensorDictBase, layout: ViewLayout) -> torch.Tensor:
     """The (…, layout.dim) view of ``td`` (an env step's entries with the view's state)."""
     lead = td.batch_size
     joint_pos, obj = td.get(JOINT_POS), td.get(OBJECT_POSE)
-    orig_q, orig_o = original_reference(td)
+    edits = _edits(td)
+    orig_q, orig_o = original_reference(td, edits)
     state = {k: td.get(k, None) for k in layout.state_shapes()}
     if any(v is None for v in state.values()):
         missing = [k for k, v in state.items() if v is None]
@@ -139,7 +141,7 @@ def view_features(td: TensorDictBase, layout: ViewLayout) -> torch.Tensor:
         "history": state[HISTORY].reshape(*lead, -1),
     }
     if "R" in layout.channels:
-        hand, ob = _edits(td)
+        hand, ob = edits
         parts["edit"] = torch.cat([hand.reshape(*lead, -1), ob.reshape(*lead, -1)], -1)
     return torch.cat([parts[name] for name, _ in layout.parts], -1)
 

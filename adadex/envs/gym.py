@@ -23,9 +23,8 @@ import torch
 from adadex.envs.observation import OBS_DIM
 from adadex.envs.tracking import TrackingConfig, TrackingEnv
 from adadex.envs.frame_errors import ERROR_NAMES
+from adadex.envs.registration import ENV_ID, register
 from adadex.sim.robot import NUM_JOINTS
-
-ENV_ID = "adadex/Tracking-v0"
 
 
 class TrackingGymEnv(gymnasium.Env):
@@ -66,12 +65,6 @@ class TrackingGymEnv(gymnasium.Env):
 
     def close(self):
         self._env.close()
-
-
-def register() -> None:
-    """Register :data:`ENV_ID` with gymnasium (idempotent)."""
-    if ENV_ID not in gymnasium.registry:
-        gymnasium.register(id=ENV_ID, entry_point="adadex.envs.gym:TrackingGymEnv", disable_env_checker=True)
 
 
 __all__ = ["ENV_ID", "TrackingGymEnv", "register"]

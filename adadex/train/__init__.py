@@ -2,4 +2,38 @@
 point-cloud encoder training, and what they share (configs, env factories, checkpoints, logs).
 
 The top of the library's stack: it may import every other layer; nothing below imports it.
+
+The names below are re-exported here (``from adadex.train import PPOTrainer, TrainConfig``) and
+imported on first use.
 """
+
+from typing import TYPE_CHECKING
+
+from adadex._exports import lazy_exports
+
+_EXPORTS = {
+    "adadex.train.ppo": ("PPOTrainer", "train", "default_loss", "TrainingDiverged"),
+    "adadex.train.config": ("TrainConfig", "PPOConfig", "PolicyConfig", "CollectorConfig",
+                            "ModulatorSettings"),
+    "adadex.train.envs": ("TrackingEnvFactory", "ModulatedEnv"),
+    "adadex.train.collectors": ("make_collector", "local_collector"),
+    "adadex.train.distill": ("Distiller", "DistillConfig", "distill"),
+    "adadex.train.encoder": ("train_encoder", "evaluate_encoder"),
+    "adadex.train.checkpoint": ("save_checkpoint", "load_checkpoint"),
+    "adadex.train.logs": ("RunLog", "read_metrics"),
+    "adadex.train.rollouts": ("teacher_rollouts", "load_rollouts"),
+    "adadex.train.pipeline": ("PipelineConfig", "run_pipeline"),
+}
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+
+if TYPE_CHECKING:      # the same names, for type checkers and IDEs
+    from adadex.train.ppo import PPOTrainer, train, default_loss, TrainingDiverged
+    from adadex.train.config import TrainConfig, PPOConfig, PolicyConfig, CollectorConfig, ModulatorSettings
+    from adadex.train.envs import TrackingEnvFactory, ModulatedEnv
+    from adadex.train.collectors import make_collector, local_collector
+    from adadex.train.distill import Distiller, DistillConfig, distill
+    from adadex.train.encoder import train_encoder, evaluate_encoder
+    from adadex.train.checkpoint import save_checkpoint, load_checkpoint
+    from adadex.train.logs import RunLog, read_metrics
+    from adadex.train.rollouts import teacher_rollouts, load_rollouts
+    from adadex.train.pipeline import PipelineConfig, run_pipeline

@@ -1,2 +1,28 @@
 """TorchRL transforms for the three modulation channels — reference (R), object latent (O),
-action (T) — and the tracker-in-the-loop transform that turns a TrackingEnv into the modulator's env."""
+action (T) — the tracker-in-the-loop transform that turns a TrackingEnv into the modulator's env, and
+the modulated policy graph.
+
+The names below are re-exported here (``from adadex.transforms import modulation, make_policy``) and
+imported on first use.
+"""
+
+from typing import TYPE_CHECKING
+
+from adadex._exports import lazy_exports
+
+_EXPORTS = {
+    "adadex.transforms.modulation": ("modulation", "channel_transforms", "ReferenceModulation",
+                                     "LatentModulation", "ActionModulation",
+                                     "CompactModulation", "ChannelTransform",
+                                     "TrackerInTheLoop", "FlatModulationAction",
+                                     "ModulatorView"),
+    "adadex.transforms.policy": ("make_policy", "ModulatedPolicy"),
+}
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+
+if TYPE_CHECKING:      # the same names, for type checkers and IDEs
+    from adadex.transforms.modulation import (
+        modulation, channel_transforms, ReferenceModulation, LatentModulation, ActionModulation,
+        CompactModulation, ChannelTransform, TrackerInTheLoop, FlatModulationAction, ModulatorView
+    )
+    from adadex.transforms.policy import make_policy, ModulatedPolicy

@@ -16,8 +16,51 @@ are one line on stderr and exit code 2; anything else is a bug in adadex: one li
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import sys
+
+#: The subcommands defined in their own modules: name → (module, one-line help). Each module's
+#: ``add_arguments(parser)`` fills the subcommand's parser when that subcommand is used (parsed, or its
+#: help shown), so ``adadex --help`` and the other subcommands import none of torch, TorchRL or MuJoCo.
+SUBCOMMANDS = {
+    "data": ("adadex.data.cli", "hand–object reference datasets: build, info, show, import"),
+    "sysid": ("adadex.sysid.cli", "model vs measurement: compare, diagnose, fit, report"),
+    "encoder": ("adadex.train.encoder_cli", "point-cloud encoder (object latent): train, eval"),
+}
+
+
+class LazyParser(argparse.ArgumentParser):
+    """An :class:`argparse.ArgumentParser` whose arguments are added by ``populate(parser)`` the first
+    time it parses or formats its help or usage (the subcommands' parsers: see :data:`SUBCOMMANDS`).
+
+    Args:
+        populate: called once with the parser before its first use; None for an ordinary parser.
+        *args, **kwargs: as for :class:`argparse.ArgumentParser`.
+    """
+
+    def __init__(self, *args, populate=None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._populate = populate
+
+    def populate(self) -> LazyParser:
+        """Add the arguments now (idempotent); return the parser."""
+        populate, self._populate = self._populate, None
+        if populate is not None:
+            populate(self)
+        return self
+
+    def parse_known_args(self, args=None, namespace=None):
+        self.populate()
+        return super().parse_known_args(args, namespace)
+
+    def format_usage(self):
+        self.populate()
+        return super().format_usage()
+
+    def format_help(self):
+        self.populate()
+        return super().format_help()
 
 
 def _sim_info() -> dict:
@@ -110,8 +153,10 @@ def _cmd_demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="adadex", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    """The ``adadex`` parser. The subcommands of :data:`SUBCOMMANDS` get their arguments when used
+    (:class:`LazyParser`): building the parser imports no module of theirs."""
+    p = LazyParser(prog="adadex", description=__doc__.split("\n\n")[0],
+                   formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--debug", action="store_true", help="show the full traceback of any error")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -131,13 +176,9 @@ def build_parser() -> argparse.ArgumentParser:
                      "`adadex sim export` (an existing file is otherwise refused)")
     exp.set_defaults(func=_cmd_sim_export)
 
-    from adadex.data import cli as data_cli
-    from adadex.sysid import cli as sysid_cli
-    from adadex.train import encoder_cli
-
-    data_cli.add_parser(sub)
-    sysid_cli.add_parser(sub)
-    encoder_cli.add_parser(sub)
+    for name, (module, help) in SUBCOMMANDS.items():
+        sub.add_parser(name, help=help, populate=lambda parser, module=module:
+                       importlib.import_module(module).add_arguments(parser))
 
     demo = sub.add_parser("demo", help="short simulation demo: objects settle, the hand grasps and lifts a cube")
     demo.add_argument("--worlds", type=int, default=16, help="worlds stepped together (default 16)")

@@ -107,11 +107,12 @@ def _cmd_import(a) -> int:
     return 0
 
 
-def add_parser(sub) -> None:
-    from adadex.data.build import PRESETS
+def add_arguments(data) -> None:
+    """Fill the ``adadex data`` parser ``data`` (made by :func:`adadex.cli.build_parser`) with its
+    subcommands."""
+    from adadex.data.presets import PRESETS
 
-    data = sub.add_parser("data", help="hand–object reference datasets: build, info, show, import",
-                          description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    data.description, data.formatter_class = __doc__, argparse.RawDescriptionHelpFormatter
     dsub = data.add_subparsers(dest="data_command", required=True)
     b = dsub.add_parser("build", help="synthesize, retarget, filter and split a reference dataset")
     b.add_argument("--preset", choices=sorted(PRESETS), default="tiny",

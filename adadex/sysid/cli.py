@@ -296,10 +296,10 @@ def _cmd_demo(a) -> int:
     return 0
 
 
-def add_parser(sub) -> None:
-    """Register ``sysid`` and its subcommands on the top-level ``adadex`` parser."""
-    p = sub.add_parser("sysid", help="model vs measurement: compare, diagnose, fit, report",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_arguments(p) -> None:
+    """Fill the ``adadex sysid`` parser ``p`` (made by :func:`adadex.cli.build_parser`) with its
+    subcommands."""
+    p.description, p.formatter_class = __doc__, argparse.RawDescriptionHelpFormatter
     s = p.add_subparsers(dest="sysid_command", required=True)
 
     def common(q):

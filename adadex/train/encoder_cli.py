@@ -99,15 +99,15 @@ def _cmd_eval(a) -> int:
     return 0
 
 
-def add_parser(sub) -> None:
-    """Register ``adadex encoder train|eval`` on the top-level subparsers ``sub``."""
+def add_arguments(enc) -> None:
+    """Fill the ``adadex encoder`` parser ``enc`` (made by :func:`adadex.cli.build_parser`) with
+    ``train`` and ``eval``."""
     import argparse
 
     d = TrainSettings()
-    enc = sub.add_parser("encoder", help="point-cloud encoder (object latent): train, eval",
-                         description="Train or evaluate the point-cloud autoencoder whose 64-D code is the object "
-                                     "latent. Metrics: Chamfer distance in cm², RMS nearest-neighbour distance in mm.",
-                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    enc.description = ("Train or evaluate the point-cloud autoencoder whose 64-D code is the object latent. "
+                       "Metrics: Chamfer distance in cm², RMS nearest-neighbour distance in mm.")
+    enc.formatter_class = argparse.RawDescriptionHelpFormatter
     esub = enc.add_subparsers(dest="encoder_command", required=True)
     t = esub.add_parser("train", help="train on the 75 training objects; write encoder.pt, encoder.json, "
                                       "reconstructions.png")

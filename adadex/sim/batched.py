@@ -55,6 +55,18 @@ def flung(object_vel: np.ndarray, limit: float = MAX_OBJECT_SPEED) -> np.ndarray
     lin = np.asarray(object_vel)[..., :3]
     return (lin * lin).sum(axis=-1) > limit * limit
 
+#: Physics backends of :class:`BatchedSim`: C MuJoCo's ``mujoco.rollout`` thread pool on the CPU
+#: cores, or MuJoCo Warp (:mod:`adadex.sim.warp_backend`; GPU or Warp's CPU device).
+BACKENDS = ("rollout", "warp")
+
+
+def check_backend(backend: str) -> str:
+    """``backend`` if it names a physics backend, else a ConfigError."""
+    if backend not in BACKENDS:
+        raise ConfigError(f"backend must be one of {', '.join(map(repr, BACKENDS))}, got {backend!r}")
+    return backend
+
+
 FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
 CTRL_SPEC = int(mujoco.mjtState.mjSTATE_CTRL)
 
@@ -102,10 +114,26 @@ class BatchedSim(RolloutPool):
         nthread: threads of the rollout pool (0 runs on the calling thread).
         substeps: physics steps per control step (default: as many as make one 12 Hz control
             step at the model's timestep).
+        backend: ``"rollout"`` (this class) or ``"warp"``: ``BatchedSim(..., backend="warp")`` returns a
+            :class:`~adadex.sim.warp_backend.WarpSim` with this interface (needs ``pip install
+            "adadex[warp]"``; takes ``device``, ``nconmax``, ``njmax``).
+        device: the rollout backend runs on the CPU (``None`` or ``"cpu"``).
     """
 
+    def __new__(cls, models=None, batch_size=None, *, backend: str = "rollout", **kwargs):
+        """``backend="warp"`` makes a :class:`~adadex.sim.warp_backend.WarpSim` (MuJoCo Warp, same
+        interface; ``device``, ``nconmax``, ``njmax`` go to it); ``"rollout"`` (default) this class."""
+        check_backend(backend)
+        if backend == "warp" and cls is BatchedSim:
+            from adadex.sim.warp_backend import WarpSim
+            return WarpSim(models, batch_size, **kwargs)
+        return super().__new__(cls)
+
     def __init__(self, models: mujoco.MjModel | Sequence[mujoco.MjModel], batch_size: int | None = None,
-                 *, nthread: int = 1, substeps: int | None = None):
+                 *, nthread: int = 1, substeps: int | None = None, backend: str = "rollout", device=None):
+        if device is not None and str(device) != "cpu":
+            raise ConfigError(f"device={device!r}: the rollout backend runs on the CPU; use backend='warp' "
+                              f"for another device")
         if isinstance(models, mujoco.MjModel):
             if batch_size is None or batch_size < 1:
                 raise ConfigError(f"batch_size must be a positive integer with a single model, got {batch_size!r}")

@@ -1,0 +1,523 @@
+"""B worlds of a scene stepped together on a GPU (or Warp's CPU device) through MuJoCo Warp.
+
+:class:`WarpSim` has :class:`~adadex.sim.batched.BatchedSim`'s interface and semantics —
+``reset(qpos, qvel, worlds)``, ``step(ctrl) -> SimReadout`` (``substeps`` physics steps with the
+control held), ``readout()``, ``models``, ``set_models``, ``set_state``, ``close`` — but keeps every
+world's state in MuJoCo Warp's device arrays, so a step costs no host round trip on a GPU beyond
+reading the overflow counters. Select it with ``BatchedSim(models, backend="warp")`` (or
+``TrackingEnv(..., backend="warp")``, config ``sim.backend: warp``); it needs the optional extra:
+``pip install "adadex[warp]"``.
+
+What it takes to match the rollout backend (tested against it on Warp's CPU device):
+
+* **Contact and constraint capacity** is fixed when the device data is made: ``nconmax`` contacts
+  and ``njmax`` constraint rows per world (:data:`DEFAULT_NCONMAX`, :data:`DEFAULT_NJMAX`; a
+  pinch grasp needs ~17 contacts: ``njmax=64`` drops constraints and the object slips). MuJoCo
+  Warp drops what does not fit and only sets a flag, so ``step`` reads the flags after every
+  control step. Never silently:
+
+  - the contact buffers are shared by all worlds (``nconmax × B``): an overflow there **raises** a
+    :class:`~adadex.errors.ConfigError` naming ``nconmax`` (no world can be blamed alone);
+  - constraint rows are per world: a world that needed more than ``njmax`` is **flagged unstable**
+    (its own physics is wrong, the others are not), counted in :attr:`WarpSim.overflow_count`, and
+    must be reset like a diverged world (a reset clears its flag). A diverging world typically
+    overflows first; healthy worlds never do at the default size (tested on the scripted grasp).
+* **Per-world parameters**: worlds whose models share one structure but differ in parameters (the
+  effects of :mod:`adadex.sim.effects`, :class:`~adadex.envs.randomization.Randomization`'s draws)
+  run with their own values: the model is put on the device with those fields batched per world
+  (:data:`DEFAULT_BATCHED_FIELDS`, plus any other batchable field in which the worlds differ), and
+  ``set_models`` writes a world's new values into them. A field MuJoCo Warp cannot batch (geom
+  types, contact filters, solver options, mesh data …) must be equal in every world, else a
+  ``ConfigError`` names it — it is never silently taken from world 0.
+* **Different objects per world** need different mesh data, which MuJoCo Warp shares between
+  worlds: not supported yet (a ``ConfigError`` names the mesh fields). Worlds may hold the same
+  object under different parameters (mass, friction …).
+* **Stability**: MuJoCo Warp neither resets a diverging world nor stops its (float32) time, so the
+  ``unstable`` mask is the backend's own check: a non-finite or absurd (> 1e10, MuJoCo's
+  ``mjMAXVAL``) position, velocity or activation, or a time that did not advance by the control
+  step. The world's state is left as it is for the caller to reset (a TrackingEnv resets it alone).
+* **Warmstart**: each world's solver warmstarts from its previous physics step, across control
+  steps (zeroing it per control step made the scripted grasp drift 1 mm from the rollout backend;
+  keeping it agrees to 15 µm); a reset world starts cold.
+
+The physics runs in float32 on the device (MuJoCo runs float64): joint angles agree to ~1e-6 rad
+after a second of motion, contacts to ~1e-4 (see ``tests/sim/test_warp_backend.py``).
+
+Readouts: :meth:`WarpSim.step` and :meth:`WarpSim.readout` return the numpy
+:class:`~adadex.sim.batched.SimReadout` (float64, host copies) like BatchedSim;
+:meth:`WarpSim.device_readout` returns a :class:`DeviceReadout` of torch tensors on the device
+(float32, no host copy) for an on-device env or a benchmark; :meth:`WarpSim.step_device` steps and
+returns it. ``step`` accepts a numpy array or a torch tensor (on any device).
+
+Kernels compile on first use (about a minute on a CPU, cached by Warp afterwards in
+``wp.config.kernel_cache_dir``). On a CUDA device the ``substeps`` physics steps of a control step
+are captured once into a CUDA graph and replayed (``cuda_graph=True``).
+
+Example::
+
+    import numpy as np
+    from adadex.sim.scene import build_scene_model, home_state
+    from adadex.sim.batched import BatchedSim
+    model = build_scene_model("box_00")
+    sim = BatchedSim(model, batch_size=4, backend="warp")     # Warp's default device
+    qpos, ctrl = home_state(model)
+    sim.reset(qpos=qpos)
+    out = sim.step(np.tile(ctrl, (4, 1)))                       # numpy SimReadout
+    dev = sim.device_readout()                                  # torch tensors on the device
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+import torch
+
+from adadex.errors import ArrayError, ConfigError
+from adadex.sim.batched import FULLPHYSICS, SimReadout
+from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
+from adadex.sim.scene import CONTROL_HZ
+
+#: Contacts per world allocated on the device (MuJoCo Warp shares them across worlds:
+#: ``naconmax = nconmax * B``). A pinch grasp makes ~17; the table, fingers and object rarely 40.
+DEFAULT_NCONMAX = 64
+#: Constraint rows per world (contacts × cone rows, joint limits, friction loss). MuJoCo Warp's own
+#: default (64 here) overflows during a grasp; 192 was measured enough, 256 leaves a margin.
+DEFAULT_NJMAX = 256
+#: MuJoCo's ``mjMAXVAL``: a position, velocity or activation beyond it means a diverged world.
+MAX_STATE_VALUE = 1e10
+
+#: Model fields batched per world from the start: every field an effect or a randomization draw
+#: changes (:class:`adadex.sim.effects.ModelBase`), and the constants ``mj_setConst`` derives from
+#: masses. Another batchable field in which worlds differ is batched when it first differs.
+DEFAULT_BATCHED_FIELDS = (
+    "dof_damping", "dof_frictionloss", "dof_armature", "jnt_stiffness",
+    "actuator_gainprm", "actuator_biasprm", "actuator_forcerange", "jnt_actfrcrange",
+    "actuator_delay", "actuator_dynprm",
+    "body_mass", "body_inertia", "body_subtreemass", "body_invweight0", "dof_invweight0", "actuator_acc0",
+    "geom_friction",
+)
+
+_INSTALL = 'pip install "adadex[warp]"'
+
+
+def _import_warp():
+    """``(warp, mujoco_warp)``, or a ConfigError saying how to install them."""
+    try:
+        import mujoco_warp
+        import warp
+    except ImportError as e:
+        raise ConfigError(f'backend="warp" needs MuJoCo Warp, which is not installed ({e}); install the '
+                          f'optional extra: {_INSTALL}') from e
+    return warp, mujoco_warp
+
+
+def warp_available() -> bool:
+    """Whether MuJoCo Warp (the ``[warp]`` extra) is importable."""
+    try:
+        _import_warp()
+    except ConfigError:
+        return False
+    return True
+
+
+@dataclass
+class DeviceReadout:
+    """:class:`~adadex.sim.batched.SimReadout`'s fields as float32 torch tensors on the sim's device
+    (new tensors each call: they do not alias the simulation's state)."""
+
+    time: torch.Tensor          # (B,)
+    joint_pos: torch.Tensor     # (B, 22)
+    joint_vel: torch.Tensor     # (B, 22)
+    link_pose: torch.Tensor     # (B, 5, 7)
+    object_pose: torch.Tensor   # (B, 7); zeros without an object
+    object_vel: torch.Tensor    # (B, 6)
+    unstable: torch.Tensor      # (B,) bool
+
+    def numpy(self) -> SimReadout:
+        """The host :class:`SimReadout` (float64)."""
+        f = {k: getattr(self, k).detach().cpu().numpy() for k in self.__dataclass_fields__}
+        return SimReadout(**{k: (v if k == "unstable" else v.astype(np.float64)) for k, v in f.items()})
+
+
+def _field_specs(mjw):
+    """(batchable, shared) names of MuJoCo Warp ``Model`` array fields that are ``MjModel`` attributes."""
+    from mujoco_warp._src import types, warp_util
+
+    batchable, shared = [], []
+    probe = mujoco.MjModel  # attribute names only
+    for f in dataclasses.fields(types.Model):
+        if not warp_util.is_array_spec(f.type) or not hasattr(probe, f.name):
+            continue
+        shape = getattr(f.type, "shape", ())
+        (batchable if shape and shape[0] == "*" else shared).append(f.name)
+    return tuple(batchable), tuple(shared)
+
+
+_OPT_FIELDS = ("timestep", "tolerance", "ls_tolerance", "noslip_tolerance", "ccd_tolerance", "gravity", "wind",
+               "magnetic", "density", "viscosity", "impratio", "o_margin", "o_solref", "o_solimp", "o_friction",
+               "integrator", "cone", "jacobian", "solver", "iterations", "ls_iterations", "noslip_iterations",
+               "ccd_iterations", "disableflags", "enableflags", "sdf_initpoints", "sdf_iterations")
+
+#: Non-batchable limit flags that have an equivalent through their batchable range: a world without
+#: the limit gets the flag with an infinite range.
+_LIMIT_FLAGS = {"actuator_forcelimited": "actuator_forcerange", "jnt_actfrclimited": "jnt_actfrcrange"}
+
+
+class WarpSim:
+    """B worlds stepped together by MuJoCo Warp; see the module docstring.
+
+    Args:
+        models: one ``MjModel`` shared by all worlds, or a sequence of B models of one structure.
+        batch_size: B (inferred from ``models`` when it is a sequence).
+        substeps: physics steps per control step (default: one 12 Hz control step).
+        device: Warp device (``"cpu"``, ``"cuda:0"`` …); default Warp's default device.
+        nconmax: contacts per world allocated on the device; an overflow raises a ConfigError.
+        njmax: constraint rows per world; a world that overflows them is flagged unstable.
+        nthread: accepted for BatchedSim's signature, unused.
+        cuda_graph: on a CUDA device, replay each control step as a captured CUDA graph.
+    """
+
+    def __init__(self, models: mujoco.MjModel | Sequence[mujoco.MjModel], batch_size: int | None = None, *,
+                 substeps: int | None = None, device=None, nconmax: int = DEFAULT_NCONMAX,
+                 njmax: int = DEFAULT_NJMAX, nthread: int = 0, cuda_graph: bool = True):
+        wp, mjw = _import_warp()
+        self._wp, self._mjw = wp, mjw
+        if isinstance(models, mujoco.MjModel):
+            if batch_size is None or batch_size < 1:
+                raise ConfigError(f"batch_size must be a positive integer with a single model, got {batch_size!r}")
+            self._models = [models] * batch_size
+        else:
+            self._models = list(models)
+            if not self._models:
+                raise ConfigError("models must not be empty")
+            if batch_size is not None and batch_size != len(self._models):
+                raise ConfigError(f"batch_size={batch_size} but {len(self._models)} models were given")
+        for name, v in (("nconmax", nconmax), ("njmax", njmax)):
+            if not isinstance(v, (int, np.integer)) or v < 1:
+                raise ConfigError(f"{name} must be a positive integer, got {v!r}")
+        m0 = self._models[0]
+        if substeps is None:
+            substeps = max(1, int(round(1.0 / (CONTROL_HZ * m0.opt.timestep))))
+        if substeps < 1:
+            raise ConfigError(f"substeps must be >= 1, got {substeps}")
+        self.batch_size = len(self._models)
+        self.nthread = nthread
+        self.substeps = int(substeps)
+        self.timestep = float(m0.opt.timestep)
+        self.nconmax, self.njmax = int(nconmax), int(njmax)
+        self.nstate = mujoco.mj_stateSize(m0, FULLPHYSICS)
+        self._has_object = m0.nq > NUM_JOINTS
+        self._batchable, self._shared = _field_specs(mjw)
+        for i, m in enumerate(self._models):
+            self._check_structure(m, f"model {i}")
+        self._batched = {f for f in DEFAULT_BATCHED_FIELDS if f in self._batchable}
+        self._batched |= {f for f in self._batchable if self._differs(f, self._models)}
+        self._batched |= {_LIMIT_FLAGS[f] for f in _LIMIT_FLAGS if self._differs(f, self._models)}
+
+        wp.init()
+        self.device = wp.get_device(device)
+        self.torch_device = torch.device(wp.device_to_torch(self.device))
+        self._cuda_graph = bool(cuda_graph) and self.device.is_cuda
+        self._graph = None
+        B = self.batch_size
+        with wp.ScopedDevice(self.device):
+            self._put_model()
+            self._data = mjw.make_data(m0, nworld=B, nconmax=self.nconmax, njmax=self.njmax)
+            self._state_wp = wp.zeros((B, self.nstate), dtype=float)
+            self._active_wp = wp.zeros(B, dtype=bool)
+        d, T = self._data, wp.to_torch
+        self._qpos, self._qvel, self._ctrl = T(d.qpos), T(d.qvel), T(d.ctrl)
+        self._act = T(d.act) if m0.na else None
+        self._time, self._sens = T(d.time), T(d.sensordata)
+        self._warmstart, self._overflow = T(d.qacc_warmstart), T(d.overflow)
+        self._state_t, self._active_t = T(self._state_wp), T(self._active_wp)
+        from mujoco_warp._src.types import OverflowType
+        cap = OverflowType.ALL & ~(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
+        self._capacity_bits = int(cap)
+        self._world_bits = int(OverflowType.NEFC | OverflowType.NJMAX_NNZ)     # per world: that world alone
+        #: worlds flagged unstable because they needed more than ``njmax`` constraint rows
+        self.overflow_count = 0
+        self._overflow_names = {int(OverflowType.NEFC): "njmax", int(OverflowType.NJMAX_NNZ): "njmax",
+                                int(OverflowType.BROADPHASE): "nconmax", int(OverflowType.NARROWPHASE): "nconmax",
+                                int(OverflowType.CCD): "nconmax"}
+        adr = [int(m0.sensor_adr[m0.sensor(f"{s}_pos").id]) for s in TRACKED_SITES]
+        qadr = [int(m0.sensor_adr[m0.sensor(f"{s}_quat").id]) for s in TRACKED_SITES]
+        link_idx = np.array([list(range(a, a + 3)) + list(range(q, q + 4)) for a, q in zip(adr, qadr)])
+        self._link_idx = torch.as_tensor(link_idx, device=self.torch_device)
+        self._host_data = mujoco.MjData(max(self._models, key=lambda m: (m.nC, m.nbvh, m.nbvhdynamic)))
+        self._closed = False
+        self.reset()
+
+    # ---------------------------------------------------------------- models
+
+    @property
+    def models(self) -> list[mujoco.MjModel]:
+        return self._models
+
+    def _differs(self, field: str, models) -> bool:
+        ref = getattr(models[0], field)
+        return any(not np.array_equal(getattr(m, field), ref) for m in models[1:] if m is not models[0])
+
+    def _check_structure(self, m: mujoco.MjModel, what: str) -> None:
+        """Refuse a model that cannot share the device model with world 0's: another structure, or a
+        difference in a field MuJoCo Warp cannot batch per world."""
+        ref = self._models[0]
+        if m is ref:
+            return
+        if m.signature != ref.signature:
+            raise ConfigError(f"{what} differs in structure from model 0 (signature {m.signature} != "
+                              f"{ref.signature}); per-world models may differ only in parameters")
+        for name in _OPT_FIELDS:
+            if hasattr(ref.opt, name) and not np.array_equal(getattr(m.opt, name), getattr(ref.opt, name)):
+                raise ConfigError(f"{what} differs from model 0 in opt.{name}; the warp backend shares solver "
+                                  f"options between worlds (they cannot be batched)")
+        diff = [f for f in self._shared if f not in _LIMIT_FLAGS
+                and not np.array_equal(getattr(m, f), getattr(ref, f))]
+        if diff:
+            mesh = [f for f in diff if f.startswith("mesh_")]
+            if mesh:
+                raise ConfigError(f"{what} holds other mesh data than model 0 ({', '.join(mesh[:4])} …): worlds with "
+                                  f"different objects (or object scales) are not supported by the warp backend "
+                                  f"yet; use backend='rollout', or one object and scale for all worlds")
+            raise ConfigError(f"{what} differs from model 0 in {', '.join(diff)}, which MuJoCo Warp cannot set per "
+                              f"world; per-world models may differ only in batchable parameters")
+
+    def _world_value(self, m: mujoco.MjModel, field: str, flags: dict | None = None) -> np.ndarray:
+        """``field`` of ``m`` as the warp backend runs it: a range whose limit flag is off in ``m`` but
+        on in the device model is infinite (the flag is shared, the range per world)."""
+        v = np.asarray(getattr(m, field))
+        for flag, rng in _LIMIT_FLAGS.items():
+            if rng == field and flags is not None and flag in flags:
+                off = (np.asarray(getattr(m, flag)) == 0) & flags[flag]
+                if off.any():
+                    v = v.copy()
+                    v[off] = (-np.inf, np.inf)
+        return v
+
+    def _put_model(self) -> None:
+        """Put world 0's model on the device with the batched fields per world, then write every
+        world's values into them."""
+        wp, mjw = self._wp, self._mjw
+        ref = self._models[0]
+        put = ref
+        # Limit flags that differ between worlds: on for all, the range infinite where a world has none.
+        self._flags = {}
+        for flag in _LIMIT_FLAGS:
+            on = np.any([np.asarray(getattr(m, flag)) != 0 for m in self._models], axis=0)
+            if not np.array_equal(on, np.asarray(getattr(ref, flag)) != 0):
+                if put is ref:
+                    put = copy.copy(ref)
+                getattr(put, flag)[:] = on
+            self._flags[flag] = on
+        with wp.ScopedDevice(self.device):
+            self._model = mjw.put_model(put, batch_sizes={f: self.batch_size for f in sorted(self._batched)})
+        self._model.opt.warn_overflow = 0      # overflows are checked after every step and raised
+        self._fields = {f: wp.to_torch(getattr(self._model, f)) for f in sorted(self._batched)}
+        self._write_params(range(self.batch_size), self._models)
+        self._graph = None
+
+    def _write_params(self, worlds, models) -> None:
+        worlds = list(worlds)
+        idx = torch.as_tensor(worlds, dtype=torch.long, device=self.torch_device)
+        for f, t in self._fields.items():
+            host = np.stack([self._world_value(m, f, self._flags) for m in models])
+            t[idx] = torch.from_numpy(host.reshape((len(worlds),) + tuple(t.shape[1:]))).to(
+                device=self.torch_device, dtype=t.dtype)
+
+    def set_models(self, worlds: Sequence[int], models: Sequence[mujoco.MjModel]) -> None:
+        """Give ``worlds`` new models (same structure, other parameters) and write their parameters to
+        the device. Reset those worlds afterwards; their state is not converted."""
+        worlds = [int(w) for w in worlds]
+        models = list(models)
+        if len(worlds) != len(models):
+            raise ConfigError(f"{len(worlds)} worlds but {len(models)} models")
+        for w, m in zip(worlds, models):
+            if not 0 <= w < self.batch_size:
+                raise IndexError(f"world {w} out of range for batch_size={self.batch_size}")
+            if m.signature != self._models[0].signature:
+                raise ConfigError(f"model for world {w} differs in structure (signature {m.signature} != "
+                                  f"{self._models[0].signature}); build scenes with uniform_layout=True to swap objects")
+            self._check_structure(m, f"model for world {w}")
+        new = list(self._models)
+        for w, m in zip(worlds, models):
+            new[w] = m
+        grow = {f for f in self._batchable if f not in self._batched and self._differs(f, new)}
+        flags = {f for f in _LIMIT_FLAGS if self._differs(f, new)
+                 and not np.array_equal(np.any([getattr(m, f) != 0 for m in new], axis=0), self._flags[f])}
+        self._models = new
+        if grow or flags:   # a parameter that was shared now differs: put the model again
+            self._batched |= grow | {_LIMIT_FLAGS[f] for f in flags}
+            self._put_model()
+        else:
+            self._write_params(worlds, models)
+
+    # ---------------------------------------------------------------- state
+
+    def _worlds(self, worlds) -> np.ndarray:
+        idx = np.arange(self.batch_size) if worlds is None else np.asarray(worlds, dtype=np.int64).reshape(-1)
+        if idx.size and (idx.min() < 0 or idx.max() >= self.batch_size):
+            raise IndexError(f"world indices {idx.tolist()} out of range for batch_size={self.batch_size}")
+        return idx
+
+    def reset(self, qpos: np.ndarray | None = None, qvel: np.ndarray | None = None,
+              worlds: np.ndarray | Sequence[int] | None = None) -> SimReadout:
+        """Reset some worlds (all by default) to ``qpos``/``qvel`` (broadcast over the reset worlds).
+
+        As BatchedSim: positions default to each model's ``qpos0``, velocities to zero; the state and
+        sensors of the reset worlds come from C MuJoCo's ``mj_forward`` on the host (a reset is not
+        the hot path) and are written to the device.
+        """
+        idx = self._worlds(worlds)
+        m0 = self._models[0]
+        qpos_b = None if qpos is None else np.broadcast_to(np.asarray(qpos, float), (idx.size, m0.nq))
+        qvel_b = None if qvel is None else np.broadcast_to(np.asarray(qvel, float), (idx.size, m0.nv))
+        states = np.empty((idx.size, self.nstate))
+        sens = np.empty((idx.size, m0.nsensordata))
+        d = self._host_data
+        for j, w in enumerate(idx):
+            m = self._models[w]
+            mujoco.mj_resetData(m, d)
+            if qpos_b is not None:
+                d.qpos[:] = qpos_b[j]
+            if qvel_b is not None:
+                d.qvel[:] = qvel_b[j]
+            mujoco.mj_forward(m, d)
+            mujoco.mj_getState(m, d, states[j], FULLPHYSICS)
+            sens[j] = d.sensordata
+        if idx.size:
+            self._write_state(idx, states)
+            self._sens[torch.as_tensor(idx, device=self.torch_device)] = torch.from_numpy(sens).to(
+                self.torch_device, self._sens.dtype)
+        return self.readout()
+
+    def _write_state(self, idx: np.ndarray, states: np.ndarray) -> None:
+        tidx = torch.as_tensor(idx, device=self.torch_device)
+        self._state_t[tidx] = torch.as_tensor(states).to(self.torch_device, self._state_t.dtype)
+        self._active_t.zero_()
+        self._active_t[tidx] = True
+        self._mjw.set_state(self._model, self._data, self._state_wp, FULLPHYSICS, active=self._active_wp)
+        self._warmstart[tidx] = 0
+        self._overflow[tidx] = 0
+
+    @property
+    def state(self) -> np.ndarray:
+        """(B, nstate) full-physics states (``mj_getState`` layout), a host copy."""
+        self._mjw.get_state(self._model, self._data, self._state_wp, FULLPHYSICS)
+        return self._state_t.detach().cpu().numpy().astype(np.float64)
+
+    def set_state(self, state: np.ndarray, worlds=None) -> None:
+        """Overwrite full-physics states (``(B, nstate)`` or ``(len(worlds), nstate)``); sensors
+        are recomputed by the next step, as in BatchedSim."""
+        idx = self._worlds(worlds)
+        states = np.asarray(state, dtype=np.float64).reshape(idx.size, self.nstate)
+        self._write_state(idx, states)
+
+    # ---------------------------------------------------------------- stepping
+
+    def _physics(self) -> None:
+        """``substeps`` physics steps of every world (a replayed CUDA graph on a GPU)."""
+        wp, mjw = self._wp, self._mjw
+        if self._graph is not None:
+            wp.capture_launch(self._graph)
+            return
+        with wp.ScopedDevice(self.device):
+            for _ in range(self.substeps):
+                mjw.step(self._model, self._data)
+        if self._cuda_graph:         # kernels are compiled now: capture the next control steps
+            with wp.ScopedDevice(self.device), wp.ScopedCapture() as capture:
+                for _ in range(self.substeps):
+                    mjw.step(self._model, self._data)
+            self._graph = capture.graph     # capturing records the launches without running them
+
+    def step_device(self, ctrl) -> DeviceReadout:
+        """Advance every world by one control step with ``ctrl`` (B, nu) held, returning the
+        :class:`DeviceReadout` (no host copy except the overflow check)."""
+        nu = self._ctrl.shape[1]
+        if isinstance(ctrl, torch.Tensor):
+            c = ctrl.detach()
+        else:
+            c = torch.from_numpy(np.asarray(ctrl, dtype=np.float64))
+        if tuple(c.shape) != (self.batch_size, nu):
+            raise ArrayError(f"ctrl must have shape {(self.batch_size, nu)}, got {tuple(c.shape)}")
+        self._ctrl.copy_(c)
+        t_expected = self._time + self.substeps * self.timestep
+        self._physics()
+        out = self.device_readout()
+        out.unstable |= (self._time - t_expected).abs() > 0.5 * self.timestep
+        out.unstable |= self._check_overflow()
+        return out
+
+    def step(self, ctrl) -> SimReadout:
+        """Advance every world by one control step with ``ctrl`` (B, nu) held constant (numpy or torch)."""
+        return self.step_device(ctrl).numpy()
+
+    def _check_overflow(self) -> torch.Tensor:
+        """(B,) worlds that ran out of constraint rows (``njmax``), to be flagged unstable; raises a
+        ConfigError when the contact buffers (``nconmax``, shared by all worlds) overflowed."""
+        flags = self._overflow & self._capacity_bits
+        if not bool(flags.any()):          # the step's one device-to-host read
+            return torch.zeros_like(self._time, dtype=torch.bool)
+        bits = int(np.bitwise_or.reduce(flags.cpu().numpy()))
+        shared = bits & ~self._world_bits
+        if shared:
+            settings = sorted({name for b, name in self._overflow_names.items() if shared & b}) or ["nconmax"]
+            now = {"nconmax": self.nconmax, "njmax": self.njmax}
+            raise ConfigError(
+                f"MuJoCo Warp ran out of contact capacity in this control step (overflow flags {shared:#x}) and "
+                f"dropped contacts in worlds that share the buffers, so the physics is wrong; raise "
+                + " and ".join(f"{s} (now {now.get(s, '?')} per world)" for s in settings)
+                + " when making the sim (BatchedSim(..., backend='warp', nconmax=..., njmax=...))")
+        over = (flags & self._world_bits) != 0
+        self.overflow_count += int(over.sum())
+        return over
+
+    def device_readout(self) -> DeviceReadout:
+        """Current readouts of all worlds as float32 torch tensors on the device."""
+        qpos, qvel = self._qpos, self._qvel
+        B = self.batch_size
+        if self._has_object:
+            obj = qpos[:, NUM_JOINTS:NUM_JOINTS + 7].clone()
+            obj_vel = qvel[:, NUM_JOINTS:NUM_JOINTS + 6].clone()
+        else:
+            obj = torch.zeros((B, 7), device=self.torch_device, dtype=qpos.dtype)
+            obj_vel = torch.zeros((B, 6), device=self.torch_device, dtype=qpos.dtype)
+        parts = [qpos, qvel] + ([self._act] if self._act is not None else [])
+        unstable = torch.zeros(B, dtype=torch.bool, device=self.torch_device)
+        for p in parts:
+            unstable |= ~torch.isfinite(p).all(dim=1) | (p.abs() > MAX_STATE_VALUE).any(dim=1)
+        unstable |= ~torch.isfinite(self._time)
+        return DeviceReadout(
+            time=self._time.clone(),
+            joint_pos=qpos[:, :NUM_JOINTS].clone(),
+            joint_vel=qvel[:, :NUM_JOINTS].clone(),
+            link_pose=self._sens[:, self._link_idx],
+            object_pose=obj,
+            object_vel=obj_vel,
+            unstable=unstable,
+        )
+
+    def readout(self) -> SimReadout:
+        """Current readouts of all worlds (numpy, float64 host copies)."""
+        return self.device_readout().numpy()
+
+    def close(self) -> None:
+        """Release the device arrays (the object is unusable afterwards)."""
+        if getattr(self, "_closed", True):
+            return
+        self._closed = True
+        self._graph = None
+        for name in ("_model", "_data", "_fields", "_state_wp", "_active_wp", "_qpos", "_qvel", "_ctrl", "_act",
+                     "_time", "_sens", "_warmstart", "_overflow", "_state_t", "_active_t"):
+            if hasattr(self, name):
+                setattr(self, name, None)
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass

@@ -1,0 +1,183 @@
+"""The MuJoCo Warp backend (``BatchedSim(..., backend="warp")``) against the mujoco.rollout backend, on
+Warp's CPU device. Every sim here uses one scene structure (the uniform-layout scenes) and the same
+capacities, so Warp compiles its kernels once per session (about a minute cold, cached afterwards)."""
+
+import copy
+import sys
+
+import mujoco
+import numpy as np
+import pytest
+
+from adadex.errors import ConfigError
+from adadex.sim.batched import BatchedSim
+from adadex.sim.robot import joint_limits
+from adadex.sim.scene import OBJECT_QPOS, build_scene_model, build_scene_spec, home_state
+
+
+def test_missing_extra_says_how_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "mujoco_warp", None)      # import fails as if not installed
+    with pytest.raises(ConfigError, match=r'pip install "adadex\[warp\]"'):
+        BatchedSim(build_scene_model("mug_00", uniform_layout=True), 2, backend="warp")
+    with pytest.raises(ConfigError, match="backend must be one of"):
+        BatchedSim(build_scene_model("mug_00", uniform_layout=True), 2, backend="jax")
+
+
+@pytest.fixture(scope="module")
+def warp():
+    """Warp on its CPU device, quiet; the kernel cache is Warp's own (kept between runs)."""
+    pytest.importorskip("mujoco_warp")
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    return wp
+
+
+@pytest.fixture(scope="module")
+def mug():
+    return build_scene_model("mug_00", uniform_layout=True)
+
+
+def _sims(models, **kw):
+    return (BatchedSim(models, backend="warp", device="cpu", **kw), BatchedSim(models, nthread=2))
+
+
+def _random_ctrls(model, steps, batch, seed, sigma=0.05):
+    lim = joint_limits()
+    rng = np.random.default_rng(seed)
+    _, home = home_state(model)
+    return np.clip(home + np.cumsum(rng.normal(0, sigma, (steps, batch, 22)), axis=0), lim[:, 0], lim[:, 1])
+
+
+def _overflow(sim):
+    """Capacity overflow flags set so far (solver iteration limits are not overflows)."""
+    return int(np.bitwise_or.reduce(sim._overflow.cpu().numpy())) & sim._capacity_bits
+
+
+def _scaled_gains(model, k):
+    m = copy.copy(model)
+    m.actuator_gainprm[:, 0] *= k
+    m.actuator_biasprm[:, 1] *= k
+    return m
+
+
+def test_free_motion_and_per_world_gains_match_rollout(warp, mug):
+    """Worlds with servo gains ×1, ×0.5, ×2 (per-world parameters) follow their own rollout models
+    to 1e-5 rad after 1 s of changing commands; the device readout holds the same numbers."""
+    models = [mug, _scaled_gains(mug, 0.5), _scaled_gains(mug, 2.0)]
+    ws, rs = _sims(models)
+    assert "actuator_gainprm" in ws._batched
+    qpos, _ = home_state(mug)
+    ws.reset(qpos=qpos)
+    rs.reset(qpos=qpos)
+    for c in _random_ctrls(mug, 12, 3, seed=1):
+        a, b = ws.step(c), rs.step(c)
+    assert not a.unstable.any() and _overflow(ws) == 0
+    np.testing.assert_allclose(a.time, b.time, atol=1e-5)
+    assert np.abs(a.joint_pos - b.joint_pos).max() < 1e-5
+    assert np.abs(a.link_pose - b.link_pose).max() < 1e-5
+    assert np.abs(a.joint_vel - b.joint_vel).max() < 1e-3
+    # the gains matter: the three worlds moved apart under the same commands
+    assert np.abs(a.joint_pos[1] - a.joint_pos[2]).max() > 1e-3
+    dev = ws.device_readout()
+    assert dev.joint_pos.device.type == "cpu" and dev.link_pose.shape == (3, 5, 7)
+    np.testing.assert_allclose(dev.joint_pos.numpy(), a.joint_pos, atol=1e-7)
+    np.testing.assert_allclose(ws.state[:, 1:1 + mug.nq], rs.state[:, 1:1 + mug.nq], atol=1e-4)
+    # set_models writes a world's new parameters: world 1 back to nominal gains matches world 0
+    ws.set_models([1], [mug])
+    ws.reset(qpos=qpos)
+    for c in _random_ctrls(mug, 3, 1, seed=2):
+        a = ws.step(np.repeat(c, 3, axis=0))
+    np.testing.assert_array_equal(a.joint_pos[0], a.joint_pos[1])
+    ws.close()
+
+
+def test_contact_drop_and_push_match_rollout(warp, mug):
+    """The mug dropped from 2 cm while the arm moves: object within 0.1 mm, joints within 1e-3 rad."""
+    ws, rs = _sims([mug, mug])
+    qpos, _ = home_state(mug)
+    qpos[OBJECT_QPOS.start + 2] += 0.02
+    ws.reset(qpos=qpos)
+    rs.reset(qpos=qpos)
+    for c in _random_ctrls(mug, 18, 2, seed=3):
+        a, b = ws.step(c), rs.step(c)
+    assert not a.unstable.any() and _overflow(ws) == 0
+    assert np.abs(a.object_pose - b.object_pose).max() < 1e-4
+    assert np.abs(a.joint_pos - b.joint_pos).max() < 1e-3
+    assert a.object_pose[0, 2] < qpos[OBJECT_QPOS.start + 2] - 0.015      # it did fall onto the table
+    ws.close()
+
+
+def test_scripted_grasp_lifts_and_slips_as_rollout(warp, mug, monkeypatch):
+    """The scripted pinch-and-lift of the mug: lift and slip agree with the rollout backend."""
+    import adadex.sim.grasp as grasp
+
+    ref = grasp.scripted_grasp_lift("mug_00", model=mug, hold_s=1.0)
+    made = []
+
+    def warp_sim(model, batch, nthread=0):
+        made.append(BatchedSim(model, batch, backend="warp", device="cpu"))
+        return made[-1]
+
+    monkeypatch.setattr(grasp, "BatchedSim", warp_sim)
+    got = grasp.scripted_grasp_lift("mug_00", model=mug, hold_s=1.0)
+    assert not got.unstable and not ref.unstable
+    assert ref.lift_achieved > 0.05
+    # measured: lift 81.215 vs 81.231 mm, slip 5.721 vs 5.725 mm, heights within 0.06 mm
+    assert abs(got.lift_achieved - ref.lift_achieved) < 2e-4, (got.lift_achieved, ref.lift_achieved)
+    assert abs(got.max_slip - ref.max_slip) < 2e-4, (got.max_slip, ref.max_slip)
+    assert np.abs(got.object_height - ref.object_height).max() < 2e-4
+    assert made[0].overflow_count == 0          # no world ran out of constraint rows (contacts would raise)
+
+
+def test_unstable_world_is_flagged_and_others_unaffected(warp):
+    spec = build_scene_spec("mug_00", uniform_layout=True)
+    stable = spec.compile()
+    wild = spec.compile()
+    wild.actuator_gainprm[:, 0] *= 1e4
+    wild.actuator_biasprm[:, 1] *= 1e4
+    wild.actuator_forcerange[:] *= 1e4
+    wild.jnt_actfrcrange[:] *= 1e4
+    wild.dof_armature[:] = 0
+    ws, rs = _sims([stable, wild, stable])
+    qpos, ctrl = home_state(stable)
+    ws.reset(qpos=qpos)
+    rs.reset(qpos=qpos)
+    target = ctrl.copy()
+    target[:6] += 0.5
+    flagged = np.zeros(3, bool)
+    for _ in range(6):
+        a = ws.step(np.tile(target, (3, 1)))
+        b = rs.step(np.tile(target, (3, 1)))
+        flagged |= a.unstable
+    assert flagged.tolist() == [False, True, False]
+    assert np.abs(a.joint_pos[[0, 2]] - b.joint_pos[[0, 2]]).max() < 1e-5
+    ws.reset(qpos=qpos, worlds=[1])            # the caller puts the world back
+    assert not ws.readout().unstable.any()
+    ws.close()
+
+
+def test_capacity_overflows_never_pass_silently(warp, mug):
+    """Too few contact slots (shared by all worlds) raise naming nconmax; too few constraint rows
+    (per world) flag that world unstable until it is reset."""
+    qpos, ctrl = home_state(mug)
+    ws = BatchedSim([mug], backend="warp", device="cpu", nconmax=2)
+    ws.reset(qpos=qpos)
+    with pytest.raises(ConfigError, match="raise nconmax"):
+        ws.step(ctrl[None])
+    ws = BatchedSim([mug, mug], backend="warp", device="cpu", njmax=8)
+    ws.reset(qpos=qpos)
+    assert ws.step(np.tile(ctrl, (2, 1))).unstable.tolist() == [True, True]
+    assert ws.overflow_count == 2
+    ws.reset(qpos=qpos, worlds=[0])
+    assert _overflow(ws) != 0 and int(ws._overflow[0]) == 0
+
+
+def test_unbatchable_difference_is_refused(warp, mug):
+    other = copy.copy(mug)
+    other.geom_condim[-1] = 1 if mug.geom_condim[-1] != 1 else 3
+    with pytest.raises(ConfigError, match="geom_condim"):
+        BatchedSim([mug, other], backend="warp", device="cpu")
+    with pytest.raises(ConfigError, match="mesh"):
+        BatchedSim([mug, build_scene_model("torus_00", uniform_layout=True)], backend="warp", device="cpu")

@@ -75,7 +75,7 @@ from adadex.envs.randomization import ModelRandomizer, Randomization
 from adadex.envs.reward import TERM_NAMES, RewardConfig, tracking_reward
 from adadex.errors import ArrayError, ConfigError, check_array, check_number, check_numbers
 from adadex.geometry import Rotation, quat, rotation
-from adadex.sim.batched import MAX_OBJECT_SPEED, BatchedSim, flung
+from adadex.sim.batched import MAX_OBJECT_SPEED, BatchedSim, check_backend, flung
 from adadex.sim.effects import ModelBase
 from adadex.sim.patch import EffectInstance, ModelPatch, patched_scene
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES, joint_limits
@@ -168,6 +168,10 @@ class TrackingEnv(EnvBase):
             workers get them from the main process, so they start without compiling).
         draw: ``"random"`` (each reset draws a reference at random) or ``"cycle"`` (world ``w`` takes
             the split's references ``w, w + B, w + 2B, …`` in turn: every reference once, for evaluation).
+        backend: the physics of :class:`~adadex.sim.batched.BatchedSim`: ``"rollout"`` (MuJoCo on the
+            CPU cores) or ``"warp"`` (MuJoCo Warp on its default device, a GPU when there is one;
+            ``pip install "adadex[warp]"``). The env itself stays on the CPU either way for now and
+            hands out CPU tensors.
     """
 
     batch_locked = True
@@ -177,7 +181,7 @@ class TrackingEnv(EnvBase):
                  latent_fn: Callable[[str], np.ndarray] = encoder_latent,
                  randomize: Randomization | None = None, patch=None, effects=None,
                  nthread: int = 2, seed: int = 0, draw: str = "random", references=None, device="cpu",
-                 scenes: dict | None = None):
+                 scenes: dict | None = None, backend: str = "rollout"):
         num_worlds = int(check_number("TrackingEnv num_worlds", num_worlds, low=1, integer=True))
         if torch.device(device).type != "cpu":
             raise ConfigError(f"TrackingEnv(device={device!r}): the env runs on the CPU (MuJoCo physics) and hands "
@@ -233,7 +237,8 @@ class TrackingEnv(EnvBase):
         # Compile every scene once; the data shared by the worlds is sized for the largest.
         scenes = [self._scene(n, 1.0) for n in objects]
         biggest = max(scenes, key=lambda m: (m.nC, m.nbvh, m.nbvhdynamic))
-        self.sim = BatchedSim([biggest] + [self._scene(first, 1.0)] * (B - 1), nthread=nthread)
+        self.sim = BatchedSim([biggest] + [self._scene(first, 1.0)] * (B - 1), nthread=nthread,
+                              backend=check_backend(backend))
         self.sim.set_models([0], [self._scene(first, 1.0)])
         self._randomizer = ModelRandomizer(biggest) if randomize is not None else None
         self._make_specs()

@@ -29,9 +29,14 @@ What it takes to match the rollout backend (tested against it on Warp's CPU devi
   ``set_models`` writes a world's new values into them. A field MuJoCo Warp cannot batch (geom
   types, contact filters, solver options, mesh data …) must be equal in every world, else a
   ``ConfigError`` names it — it is never silently taken from world 0.
-* **Different objects per world** need different mesh data, which MuJoCo Warp shares between
-  worlds: not supported yet (a ``ConfigError`` names the mesh fields). Worlds may hold the same
-  object under different parameters (mass, friction …).
+* **Different objects per world** (uniform-layout scenes, any object at any size): MuJoCo Warp
+  shares mesh data between worlds, so every distinct mesh of the worlds' models goes into one
+  :class:`MeshPool` and each world points its object geoms at its own meshes (``geom_dataid``
+  per world). Collision pairs are fixed when the model is put on the device, so every geom slot
+  some world's object uses is made colliding, and a world whose object has fewer parts parks the
+  slots it leaves unused (:data:`PARKED_MARGIN`: never touching anything); the pads' mass is in
+  that world's own body mass. Worlds of 1-, 16- and 21-part objects and a resized mug rest as in
+  their own rollout models (tested).
 * **Stability**: MuJoCo Warp neither resets a diverging world nor stops its (float32) time, so the
   ``unstable`` mask is the backend's own check: a non-finite or absurd (> 1e10, MuJoCo's
   ``mjMAXVAL``) position, velocity or activation, or a time that did not advance by the control
@@ -168,6 +173,138 @@ _OPT_FIELDS = ("timestep", "tolerance", "ls_tolerance", "noslip_tolerance", "ccd
 _LIMIT_FLAGS = {"actuator_forcelimited": "actuator_forcerange", "jnt_actfrclimited": "jnt_actfrcrange"}
 
 
+#: Geom fields of a slot (one geom index) that only matter where the slot collides: a world whose
+#: model leaves a slot non-colliding (a pad) may hold anything there.
+_SLOT_FIELDS = ("geom_contype", "geom_conaffinity", "geom_condim", "geom_priority")
+#: Shared model fields never read while stepping (keyframes are applied on the host).
+_IGNORED = frozenset({"key_time", "key_qpos", "key_qvel", "key_act", "key_mpos", "key_mquat", "key_ctrl",
+                      "key_plastic"})
+
+
+def _active_slots(m: mujoco.MjModel) -> np.ndarray:
+    """(ngeom,) which geoms can collide in ``m``."""
+    return (np.asarray(m.geom_contype) != 0) | (np.asarray(m.geom_conaffinity) != 0)
+
+
+def _sleeps(m: mujoco.MjModel) -> bool:
+    """Whether sleeping is on (then ``dof_length``, which scales the sleep test, matters)."""
+    return bool(m.opt.enableflags & int(mujoco.mjtEnableBit.mjENBL_SLEEP))
+
+
+def _has_rays(m: mujoco.MjModel) -> bool:
+    """Whether a sensor casts rays (then ``geom_group``, which rays filter on, matters)."""
+    return bool(np.isin(m.sensor_type, [int(mujoco.mjtSensor.mjSENS_RANGEFINDER)]).any())
+
+
+#: ``geom_margin`` of a geom slot a world does not use (a pad of a smaller object, see
+#: :func:`adadex.sim.objects.add_object_geoms`): margins add up, and MuJoCo Warp's plane and
+#: oriented-box broadphase filters reject any pair whose summed margin is this negative, so the slot
+#: never touches anything in that world (it is not moved: its mass is already in the world's body).
+PARKED_MARGIN = -1.0e4
+
+_MESH_FIELDS = ("mesh_vertadr", "mesh_vertnum", "mesh_faceadr", "mesh_normaladr", "mesh_normalnum", "mesh_graphadr",
+                "mesh_vert", "mesh_normal", "mesh_face", "mesh_graph", "mesh_pos", "mesh_quat", "mesh_polynum",
+                "mesh_polyadr", "mesh_polynormal", "mesh_polyvertadr", "mesh_polyvertnum", "mesh_polyvert",
+                "mesh_polymapadr", "mesh_polymapnum", "mesh_polymap", "mesh_octadr")
+
+
+class MeshPool:
+    """Every distinct mesh of the worlds' models, concatenated into MuJoCo Warp's mesh arrays.
+
+    MuJoCo Warp shares mesh data between worlds but lets each world choose a geom's mesh
+    (``geom_dataid`` is batchable), so worlds holding different objects (or one object at different
+    sizes) point their object geoms at their own meshes in one pool. Meshes are taken from the
+    compiled models as they are (convex hull graph and polygons included: MuJoCo builds them for the
+    colliding geoms that use them) and keyed by content, so a mesh shared by many worlds is stored
+    once. The pool grows when a model with a new mesh arrives (``set_models``)."""
+
+    def __init__(self):
+        self._index: dict[bytes, int] = {}
+        self._meshes: list[dict] = []
+        self.npolygonmax = 0
+        self.nmeshdegmax = 0
+        self._maps: dict[int, tuple[mujoco.MjModel, np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return len(self._meshes)
+
+    @staticmethod
+    def _mesh(m: mujoco.MjModel, i: int) -> dict:
+        va, vn = int(m.mesh_vertadr[i]), int(m.mesh_vertnum[i])
+        fa, fn = int(m.mesh_faceadr[i]), int(m.mesh_facenum[i])
+        na, nn = int(m.mesh_normaladr[i]), int(m.mesh_normalnum[i])
+        pa, pn = int(m.mesh_polyadr[i]), int(m.mesh_polynum[i])
+        ga = int(m.mesh_graphadr[i])
+        graph = None
+        if ga >= 0:
+            nv, nf = int(m.mesh_graph[ga]), int(m.mesh_graph[ga + 1])
+            graph = m.mesh_graph[ga:ga + 2 + 3 * nv + 6 * nf].copy()
+        pvadr, pvnum = m.mesh_polyvertadr[pa:pa + pn], m.mesh_polyvertnum[pa:pa + pn]
+        pmadr, pmnum = m.mesh_polymapadr[va:va + vn], m.mesh_polymapnum[va:va + vn]
+        return dict(
+            vert=m.mesh_vert[va:va + vn].copy(), normal=m.mesh_normal[na:na + nn].copy(),
+            face=m.mesh_face[fa:fa + fn].copy(), graph=graph, pos=m.mesh_pos[i].copy(), quat=m.mesh_quat[i].copy(),
+            polynormal=m.mesh_polynormal[pa:pa + pn].copy(), polyvertnum=pvnum.copy(),
+            polyvert=np.concatenate([m.mesh_polyvert[a:a + n] for a, n in zip(pvadr, pvnum)] or [np.zeros(0, int)]),
+            polymapnum=pmnum.copy(),
+            polymap=np.concatenate([m.mesh_polymap[a:a + n] for a, n in zip(pmadr, pmnum)] or [np.zeros(0, int)]))
+
+    def ids(self, m: mujoco.MjModel) -> np.ndarray:
+        """(ngeom,) ``geom_dataid`` of ``m`` in the pool (meshes added as needed); other geoms keep theirs."""
+        hit = self._maps.get(id(m))
+        if hit is not None and hit[0] is m:
+            return hit[1]
+        local = np.full(m.nmesh, -1)
+        for i in range(m.nmesh):
+            mesh = self._mesh(m, i)
+            key = b"".join(np.ascontiguousarray(mesh[k]).tobytes() for k in ("vert", "face", "pos", "quat"))
+            j = self._index.get(key)
+            if j is None:
+                j = self._index[key] = len(self._meshes)
+                self._meshes.append(mesh)
+            local[i] = j
+        self.npolygonmax = max(self.npolygonmax, int(m.npolygonmax))
+        self.nmeshdegmax = max(self.nmeshdegmax, int(m.nmeshdegmax))
+        out = np.asarray(m.geom_dataid).copy()
+        is_mesh = (m.geom_type == int(mujoco.mjtGeom.mjGEOM_MESH)) & (out >= 0)
+        out[is_mesh] = local[out[is_mesh]]
+        if len(self._maps) > 512:
+            self._maps.clear()
+        self._maps[id(m)] = (m, out)
+        return out
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The pool as MuJoCo Warp's ``mesh_*`` arrays (addresses rebased, indices stay per mesh)."""
+        out = {f: [] for f in _MESH_FIELDS}
+        v = n = fc = g = p = pv = pm = 0
+        for mesh in self._meshes:
+            nv, nn, nf, npoly = len(mesh["vert"]), len(mesh["normal"]), len(mesh["face"]), len(mesh["polynormal"])
+            out["mesh_vertadr"].append([v]), out["mesh_vertnum"].append([nv])
+            out["mesh_normaladr"].append([n]), out["mesh_normalnum"].append([nn])
+            out["mesh_faceadr"].append([fc])
+            out["mesh_graphadr"].append([g if mesh["graph"] is not None else -1])
+            out["mesh_vert"].append(mesh["vert"]), out["mesh_normal"].append(mesh["normal"])
+            out["mesh_face"].append(mesh["face"])
+            if mesh["graph"] is not None:
+                out["mesh_graph"].append(mesh["graph"])
+                g += len(mesh["graph"])
+            out["mesh_pos"].append(mesh["pos"][None]), out["mesh_quat"].append(mesh["quat"][None])
+            out["mesh_polynum"].append([npoly]), out["mesh_polyadr"].append([p])
+            out["mesh_polynormal"].append(mesh["polynormal"]), out["mesh_polyvertnum"].append(mesh["polyvertnum"])
+            out["mesh_polyvertadr"].append(pv + np.concatenate([[0], np.cumsum(mesh["polyvertnum"])[:-1]])
+                                           if npoly else np.zeros(0, int))
+            out["mesh_polyvert"].append(mesh["polyvert"])
+            out["mesh_polymapnum"].append(mesh["polymapnum"])
+            out["mesh_polymapadr"].append(pm + np.concatenate([[0], np.cumsum(mesh["polymapnum"])[:-1]]))
+            out["mesh_polymap"].append(mesh["polymap"])
+            out["mesh_octadr"].append([-1])
+            v, n, fc, p = v + nv, n + nn, fc + nf, p + npoly
+            pv += len(mesh["polyvert"])
+            pm += len(mesh["polymap"])
+        return {f: np.concatenate([np.asarray(a) for a in parts]) if parts else np.zeros(0)
+                for f, parts in out.items()}
+
+
 class WarpSim:
     """B worlds stepped together by MuJoCo Warp; see the module docstring.
 
@@ -213,11 +350,17 @@ class WarpSim:
         self.nstate = mujoco.mj_stateSize(m0, FULLPHYSICS)
         self._has_object = m0.nq > NUM_JOINTS
         self._batchable, self._shared = _field_specs(mjw)
+        # The device model is world 0's with two kinds of edits (the "template"): geom slots that some
+        # world uses (a larger object's parts) are made colliding, and limit flags that some world sets
+        # are on (see _compare). Every world's own values go into the batched fields.
+        self._template = copy.copy(m0)
+        self._batched = {f for f in DEFAULT_BATCHED_FIELDS if f in self._batchable} | {"geom_dataid", "geom_margin"}
+        self._checked: dict[int, mujoco.MjModel] = {}
         for i, m in enumerate(self._models):
-            self._check_structure(m, f"model {i}")
-        self._batched = {f for f in DEFAULT_BATCHED_FIELDS if f in self._batchable}
-        self._batched |= {f for f in self._batchable if self._differs(f, self._models)}
-        self._batched |= {_LIMIT_FLAGS[f] for f in _LIMIT_FLAGS if self._differs(f, self._models)}
+            self._adopt(m, f"model {i}")
+        self._pool = MeshPool()
+        for m in self._models:
+            self._pool.ids(m)
 
         wp.init()
         self.device = wp.get_device(device)
@@ -259,101 +402,152 @@ class WarpSim:
     def models(self) -> list[mujoco.MjModel]:
         return self._models
 
-    def _differs(self, field: str, models) -> bool:
-        ref = getattr(models[0], field)
-        return any(not np.array_equal(getattr(m, field), ref) for m in models[1:] if m is not models[0])
-
-    def _check_structure(self, m: mujoco.MjModel, what: str) -> None:
-        """Refuse a model that cannot share the device model with world 0's: another structure, or a
-        difference in a field MuJoCo Warp cannot batch per world."""
-        ref = self._models[0]
-        if m is ref:
-            return
-        if m.signature != ref.signature:
+    def _compare(self, m: mujoco.MjModel, what: str) -> tuple[set, np.ndarray, dict]:
+        """What the device model must change to run ``m`` in a world: (fields to batch, geom slots to
+        make colliding, limit flags to turn on); a ConfigError for a difference MuJoCo Warp cannot
+        hold per world (another structure, solver options, geom types or contact filters of a slot
+        both use, …)."""
+        t = self._template
+        if m.signature != t.signature:
             raise ConfigError(f"{what} differs in structure from model 0 (signature {m.signature} != "
-                              f"{ref.signature}); per-world models may differ only in parameters")
+                              f"{t.signature}); per-world models may differ only in parameters; build scenes "
+                              f"with uniform_layout=True to hold different objects")
         for name in _OPT_FIELDS:
-            if hasattr(ref.opt, name) and not np.array_equal(getattr(m.opt, name), getattr(ref.opt, name)):
+            if hasattr(t.opt, name) and not np.array_equal(getattr(m.opt, name), getattr(t.opt, name)):
                 raise ConfigError(f"{what} differs from model 0 in opt.{name}; the warp backend shares solver "
                                   f"options between worlds (they cannot be batched)")
-        diff = [f for f in self._shared if f not in _LIMIT_FLAGS
-                and not np.array_equal(getattr(m, f), getattr(ref, f))]
+        act_t, act_m = _active_slots(t), _active_slots(m)
+        both = act_t & act_m
+        diff = []
+        for f in self._shared:
+            if f in _LIMIT_FLAGS or f.startswith("mesh_") or f in _IGNORED or (f == "dof_length" and not _sleeps(t)):
+                continue                      # meshes: the pool; ignored: never read while stepping
+            if f == "geom_group" and not _has_rays(t):
+                continue
+            a, b = np.asarray(getattr(m, f)), np.asarray(getattr(t, f))
+            if f in _SLOT_FIELDS:
+                a, b = a[both], b[both]       # a slot one of them leaves unused takes the other's values
+            if not np.array_equal(a, b):
+                diff.append(f)
         if diff:
-            mesh = [f for f in diff if f.startswith("mesh_")]
-            if mesh:
-                raise ConfigError(f"{what} holds other mesh data than model 0 ({', '.join(mesh[:4])} …): worlds with "
-                                  f"different objects (or object scales) are not supported by the warp backend "
-                                  f"yet; use backend='rollout', or one object and scale for all worlds")
             raise ConfigError(f"{what} differs from model 0 in {', '.join(diff)}, which MuJoCo Warp cannot set per "
                               f"world; per-world models may differ only in batchable parameters")
-
-    def _world_value(self, m: mujoco.MjModel, field: str, flags: dict | None = None) -> np.ndarray:
-        """``field`` of ``m`` as the warp backend runs it: a range whose limit flag is off in ``m`` but
-        on in the device model is infinite (the flag is shared, the range per world)."""
-        v = np.asarray(getattr(m, field))
+        batch = {f for f in self._batchable if f not in self._batched
+                 and not np.array_equal(getattr(m, f), getattr(t, f))}
+        flags = {}
         for flag, rng in _LIMIT_FLAGS.items():
-            if rng == field and flags is not None and flag in flags:
-                off = (np.asarray(getattr(m, flag)) == 0) & flags[flag]
+            on_m, on_t = np.asarray(getattr(m, flag)) != 0, np.asarray(getattr(t, flag)) != 0
+            if (on_m & ~on_t).any():
+                flags[flag] = on_m | on_t
+            if (on_m != on_t).any():
+                batch.add(rng)            # the range carries the difference: infinite where off
+        return batch - self._batched, act_m & ~act_t, flags
+
+    def _adopt(self, m: mujoco.MjModel, what: str) -> bool:
+        """Check ``m`` and change the template to hold it; whether the device model must be put again."""
+        hit = self._checked.get(id(m))
+        if hit is m:
+            return False
+        batch, slots, flags = self._compare(m, what)
+        t = self._template
+        for f in _SLOT_FIELDS:
+            getattr(t, f)[slots] = getattr(m, f)[slots]
+        for flag, on in flags.items():
+            getattr(t, flag)[:] = on
+        self._batched |= batch
+        changed = bool(batch or slots.any() or flags)
+        if not changed:
+            if len(self._checked) > 512:
+                self._checked.clear()
+            self._checked[id(m)] = m
+        return changed
+
+    def _world_value(self, m: mujoco.MjModel, field: str) -> np.ndarray:
+        """``field`` of ``m`` as the device model runs it: mesh ids in the pool; geom slots ``m`` leaves
+        unused parked (:data:`PARKED_MARGIN`); a range whose limit flag is off in ``m`` but on in the
+        device model infinite (the flag is shared, the range per world)."""
+        t = self._template
+        if field == "geom_dataid":
+            return self._pool.ids(m)
+        v = np.asarray(getattr(m, field))
+        if field == "geom_margin":
+            parked = _active_slots(t) & ~_active_slots(m)
+            if parked.any():
+                v = v.copy()
+                v[parked] = PARKED_MARGIN
+        for flag, rng in _LIMIT_FLAGS.items():
+            if rng == field:
+                off = (np.asarray(getattr(m, flag)) == 0) & (np.asarray(getattr(t, flag)) != 0)
                 if off.any():
                     v = v.copy()
                     v[off] = (-np.inf, np.inf)
         return v
 
     def _put_model(self) -> None:
-        """Put world 0's model on the device with the batched fields per world, then write every
-        world's values into them."""
+        """Put the template on the device with the batched fields per world, the mesh pool in place
+        of its meshes, then write every world's values."""
         wp, mjw = self._wp, self._mjw
-        ref = self._models[0]
-        put = ref
-        # Limit flags that differ between worlds: on for all, the range infinite where a world has none.
-        self._flags = {}
-        for flag in _LIMIT_FLAGS:
-            on = np.any([np.asarray(getattr(m, flag)) != 0 for m in self._models], axis=0)
-            if not np.array_equal(on, np.asarray(getattr(ref, flag)) != 0):
-                if put is ref:
-                    put = copy.copy(ref)
-                getattr(put, flag)[:] = on
-            self._flags[flag] = on
         with wp.ScopedDevice(self.device):
-            self._model = mjw.put_model(put, batch_sizes={f: self.batch_size for f in sorted(self._batched)})
-        self._model.opt.warn_overflow = 0      # overflows are checked after every step and raised
+            self._model = mjw.put_model(self._template,
+                                        batch_sizes={f: self.batch_size for f in sorted(self._batched)})
+        self._model.opt.warn_overflow = 0      # overflows are checked after every step (see _check_overflow)
         self._fields = {f: wp.to_torch(getattr(self._model, f)) for f in sorted(self._batched)}
+        self._upload_meshes()
         self._write_params(range(self.batch_size), self._models)
+
+    def _upload_meshes(self) -> None:
+        """The pool's meshes as the device model's mesh arrays (replacing world 0's)."""
+        wp, mm = self._wp, self._model
+        arrays = self._pool.arrays()
+        for f, host in arrays.items():
+            dtype = getattr(mm, f).dtype
+            scalar = wp.dtype_to_numpy(getattr(dtype, "_wp_scalar_type_", dtype))
+            setattr(mm, f, wp.array(np.ascontiguousarray(host, dtype=scalar), dtype=dtype, device=self.device)
+                    if host.size else wp.zeros(0, dtype=dtype, device=self.device))
+        mm.nmesh = len(self._pool)
+        for n, f in (("nmeshvert", "mesh_vert"), ("nmeshnormal", "mesh_normal"), ("nmeshface", "mesh_face"),
+                     ("nmeshgraph", "mesh_graph"), ("nmeshpoly", "mesh_polynormal"),
+                     ("nmeshpolyvert", "mesh_polyvert"), ("nmeshpolymap", "mesh_polymap")):
+            setattr(mm, n, len(arrays[f]))
+        mm.npolygonmax = max(int(mm.npolygonmax), self._pool.npolygonmax)
+        mm.nmeshdegmax = max(int(mm.nmeshdegmax), self._pool.nmeshdegmax)
+        self._pool_size = len(self._pool)
         self._graph = None
 
     def _write_params(self, worlds, models) -> None:
         worlds = list(worlds)
         idx = torch.as_tensor(worlds, dtype=torch.long, device=self.torch_device)
         for f, t in self._fields.items():
-            host = np.stack([self._world_value(m, f, self._flags) for m in models])
+            host = np.stack([self._world_value(m, f) for m in models])
             t[idx] = torch.from_numpy(host.reshape((len(worlds),) + tuple(t.shape[1:]))).to(
                 device=self.torch_device, dtype=t.dtype)
 
     def set_models(self, worlds: Sequence[int], models: Sequence[mujoco.MjModel]) -> None:
-        """Give ``worlds`` new models (same structure, other parameters) and write their parameters to
-        the device. Reset those worlds afterwards; their state is not converted."""
+        """Give ``worlds`` new models (same structure: another object of a uniform-layout scene, or other
+        parameters) and write their values to the device. Reset those worlds afterwards; their state is
+        not converted. A model needing a change of the shared device model (a parameter batched for the
+        first time, a geom slot no world used before) puts the model on the device again (slow, rare)."""
         worlds = [int(w) for w in worlds]
         models = list(models)
         if len(worlds) != len(models):
             raise ConfigError(f"{len(worlds)} worlds but {len(models)} models")
-        for w, m in zip(worlds, models):
+        for w in worlds:
             if not 0 <= w < self.batch_size:
                 raise IndexError(f"world {w} out of range for batch_size={self.batch_size}")
-            if m.signature != self._models[0].signature:
-                raise ConfigError(f"model for world {w} differs in structure (signature {m.signature} != "
-                                  f"{self._models[0].signature}); build scenes with uniform_layout=True to swap objects")
-            self._check_structure(m, f"model for world {w}")
-        new = list(self._models)
+        template = copy.copy(self._template), set(self._batched)
+        try:
+            reput = [self._adopt(m, f"model for world {w}") for w, m in zip(worlds, models)]
+        except ConfigError:
+            self._template, self._batched = template     # nothing changed
+            raise
         for w, m in zip(worlds, models):
-            new[w] = m
-        grow = {f for f in self._batchable if f not in self._batched and self._differs(f, new)}
-        flags = {f for f in _LIMIT_FLAGS if self._differs(f, new)
-                 and not np.array_equal(np.any([getattr(m, f) != 0 for m in new], axis=0), self._flags[f])}
-        self._models = new
-        if grow or flags:   # a parameter that was shared now differs: put the model again
-            self._batched |= grow | {_LIMIT_FLAGS[f] for f in flags}
+            self._models[w] = m
+            self._pool.ids(m)
+        if any(reput):
             self._put_model()
         else:
+            if len(self._pool) != self._pool_size:
+                self._upload_meshes()
             self._write_params(worlds, models)
 
     # ---------------------------------------------------------------- state

@@ -104,7 +104,7 @@ DEFAULT_BATCHED_FIELDS = (
     "actuator_gainprm", "actuator_biasprm", "actuator_forcerange", "jnt_actfrcrange",
     "actuator_delay", "actuator_dynprm",
     "body_mass", "body_inertia", "body_subtreemass", "body_invweight0", "dof_invweight0", "actuator_acc0",
-    "geom_friction",
+    "geom_friction", "geom_solref",
 )
 
 _INSTALL = 'pip install "adadex[warp]"'

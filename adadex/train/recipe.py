@@ -36,7 +36,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from adadex.errors import ConfigError, exit_on_error
-from adadex.train.config import CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, TrainConfig
+from adadex.train.config import CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, SimConfig, TrainConfig
 
 _TOP = ("seed", "resume", "group", "references", "randomize", "checkpoint_every", "eval_every", "eval_split",
         "eval_max_references", "wandb", "progress", "reward", "randomization")
@@ -76,6 +76,7 @@ def train_keys() -> dict:
         TrainConfig, drop=("modulator",),
         ppo=dataclass_keys(PPOConfig, drop=("total_frames",)),          # set with total_frames
         collector=dataclass_keys(CollectorConfig, drop=("ray_address",)),   # set with ray.address
+        sim=dataclass_keys(SimConfig),
         policy=dataclass_keys(PolicyConfig),
         modulator=dataclass_keys(ModulatorSettings, drop=("tracker", "channels", "modulation")),
         modulation=modulation_keys(),
@@ -216,7 +217,7 @@ def train_config(cfg: Mapping) -> TrainConfig:
         modulator = ModulatorSettings(tracker=str(cfg["tracker"]), channels=str(cfg.get("channels", "R+O+T")),
                                       modulation=dict(cfg.get("modulation") or {}), **(cfg.get("modulator") or {}))
     return TrainConfig(dataset=str(cfg["dataset"]), out=str(cfg["out"]), split=split,
-                       ppo=PPOConfig(**ppo), collector=CollectorConfig(**collector),
+                       ppo=PPOConfig(**ppo), collector=CollectorConfig(**collector), sim=SimConfig(**(cfg.get("sim") or {})),
                        policy=PolicyConfig(**(cfg.get("policy") or {})), modulator=modulator,
                        **{k: cfg[k] for k in _TOP if k in cfg})
 

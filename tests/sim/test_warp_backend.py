@@ -257,3 +257,15 @@ def test_tracking_env_observes_the_same_on_both_backends(warp, tiny_dataset, ran
     assert envs["warp"].sim.overflow_count == 0 and envs["warp"].unstable_count == 0
     for env in envs.values():
         env.close()
+
+
+def test_sim_backend_setting_is_validated():
+    from adadex.train.config import SimConfig, TrainConfig
+    from adadex.train.recipe import train_config
+
+    assert TrainConfig(dataset="d", out="o").sim == SimConfig("rollout")
+    assert train_config({"dataset": "d", "out": "o", "sim": {"backend": "rollout"}}).sim.backend == "rollout"
+    with pytest.raises(ConfigError, match=r"sim\.backend.*'rollout', 'warp'"):
+        train_config({"dataset": "d", "out": "o", "sim": {"backend": "jax"}})
+    with pytest.raises(ConfigError, match="TrackingEnvFactory"):    # accepted, but not taken by the trainer yet
+        TrainConfig(dataset="d", out="o", sim={"backend": "warp"})

@@ -75,6 +75,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -370,9 +371,10 @@ class WarpSim:
         B = self.batch_size
         with wp.ScopedDevice(self.device):
             self._put_model()
-            self._data = mjw.make_data(m0, nworld=B, nconmax=self.nconmax, njmax=self.njmax)
+            self._data = mjw.make_data(self._template, nworld=B, nconmax=self.nconmax, njmax=self.njmax)
             self._state_wp = wp.zeros((B, self.nstate), dtype=float)
             self._active_wp = wp.zeros(B, dtype=bool)
+        self._torch_waits()
         d, T = self._data, wp.to_torch
         self._qpos, self._qvel, self._ctrl = T(d.qpos), T(d.qvel), T(d.ctrl)
         self._act = T(d.act) if m0.na else None
@@ -513,6 +515,7 @@ class WarpSim:
         mm.nmeshdegmax = max(int(mm.nmeshdegmax), self._pool.nmeshdegmax)
         self._pool_size = len(self._pool)
         self._graph = None
+        self._torch_waits()
 
     def _write_params(self, worlds, models) -> None:
         worlds = list(worlds)
@@ -594,7 +597,9 @@ class WarpSim:
         self._state_t[tidx] = torch.as_tensor(states).to(self.torch_device, self._state_t.dtype)
         self._active_t.zero_()
         self._active_t[tidx] = True
+        self._warp_waits()
         self._mjw.set_state(self._model, self._data, self._state_wp, FULLPHYSICS, active=self._active_wp)
+        self._torch_waits()
         self._warmstart[tidx] = 0
         self._overflow[tidx] = 0
 
@@ -602,6 +607,7 @@ class WarpSim:
     def state(self) -> np.ndarray:
         """(B, nstate) full-physics states (``mj_getState`` layout), a host copy."""
         self._mjw.get_state(self._model, self._data, self._state_wp, FULLPHYSICS)
+        self._torch_waits()
         return self._state_t.detach().cpu().numpy().astype(np.float64)
 
     def set_state(self, state: np.ndarray, worlds=None) -> None:
@@ -613,20 +619,39 @@ class WarpSim:
 
     # ---------------------------------------------------------------- stepping
 
+    def _torch_waits(self) -> None:
+        """Order torch's work after Warp's launched so far (on a GPU they run on different streams)."""
+        if self.device.is_cuda:
+            wp = self._wp
+            wp.stream_from_torch(torch.cuda.current_stream(self.torch_device)).wait_stream(wp.get_stream(self.device))
+
+    def _warp_waits(self) -> None:
+        """Order Warp's next launches after torch's work so far (writes through the shared tensors)."""
+        if self.device.is_cuda:
+            wp = self._wp
+            wp.get_stream(self.device).wait_stream(wp.stream_from_torch(torch.cuda.current_stream(self.torch_device)))
+
     def _physics(self) -> None:
-        """``substeps`` physics steps of every world (a replayed CUDA graph on a GPU)."""
+        """``substeps`` physics steps of every world: on a GPU, captured once into a CUDA graph and
+        replayed (recaptured after the device model changes); if capturing fails, stepped eagerly."""
         wp, mjw = self._wp, self._mjw
-        if self._graph is not None:
-            wp.capture_launch(self._graph)
-            return
+        self._warp_waits()
         with wp.ScopedDevice(self.device):
-            for _ in range(self.substeps):
-                mjw.step(self._model, self._data)
-        if self._cuda_graph:         # kernels are compiled now: capture the next control steps
-            with wp.ScopedDevice(self.device), wp.ScopedCapture() as capture:
+            if self._graph is not None:
+                wp.capture_launch(self._graph)
+            else:
                 for _ in range(self.substeps):
                     mjw.step(self._model, self._data)
-            self._graph = capture.graph     # capturing records the launches without running them
+                if self._cuda_graph:      # kernels are compiled now: record the next control steps
+                    try:
+                        with wp.ScopedCapture() as capture:
+                            for _ in range(self.substeps):
+                                mjw.step(self._model, self._data)
+                        self._graph = capture.graph    # recorded, not run
+                    except Exception as e:             # noqa: BLE001 - a capture failure only costs speed
+                        warnings.warn(f"WarpSim: CUDA graph capture failed ({e}); stepping without graphs")
+                        self._cuda_graph = False
+        self._torch_waits()
 
     def step_device(self, ctrl) -> DeviceReadout:
         """Advance every world by one control step with ``ctrl`` (B, nu) held, returning the

@@ -90,6 +90,15 @@ def test_free_motion_and_per_world_gains_match_rollout(warp, mug):
     for c in _random_ctrls(mug, 3, 1, seed=2):
         a = ws.step(np.repeat(c, 3, axis=0))
     np.testing.assert_array_equal(a.joint_pos[0], a.joint_pos[1])
+    # step takes a torch tensor too; the full-physics state (mj_getState's layout) round-trips
+    import torch
+
+    saved, c = ws.state, np.repeat(c, 3, axis=0)
+    assert saved.shape == (3, mujoco.mj_stateSize(mug, mujoco.mjtState.mjSTATE_FULLPHYSICS))
+    first = ws.step(torch.from_numpy(c).float())
+    ws.set_state(saved)
+    again = ws.step(c)
+    np.testing.assert_allclose(again.joint_pos, first.joint_pos, atol=1e-6)
     ws.close()
 
 

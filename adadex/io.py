@@ -141,10 +141,12 @@ def atomic_write(path, write: Callable[[BinaryIO], object]) -> Path:
 
 
 def atomic_write_text(path, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically (:func:`atomic_write`); return the path."""
     return atomic_write(path, lambda f: f.write(text.encode("utf-8")))
 
 
 def atomic_write_bytes(path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (:func:`atomic_write`); return the path."""
     return atomic_write(path, lambda f: f.write(data))
 
 

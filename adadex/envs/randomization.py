@@ -126,6 +126,29 @@ class Randomization:
     :class:`~adadex.envs.tracking.TrackingEnv` puts its own patch over it (the env's entries replace
     its entries on the same effect and joint), and each world's draw then composes with the result
     (:meth:`world_patch`: relative ranges on top of the patched values, absolute ones replacing them).
+
+    Args:
+        robot_mass: scale of every robot link's mass, U[low, high], one draw per world (``mass_scale``).
+        robot_friction: scale of the robot's friction (``friction_scale``).
+        robot_stiffness: scale of the servos' stiffness kp (``kp_scale``).
+        robot_damping: scale of joint damping and the servos' kv (``damping_scale``).
+        object_mass: scale of the object's mass.
+        object_friction: scale of the object's friction.
+        object_restitution: restitution added to the object's contacts, U[low, high].
+        object_scale: scale of the object's size, quantized to ``object_scale_levels`` values.
+        object_scale_levels: how many sizes ``object_scale`` is quantized to (each compiles once).
+        object_xy_std: std of the object's initial x, y offset, m.
+        object_yaw_std: std of the object's initial yaw offset, rad.
+        proprio_noise: std of the noise on the observed joint positions (rad) and link positions (m).
+        action_noise_correlated: std of a per-episode action offset, in units of the action bound.
+        action_noise_uncorrelated: std of the per-step action noise, in units of the action bound.
+        effects: further per-joint ranges (:class:`EffectRange`); on an (effect, joint) they replace
+            the Table 3 range.
+        patch: effects every world carries (:meth:`from_patch` puts a fit there); ``None``: none.
+
+    Example:
+        >>> Randomization.off().object_xy_std
+        0.0
     """
 
     robot_mass: tuple[float, float] = (0.9, 1.1)

@@ -59,19 +59,27 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
 
     Args:
         policy: a TensorDictModule writing ``"action"`` (tracker, replay policy, make_policy graph).
+        dataset: a :class:`~adadex.data.reference.ReferenceDataset` or its folder.
+        split: ``(split name, part)`` whose references are evaluated, e.g. ``("unseen_object", "test")``.
         references: dataset indices to evaluate instead of ``split`` (each must have an episode window).
+        max_worlds: worlds stepped together; more references are evaluated in chunks of this many.
         env_transform: called once per chunk, returns a transform to append to the env (a primer …).
+        config: the episode settings (:class:`~adadex.envs.tracking.TrackingConfig`).
+        thresholds: the success thresholds (:class:`~adadex.envs.frame_errors.Thresholds`).
+        progress: show a progress bar.
+        keep_rollouts: also return the rollouts (below).
         sample: run the policy as collectors do (``ExplorationType.RANDOM``: a modulator or tracker
             samples its distribution; a frozen tracker inside a modulated policy stays deterministic)
             instead of its deterministic action — what exploration costs, e.g. at initialization.
         env_kwargs: passed to :class:`TrackingEnv` (``randomize``, ``patch``, ``latent_fn``, ``seed`` …).
 
-    Returns ``{"summary": {…}, "per_reference": {name: {…}}, "per_episode": {field: [one value per
-    episode]}, "return_completion_spearman": {…} | None, "references": n, "wall_s": s}`` and, with
-    ``keep_rollouts``, the rollouts (one TensorDict per chunk) under ``"rollouts"``.
-    ``per_reference`` holds one entry per reference *name*: a reference listed several times shows
-    its last episode there; ``per_episode`` holds them all, in the order of the references list
-    (fields: ``reference``, ``name``, ``repeat`` and :data:`EPISODE_FIELDS`, plus ``return``).
+    Returns:
+        ``{"summary": {…}, "per_reference": {name: {…}}, "per_episode": {field: [one value per
+        episode]}, "return_completion_spearman": {…} | None, "references": n, "wall_s": s}`` and, with
+        ``keep_rollouts``, the rollouts (one TensorDict per chunk) under ``"rollouts"``.
+        ``per_reference`` holds one entry per reference *name*: a reference listed several times shows
+        its last episode there; ``per_episode`` holds them all, in the order of the references list
+        (fields: ``reference``, ``name``, ``repeat`` and :data:`EPISODE_FIELDS`, plus ``return``).
     """
     if max_worlds < 1:
         raise ConfigError(f"max_worlds must be ≥ 1, got {max_worlds}")

@@ -168,8 +168,8 @@ CHANNELS: Mapping[str, Channel] = _registry(
                     Field("lambda_object_pos", 0.02, "λ_object, object reference position residual per step (m)"),
                     Field("lambda_object_rot", 0.1, "λ_object, object reference rotation residual per step (rad)"),
                     Field("persistent", True, "the R edits stay in the future reference as the episode moves on "
-                                              "(PAPER.md decision); ``False`` edits the reference for the current "
-                                              "step only")),
+                                              "(AdaDexTrack's reference modulation: ŝ_{t+k} ← ŝ_{t+k} + λ·a every "
+                                              "step); ``False`` edits the reference for the current step only")),
             edits="observation", init_scale=0.05),
     Channel("C", "compact reference edit: palm position offset (through the arm Jacobian) and grip",
             entries=((PALM, (3,)), (GRIP, (len(GRIP_JOINTS),))),

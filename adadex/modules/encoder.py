@@ -193,6 +193,20 @@ class PointCloudEncoder(TensorDictModule):
 
     In: ``("object", "points")`` (…, N, 3) float, object frame, metres; any leading batch dims and
     any N. Out: ``("object", "latent")`` (…, 64) float in (−1, 1).
+
+    Args:
+        autoencoder: the trained :class:`PointCloudAutoencoder` whose encoder half runs (e.g. from
+            :func:`load_encoder`); default an untrained one.
+        in_key: the point-cloud key read (default ``("object", "points")``).
+        out_key: the latent key written (default ``("object", "latent")``).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> enc = PointCloudEncoder()
+        >>> td = enc(TensorDict({("object", "points"): torch.rand(2, 128, 3) * 0.05}, batch_size=[2]))
+        >>> td["object", "latent"].shape
+        torch.Size([2, 64])
     """
 
     def __init__(self, autoencoder: PointCloudAutoencoder | None = None, *,

@@ -475,6 +475,14 @@ class UnknownObjectError(AdadexError, KeyError):
 
 
 def get_object(name: str) -> ObjectInfo:
+    """The registry entry of object ``name``.
+
+    Args:
+        name: an object name (:data:`OBJECT_NAMES`).
+
+    Raises:
+        UnknownObjectError: ``name`` is not in the registry; the message suggests close names.
+    """
     try:
         return REGISTRY[name]
     except (KeyError, TypeError):
@@ -491,6 +499,7 @@ def held_out_objects() -> tuple[str, ...]:
 
 
 def object_split(name: str) -> str:
+    """``"held_out"`` for an object of the unseen-object split (:func:`held_out_objects`), else ``"train"``."""
     return "held_out" if get_object(name).held_out else "train"
 
 

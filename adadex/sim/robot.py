@@ -68,6 +68,9 @@ HALF_PI = math.pi / 2
 
 @dataclass(frozen=True)
 class ArmLink:
+    """One arm link of the built robot: its joint origin, range, effort, inertia and collision capsule
+    (units in the field comments)."""
+
     joint: str
     pos: tuple[float, float, float]          # joint origin in parent link frame, m
     roll: float                              # joint origin roll about parent x, rad

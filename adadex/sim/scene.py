@@ -70,6 +70,8 @@ class PhysicsOptions:
 
 
 def apply_physics_options(spec: mujoco.MjSpec, opts: PhysicsOptions = PhysicsOptions()) -> None:
+    """Set ``opts`` (timestep, integrator, cone, solver iterations) on ``spec``, in place, and give every
+    geom the contact ``solref`` (twice the timestep, critically damped) and :data:`CONTACT_SOLIMP`."""
     spec.option.timestep = opts.timestep
     spec.option.integrator = opts.integrator
     spec.option.cone = opts.cone

@@ -82,6 +82,9 @@ class DiagnosisError(AdadexError, ValueError):
 
 @dataclass(kw_only=True)
 class Candidate:
+    """One effect fitted on one joint while screening: its value and 95 % interval, how much it
+    reduces the error on the training and held-out sequences, its score and look-alike effects."""
+
     effect: str
     joint: str
     value: float
@@ -94,6 +97,10 @@ class Candidate:
 
 @dataclass(kw_only=True)
 class Diagnosis:
+    """What :func:`diagnose` found: the verdict, the baseline error, the hypotheses tried, the effects
+    selected (:meth:`patch` turns them into a :class:`~adadex.sim.patch.ModelPatch`), the fraction of
+    the error they explain and the findings in words; :meth:`to_dict` is what ``diagnosis.json`` holds."""
+
     verdict: str
     baseline_error: dict
     hypotheses: list[dict]

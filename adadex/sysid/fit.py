@@ -25,6 +25,9 @@ from adadex.sim.patch import EffectInstance, ModelPatch
 
 @dataclass(kw_only=True)
 class FitResult:
+    """One effect fitted on one joint: the value, its 95 % interval, the mean squared error before and
+    after, and the number of replays the fit took."""
+
     effect: str
     joint: str
     value: float

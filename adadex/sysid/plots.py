@@ -12,6 +12,7 @@ import numpy as np  # noqa: E402
 
 
 def fig_to_png(fig) -> bytes:
+    """The matplotlib figure ``fig`` as PNG bytes (110 dpi); the figure is closed."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
     plt.close(fig)

@@ -25,6 +25,9 @@ from adadex.sysid.compare import Comparison, heldout_mask, localize
 
 @dataclass(kw_only=True)
 class Stages:
+    """The report's stages (nominal model, then each effect added): their names, patches, comparisons,
+    and which sequences are held out."""
+
     names: list[str]
     patches: list[ModelPatch]
     comparisons: list[Comparison]

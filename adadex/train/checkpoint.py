@@ -70,6 +70,19 @@ _NUMPY_GLOBALS = [np._core.multiarray._reconstruct, (np._core.multiarray._recons
 
 def save_checkpoint(out, *, module: torch.nn.Module, optimizer: torch.optim.Optimizer, iteration: int, frames: int,
                     config: dict, extra: dict | None = None) -> Path:
+    """Write ``out/checkpoint.pt`` atomically: the module's and optimizer's state, the progress, the
+    run's settings and the RNG states; return its path.
+
+    Args:
+        out: the run folder.
+        module: the trained module (its ``state_dict``).
+        optimizer: its optimizer (its ``state_dict``).
+        iteration: training iterations done.
+        frames: environment frames collected.
+        config: the run's settings, compared on resume (:func:`check_run`).
+        extra: anything else to restore (plain data and tensors only: :func:`load_checkpoint` loads
+            with ``weights_only=True``).
+    """
     blob = {"kind": "adadex-train", "module": module.state_dict(), "optimizer": optimizer.state_dict(),
             "iteration": iteration, "frames": frames, "config": config, "rng": rng_state(), "extra": extra or {}}
     return atomic_write(Path(out) / CHECKPOINT, lambda f: torch.save(blob, f))

@@ -141,6 +141,7 @@ class TrainSettings:
 
 
 def check_settings(steps: int, batch_size: int, points: int, lr: float) -> None:
+    """Refuse settings :func:`train_encoder` cannot use (before any work); arguments as there."""
     if steps < 0:
         raise ValueError(f"steps must be ≥ 0, got {steps}")
     if batch_size < 1:

@@ -87,3 +87,26 @@ def test_a_function_named_like_its_module_stays_the_function(package, name):
             f"from {package} import {name} as f\nassert callable(f) and f is m.{name}, f\n"
             f"import {package}.{name}\nassert p.{name} is m.{name}")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=300)
+
+
+def test_the_api_reference_is_up_to_date():
+    """docs/api.md is what ``python docs/make_api.py`` writes from the ``__all__`` lists and docstrings."""
+    import runpy
+
+    make_api = runpy.run_path(str(PACKAGE.parent / "docs" / "make_api.py"))
+    assert (PACKAGE.parent / "docs" / "api.md").read_text(encoding="utf-8") == make_api["render"](), \
+        "docs/api.md is out of date: run python docs/make_api.py"
+
+
+def test_every_public_name_has_a_docstring():
+    """Each exported class and function says what it is (the API reference's one line)."""
+    import inspect
+
+    missing = []
+    for name in SUBPACKAGES:
+        package = importlib.import_module(f"adadex.{name}")
+        for attr in package.__all__:
+            obj = inspect.unwrap(getattr(package, attr))
+            if (inspect.isclass(obj) or callable(obj)) and not (obj.__doc__ or "").strip():
+                missing.append(f"adadex.{name}.{attr}")
+    assert not missing, f"no docstring: {missing}"

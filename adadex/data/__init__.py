@@ -10,7 +10,8 @@ from adadex._exports import lazy_exports
 
 _EXPORTS = {
     "adadex.data.reference": ("ReferenceDataset", "Reference", "save_dataset", "is_dataset"),
-    "adadex.data.build": ("build_dataset", "PRESETS"),
+    "adadex.data.build": ("build_dataset",),
+    "adadex.data.presets": ("PRESETS",),
     "adadex.data.recording": ("Recording", "load_recording"),
     "adadex.data.retarget": ("Retargeter",),
     "adadex.data.synth": ("Synthesizer", "NoiseConfig"),
@@ -20,7 +21,8 @@ __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 if TYPE_CHECKING:      # the same names, for type checkers and IDEs
     from adadex.data.reference import ReferenceDataset, Reference, save_dataset, is_dataset
-    from adadex.data.build import build_dataset, PRESETS
+    from adadex.data.build import build_dataset
+    from adadex.data.presets import PRESETS
     from adadex.data.recording import Recording, load_recording
     from adadex.data.retarget import Retargeter
     from adadex.data.synth import Synthesizer, NoiseConfig

@@ -26,6 +26,7 @@ def _paper_objects() -> tuple[str, ...]:
     return tuple(seen[int(i * step)] for i in range(45)) + tuple(sorted(held))
 
 
+#: The presets of ``adadex data build``, by name: ``tiny``, ``small``, ``paper``.
 PRESETS: dict[str, Preset] = {
     "tiny": Preset("tiny", ("cube_050", "cylinder_02", "bottle_00", "box_04"), 4, 2,
                    "8 references on 4 objects (box_04 held out); for tests"),

@@ -48,7 +48,9 @@ from adadex.quat import quat_diff
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 
 REF_OFFSETS = (0, 1, 2, 4, 12)
+#: Size of the object latent (the point-cloud encoder's code).
 LATENT_DIM = 64
+#: Size of the flat observation vector.
 OBS_DIM = 273
 
 OBSERVATION = "observation"                 # the flat 273-D vector

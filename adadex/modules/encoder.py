@@ -99,7 +99,8 @@ def chamfer_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 @dataclass(frozen=True)
 class EncoderConfig:
-    """Architecture. ``points``: input points per cloud in training and for the env latent."""
+    """The point-cloud autoencoder's architecture. ``points``: input points per cloud in training and
+    for the env latent."""
 
     points: int = 512
     decoded_points: int = 512

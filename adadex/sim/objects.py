@@ -455,6 +455,7 @@ REGISTRY: dict[str, ObjectInfo] = {
     name: ObjectInfo(name, category, name in _HELD_OUT, float(density), builder)
     for name, category, density, builder in _TABLE
 }
+#: Every object's name, in registry order.
 OBJECT_NAMES: tuple[str, ...] = tuple(REGISTRY)
 CATEGORIES: tuple[str, ...] = tuple(dict.fromkeys(o.category for o in REGISTRY.values()))
 

@@ -48,6 +48,7 @@ HAND_JOINTS: tuple[str, ...] = (
 )
 #: The one joint order used everywhere in adadex (22 joints).
 JOINT_NAMES: tuple[str, ...] = ARM_JOINTS + HAND_JOINTS
+#: Joints of the robot: 6 arm + 16 hand.
 NUM_JOINTS = len(JOINT_NAMES)
 
 #: Tracked links (sites), in the order of every ``link_pose[5, 7]`` array.

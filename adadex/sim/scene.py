@@ -36,8 +36,11 @@ from adadex.sim.robot import (
     build_robot_spec,
 )
 
+#: Policy steps per second.
 CONTROL_HZ = 12.0
+#: MuJoCo's timestep, s.
 PHYSICS_TIMESTEP = 1.0 / 120.0
+#: Physics steps per control step.
 SUBSTEPS = int(round(1.0 / (CONTROL_HZ * PHYSICS_TIMESTEP)))
 
 TABLE_HALF_SIZE = (0.45, 0.6, 0.02)  # m

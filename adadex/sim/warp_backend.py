@@ -257,12 +257,14 @@ class MeshPool:
             return hit[1]
         local = np.full(m.nmesh, -1)
         for i in range(m.nmesh):
-            mesh = self._mesh(m, i)
-            key = b"".join(np.ascontiguousarray(mesh[k]).tobytes() for k in ("vert", "face", "pos", "quat"))
+            va, vn = int(m.mesh_vertadr[i]), int(m.mesh_vertnum[i])
+            fa, fn = int(m.mesh_faceadr[i]), int(m.mesh_facenum[i])
+            key = (m.mesh_vert[va:va + vn].tobytes() + m.mesh_face[fa:fa + fn].tobytes()
+                   + m.mesh_pos[i].tobytes() + m.mesh_quat[i].tobytes())
             j = self._index.get(key)
             if j is None:
                 j = self._index[key] = len(self._meshes)
-                self._meshes.append(mesh)
+                self._meshes.append(self._mesh(m, i))
             local[i] = j
         self.npolygonmax = max(self.npolygonmax, int(m.npolygonmax))
         self.nmeshdegmax = max(self.nmeshdegmax, int(m.nmeshdegmax))

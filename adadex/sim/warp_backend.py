@@ -4,8 +4,9 @@
 ``reset(qpos, qvel, worlds)``, ``step(ctrl) -> SimReadout`` (``substeps`` physics steps with the
 control held), ``readout()``, ``models``, ``set_models``, ``set_state``, ``close`` — but keeps every
 world's state in MuJoCo Warp's device arrays, so a step costs no host round trip on a GPU beyond
-reading the overflow counters. Select it with ``BatchedSim(models, backend="warp")`` (or
-``TrackingEnv(..., backend="warp")``, config ``sim.backend: warp``); it needs the optional extra:
+reading the overflow counters. Select it with ``BatchedSim(models, backend="warp")`` or
+``TrackingEnv(..., backend="warp")`` (the recipes' ``sim.backend`` accepts ``warp`` but the trainer's
+env factories do not pass it on yet, so TrainConfig refuses it); it needs the optional extra:
 ``pip install "adadex[warp]"``.
 
 What it takes to match the rollout backend (tested against it on Warp's CPU device):
@@ -26,9 +27,12 @@ What it takes to match the rollout backend (tested against it on Warp's CPU devi
   effects of :mod:`adadex.sim.effects`, :class:`~adadex.envs.randomization.Randomization`'s draws)
   run with their own values: the model is put on the device with those fields batched per world
   (:data:`DEFAULT_BATCHED_FIELDS`, plus any other batchable field in which the worlds differ), and
-  ``set_models`` writes a world's new values into them. A field MuJoCo Warp cannot batch (geom
-  types, contact filters, solver options, mesh data …) must be equal in every world, else a
-  ``ConfigError`` names it — it is never silently taken from world 0.
+  ``set_models`` writes a world's new values into them (a field batched for the first time puts
+  the model on the device again). A field MuJoCo Warp cannot batch (geom types, solver options,
+  the contact filters of a geom both worlds collide with …) must be equal in every world, else a
+  ``ConfigError`` names it — it is never silently taken from world 0. Not compared, because
+  stepping never reads them: keyframes, ``geom_group`` without ray sensors, ``dof_length``
+  without sleeping.
 * **Different objects per world** (uniform-layout scenes, any object at any size): MuJoCo Warp
   shares mesh data between worlds, so every distinct mesh of the worlds' models goes into one
   :class:`MeshPool` and each world points its object geoms at its own meshes (``geom_dataid``
@@ -54,9 +58,11 @@ Readouts: :meth:`WarpSim.step` and :meth:`WarpSim.readout` return the numpy
 (float32, no host copy) for an on-device env or a benchmark; :meth:`WarpSim.step_device` steps and
 returns it. ``step`` accepts a numpy array or a torch tensor (on any device).
 
-Kernels compile on first use (about a minute on a CPU, cached by Warp afterwards in
-``wp.config.kernel_cache_dir``). On a CUDA device the ``substeps`` physics steps of a control step
-are captured once into a CUDA graph and replayed (``cuda_graph=True``).
+Kernels compile on first use (about two minutes on 2 busy CPU cores, cached by Warp afterwards in
+``wp.config.kernel_cache_dir``, ``WARP_CACHE_PATH``). On a CUDA device the ``substeps`` physics steps
+of a control step are captured once into a CUDA graph and replayed (``cuda_graph=True``), and Warp's
+stream and torch's are ordered by events both ways; that path has not run on a GPU yet (only Warp's
+CPU device is tested).
 
 Example::
 

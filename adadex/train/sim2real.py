@@ -1,0 +1,552 @@
+"""From measurement to better tracking in one call: identify a hidden robot from recordings made on it,
+train a modulator around the identified model, and measure tracking on the hidden robot (issue 42).
+
+    python recipes/sim2real.py real=assets/gaps/weak_shoulder.json out=runs/s2r_shoulder preset=small
+
+The hidden robot (``real``, a model patch file such as ``assets/gaps/*.json``) stands for a real one. It
+is reached only through :class:`HiddenRobot`, which offers what a lab has: make recordings on it
+(:meth:`HiddenRobot.record`: ``adadex sysid simulate`` of an excitation plan, with sensor noise) and run
+evaluation rollouts on it (:meth:`HiddenRobot.evaluate`). Nothing else in this module reads its patch:
+:func:`identify` gets the recording file alone.
+
+Stages (:func:`run_sim2real`), each the library's own code:
+
+1. **measure** — ``adadex sysid excite`` on every joint of the robot (a lab does not know where the
+   model is wrong), then the recording on the hidden robot (:meth:`HiddenRobot.record`);
+2. **identify** — ``adadex sysid diagnose`` → ``adadex sysid fit --accept`` → the identified patch
+   (the workbench's commands, run as the command line runs them), and the sysid error per stage
+   (:func:`adadex.sysid.report.error_stages`);
+3. **train** — modulators around the frozen tracker with :class:`~adadex.train.ppo.PPOTrainer` (the
+   trainer behind ``recipes/train_modulator.py``): one under Table 3 on the nominal model
+   (``modulator_table3``), one under :meth:`Randomization.from_patch` of the identified patch
+   (``modulator_identified``: the fit's intervals around the fitted values, Table 3 elsewhere); with
+   ``oracle`` also one around the hidden robot itself (the ceiling; it reads the hidden patch, and says so);
+4. **evaluate** — every row on the same references, repeats and env seed (so they pair episode by
+   episode, :mod:`adadex.eval.paired`), under Table 3 randomization: the tracker on the nominal model
+   (``tracker_nominal``), then on the hidden robot the tracker (``tracker_real``), the modulators, and an
+   untrained modulator as the control for Table 3's reshuffling (``modulator_untrained_real``).
+
+``out/sim2real.json``: ``{"rows": {name: {"completion_pct", "completion_pct_ci95", "object_success_pct",
+"object_success_pct_ci95", "T_o", …, "vs_tracker_real": {…}}}, "gap_points", "gap_points_ci95",
+"recovered_fraction", "recovered_fraction_ci95", "diagnosis": {…}, "identified_patch", "stage_minutes",
+…}`` with ``recovered_fraction`` = (modulator_identified_real − tracker_real) / (tracker_nominal −
+tracker_real) in completion points (``None`` when the hidden robot loses nothing); intervals are
+percentile bootstraps over references (all of a reference's repeats together). ``object_success_pct`` is
+the object-centric success (object completion: frames with the object within 5 cm of the reference).
+``out/sim2real.png``: each row's completion and T_o, and the sysid error falling.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from adadex.errors import AdadexError, ConfigError
+from adadex.sim.robot import JOINT_NAMES
+
+#: the kind of output folder the recipe writes (its marker, :mod:`adadex.io`)
+SIM2REAL_RUN = "sim2real run"
+
+#: the rows in the order of the table
+ROWS = ("tracker_nominal", "tracker_real", "modulator_untrained_real", "modulator_table3_real",
+        "modulator_identified_real", "modulator_oracle_real")
+
+
+class Sim2RealError(AdadexError, ValueError):
+    """Bad input to the sim-to-real loop (a hidden robot that is not a patch, a bad preset …)."""
+
+
+@dataclass(frozen=True)
+class Sim2RealPreset:
+    """Sizes of one run of the loop."""
+
+    dataset: str | None             # a reference dataset folder; None: ``out/data``, built from ``build``
+    build: str                      # the data build preset used when the dataset is missing
+    build_seed: int
+    planned_grasp: bool
+    window: int                     # frames per episode (training and evaluation)
+    eval_repeats: int               # episodes per test reference (each on its own Table 3 draw)
+    worlds: int                     # worlds per batched env
+    frames: int                     # PPO frames per trained modulator
+    frames_per_batch: int
+    minibatch_size: int
+    epochs: int
+    hidden: tuple[int, ...]         # the modulator's layers
+    channels: str = "C+T"           # docs/modulation.md: the setting that learned around replay
+    reward: dict = field(default_factory=lambda: {"w_object_success": 3.0})
+    split: str = "unseen_trajectory"
+    #: ``adadex sysid excite`` settings (every joint is excited)
+    freqs: tuple[float, ...] = (0.5, 1.5, 3.0)
+    amps: tuple[float, ...] = (0.5,)
+    kinds: tuple[str, ...] = ("sine", "chirp", "multisine")
+    poses: tuple[str, ...] = ("loaded",)
+    duration: float = 3.0
+    noise: float = 2e-4             # sensor noise of the recording, rad
+    #: the effects ``adadex sysid diagnose`` screens (None: every effect it knows)
+    candidates: tuple[str, ...] | None = None
+
+
+PRESETS = {
+    # every stage at toy size (tests): a few hundred frames, 5 s episodes; no quality claim
+    "tiny": Sim2RealPreset(dataset=None, build="tiny", build_seed=4, planned_grasp=False, window=60, eval_repeats=1,
+                           worlds=8, frames=512, frames_per_batch=256, minibatch_size=128, epochs=1, hidden=(32, 32),
+                           freqs=(1.0, 3.0), kinds=("sine", "chirp"), duration=2.0,
+                           # a short list, for speed (small screens every effect the workbench knows)
+                           candidates=("actuator_delay", "kp_scale", "torque_limit", "coulomb_friction")),
+    # the modulation measurements' sizes (docs/modulation.md): data/small_pg, 25 s episodes, 4 draws per
+    # test reference, 250 k frames per modulator
+    "small": Sim2RealPreset(dataset="data/small_pg", build="small", build_seed=0, planned_grasp=True, window=300,
+                            eval_repeats=4, worlds=64, frames=250_000, frames_per_batch=4096, minibatch_size=1024,
+                            epochs=4, hidden=(256, 256, 128)),
+}
+
+
+def preset(name: str, **changes) -> Sim2RealPreset:
+    """The preset ``name`` with ``changes`` (fields whose value is not None)."""
+    if name not in PRESETS:
+        raise ConfigError(f"preset={name}: no such preset; known: {', '.join(PRESETS)}")
+    return dataclasses.replace(PRESETS[name], **{k: v for k, v in changes.items() if v is not None})
+
+
+# ----------------------------------------------------------------------------------------------
+# The hidden robot: what a lab can do with a real one
+
+class HiddenRobot:
+    """A robot the loop may only record on and run rollouts on (see the module docstring): ``path`` is
+    its patch file, checked to be one when the robot is "connected" and otherwise never shown."""
+
+    def __init__(self, path):
+        from adadex.sim.patch import ModelPatch, PatchError
+
+        self._path = Path(str(path))
+        if self._path.is_dir():
+            raise Sim2RealError(f"real={path}: a folder, not a model patch file (e.g. assets/gaps/weak_shoulder.json)")
+        try:
+            self._patch = ModelPatch.load(self._path)
+        except PatchError as e:
+            raise Sim2RealError(f"real={e}") from None
+        except (OSError, UnicodeDecodeError) as e:
+            raise Sim2RealError(f"real={path}: not a readable model patch ({type(e).__name__}: {e})") from None
+        if not len(self._patch.active()):
+            raise Sim2RealError(f"real={path}: the patch has no effect, so the 'real' robot is the model itself")
+
+    def __repr__(self) -> str:            # a log line never shows the hidden effects
+        return "HiddenRobot(…)"
+
+    def record(self, plan, out, *, noise: float, seed: int) -> Path:
+        """Run the excitation ``plan`` (a plan file of ``adadex sysid excite``) on the robot and write what
+        its encoders measured (with ``noise`` rad of sensor noise) to ``out``: ``adadex sysid simulate``."""
+        import contextlib
+        import io
+
+        with contextlib.redirect_stdout(io.StringIO()):        # its message counts the hidden effects
+            sysid(["simulate", str(plan), "--patch", str(self._path), "--noise", repr(float(noise)),
+                   "--seed", str(seed), "--out", str(out)])
+        print(f"recorded {out} on the hidden robot (sensor noise {noise:g} rad, seed {seed})", flush=True)
+        return Path(out)
+
+    def evaluate(self, policy, dataset, references, **kwargs) -> dict:
+        """:func:`adadex.eval.evaluate.evaluate` of ``policy`` on the robot (``kwargs``: its arguments)."""
+        from adadex.eval.evaluate import evaluate
+
+        return evaluate(policy, dataset, split=None, references=references, patch=self._patch, **kwargs)
+
+    def oracle_randomization(self):
+        """Table 3 around the hidden robot itself: for the oracle row only (the ceiling, not a result)."""
+        from adadex.envs.randomization import Randomization
+
+        return Randomization.from_patch(self._patch)
+
+
+def sysid(argv: list[str]) -> None:
+    """Run ``adadex sysid ARGV`` as the command line runs it; an error is raised, not printed."""
+    from adadex.cli import main
+
+    main(["--debug", "sysid", *argv])
+
+
+# ----------------------------------------------------------------------------------------------
+# Identification: from a recording alone
+
+def excite(folder: Path, p: Sim2RealPreset) -> Path:
+    """``adadex sysid excite`` on every joint: ``folder/plan.npz``."""
+    plan = folder / "plan.npz"
+    sysid(["excite", "--joints", ",".join(JOINT_NAMES), "--freqs", ",".join(map(str, p.freqs)),
+           "--amps", ",".join(map(str, p.amps)), "--kinds", ",".join(p.kinds), "--poses", ",".join(p.poses),
+           "--duration", str(p.duration), "--out", str(plan)])
+    return plan
+
+
+def identify(recording, folder, *, candidates=None, threads: int = 2) -> dict:
+    """diagnose → fit → patch on ``recording`` (a recording file) with the workbench's commands, into
+    ``folder`` (``diagnosis/``, ``patch.json``). Reads nothing but the recording. Returns ``{"patch":
+    ModelPatch, "diagnosis": Diagnosis, "stages": error_stages(...).to_dict()}``."""
+    from adadex.data.recording import load_recording
+    from adadex.sim.patch import ModelPatch
+    from adadex.sysid.diagnose import Diagnosis
+    from adadex.sysid.report import error_stages
+
+    folder = Path(folder)
+    sysid(["diagnose", str(recording), "--out", str(folder / "diagnosis"), "--threads", str(threads),
+           *(["--candidates", ",".join(candidates)] if candidates else [])])
+    sysid(["fit", str(recording), "--accept", str(folder / "diagnosis"), "--out", str(folder / "patch.json"),
+           "--threads", str(threads)])
+    patch = ModelPatch.load(folder / "patch.json")
+    stages = error_stages(load_recording(recording), patch, nthread=threads)
+    return {"patch": patch, "diagnosis": Diagnosis.load(folder / "diagnosis"), "stages": stages.to_dict()}
+
+
+# ----------------------------------------------------------------------------------------------
+# Training
+
+def _trainer_class():
+    from adadex.train.ppo import PPOTrainer
+
+    class AroundModel(PPOTrainer):
+        """:class:`PPOTrainer` whose collector envs draw from a given :class:`Randomization` (a patch
+        and per-joint ranges, which a :class:`TrainConfig` cannot carry)."""
+
+        def __init__(self, cfg, randomization, **kwargs):
+            self.randomization = randomization
+            super().__init__(cfg, **kwargs)
+
+        def env_factory(self, seed: int):
+            return dataclasses.replace(super().env_factory(seed), randomize=self.randomization)
+
+    return AroundModel
+
+
+def train_modulator(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomization, seed: int,
+                    name: str, progress: bool = True) -> str:
+    """A modulator (``p.channels``) around the frozen ``tracker``, trained in ``folder`` on ``dataset``'s
+    training references with envs drawing from ``randomization``; returns its checkpoint. A finished
+    run in ``folder`` with the same inputs is kept (a killed one continues); other inputs start over."""
+    from adadex.envs.tracking import TrackingConfig
+    from adadex.train.config import CollectorConfig, ModulatorSettings, PPOConfig, TrainConfig
+
+    folder = Path(folder)
+    m = ModulatorSettings(tracker=str(tracker), channels=p.channels, hidden=p.hidden)
+    ppo = PPOConfig(total_frames=p.frames, frames_per_batch=p.frames_per_batch, minibatch_size=p.minibatch_size,
+                    epochs=p.epochs, desired_kl=0.0, update_threads=1)    # as the pipeline trains modulators
+    inputs = {"randomization": randomization.as_dict(), "window": p.window}
+    stamp = folder.with_name(f"{folder.name}.inputs.json")      # beside the run: the trainer guards its folder
+    same = stamp.is_file() and json.loads(stamp.read_text(encoding="utf-8")) == json.loads(json.dumps(inputs))
+    if folder.exists() and not same:
+        shutil.rmtree(folder)               # inside the recipe's own output: an earlier stage of other inputs
+    tc = TrainConfig(dataset=str(dataset), out=str(folder), seed=seed, resume=(folder / "checkpoint.pt").is_file(),
+                     split=(p.split, "train"), ppo=ppo, collector=CollectorConfig(worlds=p.worlds), modulator=m,
+                     reward=dict(p.reward), eval_max_references=0, wandb=False, progress=progress)
+    from adadex.io import atomic_write_text
+
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(stamp, json.dumps(inputs))
+    trainer = _trainer_class()(tc, randomization, env_config=TrackingConfig(window=p.window), run_name=name)
+    return str(trainer.train()["policy"])
+
+
+# ----------------------------------------------------------------------------------------------
+# Statistics
+
+def _aligned(rows: dict[str, dict], fields=("completion", "object_completion", "T_o")) -> dict:
+    """Per-episode values of every row over the episodes all of them tracked (same reference and
+    repeat, at least one frame each): ``{"reference": array, field: {row: array}}`` (percent, cm)."""
+    from adadex.eval.paired import episode_keys
+
+    keys = None
+    index = {}
+    for name, ep in rows.items():
+        idx = {k: i for i, k in enumerate(episode_keys(ep)) if ep["frames"][i] > 0}
+        index[name] = idx
+        keys = set(idx) if keys is None else keys & set(idx)
+    order = [k for k in episode_keys(next(iter(rows.values()))) if k in keys]
+    scale = {"completion": 100.0, "object_completion": 100.0, "T_o": 100.0}
+    out = {"reference": np.array([k[0] for k in order])}
+    for f in fields:
+        out[f] = {name: np.array([float(rows[name][f][index[name][k]]) * scale[f] for k in order]) for name in rows}
+    return out
+
+
+def ratio_bootstrap(numerator, denominator, reference_ids, *, resamples: int = 2000, seed: int = 0) -> dict:
+    """mean(numerator) / mean(denominator) over paired episodes, with a percentile bootstrap interval
+    resampling references (each with all its episodes), as :func:`adadex.eval.paired.bootstrap_mean`
+    resamples them. Resamples whose denominator is ≤ 0 count as −∞ (no gap to recover: the ratio is
+    not defined there), so such resamples pull the lower end down instead of being dropped."""
+    num, den = np.asarray(numerator, float), np.asarray(denominator, float)
+    _, inv = np.unique(np.asarray(reference_ids), return_inverse=True)
+    sn, sd = np.bincount(inv, weights=num), np.bincount(inv, weights=den)
+    n = len(sn)
+    if n == 0 or sd.sum() <= 0:
+        return {"estimate": None, "ci95": None}
+    draws = np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=int(resamples)).astype(float)
+    d = draws @ sd
+    stats = np.where(d > 0, (draws @ sn) / np.where(d > 0, d, 1.0), -np.inf)
+    lo, hi = np.quantile(stats, [0.025, 0.975])
+    return {"estimate": float(sn.sum() / sd.sum()), "ci95": [float(lo), float(hi)]}
+
+
+def row_statistics(evaluations: dict[str, dict], *, seed: int = 0) -> dict:
+    """The table: each row's summary figures with bootstrap intervals, its paired difference to
+    ``tracker_real``, the gap (``tracker_nominal − tracker_real``) and the recovered fraction."""
+    from adadex.eval.paired import bootstrap_mean, paired_bootstrap
+
+    al = _aligned({k: v["per_episode"] for k, v in evaluations.items()})
+    refs = al["reference"]
+    rows = {}
+    for name, ev in evaluations.items():
+        s = ev["summary"]
+        row = {"completion_pct": s["completion_pct"], "object_success_pct": s["object_completion_pct"],
+               "T_o": s["T_o"], "carried_pct": s.get("carried_pct"), "success_mean_error_pct": s["success_mean_error_pct"],
+               "episodes": s["trajectories"]}
+        row["completion_pct_ci95"] = bootstrap_mean(al["completion"][name], refs, seed=seed)["ci95"]
+        row["object_success_pct_ci95"] = bootstrap_mean(al["object_completion"][name], refs, seed=seed)["ci95"]
+        row["T_o_ci95"] = bootstrap_mean(al["T_o"][name], refs, seed=seed)["ci95"]
+        if name != "tracker_real" and "tracker_real" in evaluations:
+            row["vs_tracker_real"] = {
+                f"{metric}_points": {k: d[k] for k in ("estimate", "ci95")}
+                for metric, field_ in (("completion", "completion"), ("object_success", "object_completion"))
+                for d in [paired_bootstrap(al[field_][name], al[field_]["tracker_real"], refs, seed=seed)]}
+        rows[name] = row
+    out = {"rows": rows, "paired_episodes": int(len(refs)), "references": int(len(np.unique(refs)))}
+    if {"tracker_nominal", "tracker_real"} <= set(evaluations):
+        c = al["completion"]
+        gap = paired_bootstrap(c["tracker_nominal"], c["tracker_real"], refs, seed=seed)
+        out["gap_points"], out["gap_points_ci95"] = gap["estimate"], gap["ci95"]
+        o = al["object_completion"]
+        ogap = paired_bootstrap(o["tracker_nominal"], o["tracker_real"], refs, seed=seed)
+        out["object_gap_points"], out["object_gap_points_ci95"] = ogap["estimate"], ogap["ci95"]
+        for name in ("modulator_identified_real", "modulator_table3_real", "modulator_oracle_real"):
+            if name not in evaluations:
+                continue
+            r = ratio_bootstrap(c[name] - c["tracker_real"], c["tracker_nominal"] - c["tracker_real"], refs, seed=seed)
+            key = "recovered_fraction" if name == "modulator_identified_real" else f"recovered_fraction_{name}"
+            out[key], out[f"{key}_ci95"] = r["estimate"], r["ci95"]
+        if {"modulator_identified_real", "modulator_table3_real"} <= set(evaluations):
+            d = paired_bootstrap(c["modulator_identified_real"], c["modulator_table3_real"], refs, seed=seed)
+            out["identified_vs_table3_points"] = {"estimate": d["estimate"], "ci95": d["ci95"]}
+    return out
+
+
+def _ci(ci) -> str:
+    return "" if not ci else f"[{ci[0]:+.1f}, {ci[1]:+.1f}]"
+
+
+def format_table(result: dict) -> str:
+    """The printed table: one line per row, then the gap and what was recovered."""
+    lines = [f"{'row':28s} {'completion %':>22s} {'vs tracker_real':>22s} {'object %':>8s} {'vs tracker_real':>22s} "
+             f"{'T_o cm':>7s}"]
+    for name in ROWS:
+        r = result["rows"].get(name)
+        if r is None:
+            continue
+        v = r.get("vs_tracker_real")
+        cmp_c = "" if v is None else f"{v['completion_points']['estimate']:+.1f} {_ci(v['completion_points']['ci95'])}"
+        cmp_o = "" if v is None else (f"{v['object_success_points']['estimate']:+.1f} "
+                                      f"{_ci(v['object_success_points']['ci95'])}")
+        ci = r["completion_pct_ci95"]
+        lines.append(f"{name:28s} {r['completion_pct']:6.1f} [{ci[0]:5.1f}, {ci[1]:5.1f}] {cmp_c:>22s} "
+                     f"{r['object_success_pct']:8.1f} {cmp_o:>22s} {r['T_o']:7.2f}")
+    if "gap_points" in result:
+        lines.append(f"gap (tracker_nominal − tracker_real): {result['gap_points']:+.1f} completion points "
+                     f"{_ci(result['gap_points_ci95'])}; object {result['object_gap_points']:+.1f} "
+                     f"{_ci(result['object_gap_points_ci95'])}")
+    rf = result.get("recovered_fraction")
+    if "recovered_fraction" in result:
+        lines.append("recovered by modulator_identified_real: " + (
+            "not defined (the hidden robot loses no completion)" if rf is None else
+            f"{rf:.2f} [{result['recovered_fraction_ci95'][0]:.2f}, {result['recovered_fraction_ci95'][1]:.2f}]"))
+    return "\n".join(lines)
+
+
+def plot(result: dict, path) -> Path:
+    """Each row's completion (with its interval) and T_o, and the sysid error falling (held-out RMS)."""
+    from adadex.io import atomic_write_bytes
+    from adadex.sysid import plots
+
+    names = [n for n in ROWS if n in result["rows"]]
+    rows = [result["rows"][n] for n in names]
+    fig, axes = plots.plt.subplots(1, 3, figsize=(14, 4))
+    y = np.arange(len(names))
+    comp = np.array([r["completion_pct"] for r in rows])
+    ci = np.array([r["completion_pct_ci95"] for r in rows]).T
+    axes[0].barh(y, comp, xerr=[comp - ci[0], ci[1] - comp], color="tab:blue")
+    axes[0].set_yticks(y, names, fontsize=8)
+    axes[0].invert_yaxis()
+    axes[0].set_xlabel("completion (%), 95 % interval")
+    axes[1].barh(y, [r["T_o"] for r in rows], color="tab:orange")
+    axes[1].set_yticks(y, [""] * len(names))
+    axes[1].invert_yaxis()
+    axes[1].set_xlabel("T_o (cm)")
+    st = result["sysid"]["stages"]
+    rms = np.degrees(st["heldout"]["overall_rms_rad"])
+    axes[2].plot(range(len(rms)), rms, "o-")
+    axes[2].set_xticks(range(len(rms)), ["nominal"] + [s.split(" on ")[0].lstrip("+ ") for s in st["stages"][1:]],
+                       fontsize=7, rotation=20)
+    axes[2].set_yscale("log")
+    axes[2].set_ylabel("held-out joint RMS error (°)")
+    axes[2].set_title("sysid: the error falling", fontsize=9)
+    fig.suptitle(f"sim-to-real on {result['real']}", fontsize=10)
+    fig.tight_layout()
+    return atomic_write_bytes(path, plots.fig_to_png(fig))
+
+
+# ----------------------------------------------------------------------------------------------
+# The loop
+
+def check_out(out, *, force: bool = False, ignore=()) -> Path:
+    """The output guard: ``out`` absent, empty, an earlier sim2real output (its marker), or ``force``."""
+    from adadex.io import check_output_dir
+
+    return check_output_dir(Path(out), SIM2REAL_RUN, force=force, option="force=true", ignore=ignore)
+
+
+def _dataset(p: Sim2RealPreset, dataset, out: Path) -> Path:
+    path = Path(dataset or p.dataset or out / "data")
+    if not (path / "index.json").is_file():
+        if dataset is not None and Path(str(dataset)).exists():
+            raise FileNotFoundError(f"dataset={dataset}: no reference dataset there (no index.json)")
+        from adadex.data.build import build_dataset
+
+        print(f"building the {p.build} reference dataset into {path}", flush=True)
+        build_dataset(p.build, path, seed=p.build_seed, planned_grasp=p.planned_grasp)
+    return path
+
+
+def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "small", seed: int = 0,
+                 dataset=None, oracle: bool = False, force: bool = False, progress: bool = True,
+                 threads: int = 2, ignore=(), **changes) -> dict:
+    """The loop (module docstring); ``changes``: :class:`Sim2RealPreset` fields (None: the preset's);
+    ``ignore``: names in ``out`` that are not in the way (what Hydra wrote there). Returns the result
+    written to ``out/sim2real.json``."""
+    import torch
+
+    from adadex.envs.randomization import Randomization
+    from adadex.envs.tracking import TrackingConfig, episode_references
+    from adadex.data.reference import ReferenceDataset
+    from adadex.io import atomic_write_text, mark_output_dir
+    from adadex.modules.modulator import Modulator
+    from adadex.modules.tracker import Tracker
+    from adadex.transforms.policy import make_policy
+
+    p = preset(preset_name, **changes)
+    robot = HiddenRobot(real)                         # a bad real= is refused before any work
+    if tracker != "replay" and not Path(str(tracker)).is_file():
+        raise FileNotFoundError(f"tracker={tracker}: no such checkpoint file")
+    loaded = Tracker.replay() if tracker == "replay" else _load_tracker(tracker)
+    out = check_out(out, force=force, ignore=ignore)
+    mark_output_dir(out, SIM2REAL_RUN)
+    minutes: dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    def stage(name: str, t0: float) -> None:
+        minutes[name] = round((time.perf_counter() - t0) / 60, 2)
+
+    t0 = time.perf_counter()
+    data = _dataset(p, dataset, out)
+    ds = ReferenceDataset(data)
+    refs = episode_references(ds, (p.split, "test"), p.window)
+    if not refs:
+        raise ConfigError(f"{data}: no {p.split}/test reference has a {p.window}-frame episode window")
+    stage("dataset", t0)
+    tracker_path = out / "tracker.pt"
+    if tracker == "replay":
+        loaded.save(tracker_path)
+    else:
+        shutil.copyfile(tracker, tracker_path)
+    loaded = loaded.freeze()
+
+    # 1. measure, on the hidden robot
+    t0 = time.perf_counter()
+    lab = out / "sysid"
+    lab.mkdir(exist_ok=True)
+    print(f"\n[1/4] measure: adadex sysid excite on all {len(JOINT_NAMES)} joints, recorded on the hidden robot "
+          f"(sensor noise {p.noise:g} rad)", flush=True)
+    plan = excite(lab, p)
+    recording = robot.record(plan, lab / "recording.npz", noise=p.noise, seed=seed)
+    stage("measure", t0)
+
+    # 2. identify, from the recording alone
+    t0 = time.perf_counter()
+    print("\n[2/4] identify: adadex sysid diagnose → fit --accept → patch", flush=True)
+    ident = identify(recording, lab, candidates=p.candidates, threads=threads)
+    patch = ident["patch"]
+    print(f"identified: {patch.describe()}", flush=True)
+    stage("identify", t0)
+
+    # 3. train
+    around = {"modulator_table3": Randomization(),
+              "modulator_identified": Randomization.from_patch(patch) if len(patch.active()) else Randomization()}
+    if oracle:
+        around["modulator_oracle"] = robot.oracle_randomization()
+    modulators = {}
+    for name, randomization in around.items():
+        t0 = time.perf_counter()
+        print(f"\n[3/4] train {name} ({p.channels}, {p.frames} frames)", flush=True)
+        modulators[name] = train_modulator(out / "train" / name, dataset=data, tracker=str(tracker_path), p=p,
+                                           randomization=randomization, seed=seed, name=name, progress=progress)
+        stage(f"train_{name}", t0)
+
+    # 4. evaluate: every row on the same episodes and draws
+    episodes = refs * p.eval_repeats
+    kw = dict(max_worlds=64, config=TrackingConfig(window=p.window),
+              randomize=Randomization(), seed=20_000 + seed, progress=progress, nthread=threads)
+    from adadex.eval.evaluate import evaluate
+
+    torch.manual_seed(seed)
+    untrained = Modulator(p.channels, hidden=p.hidden)
+    policies = {"tracker_real": make_policy(loaded, None, channels="none"),
+                "modulator_untrained_real": make_policy(loaded, untrained),
+                **{f"{k}_real": make_policy(loaded, Modulator.load(v)) for k, v in modulators.items()}}
+    evaluations = {}
+    t0 = time.perf_counter()
+    print(f"\n[4/4] evaluate: {len(refs)} test references × {p.eval_repeats} draws, Table 3", flush=True)
+    nominal = make_policy(loaded, None, channels="none")
+    evaluations["tracker_nominal"] = _keep(evaluate(nominal, ds, split=None, references=episodes,
+                                                    env_transform=nominal.primer, **kw))
+    for name, policy in policies.items():
+        evaluations[name] = _keep(robot.evaluate(policy, ds, episodes, env_transform=policy.primer, **kw))
+        print(f"  {name}: completion {evaluations[name]['summary']['completion_pct']:.1f} %", flush=True)
+    stage("evaluate", t0)
+    minutes["total"] = round((time.perf_counter() - t_all) / 60, 2)
+
+    stats = row_statistics(evaluations, seed=seed)
+    d = ident["diagnosis"]
+    result = {"real": str(real), "preset": preset_name, "seed": seed, "tracker": str(tracker), "dataset": str(data),
+              "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(p).items()},
+              "episodes": len(episodes), "condition": f"{p.split} test, Table 3 randomization",
+              **stats,
+              "diagnosis": {"verdict": d.verdict, "selected": d.selected, "explained_fraction": d.explained_fraction,
+                            "findings": d.findings, "wall_time_s": d.wall_time_s},
+              "identified_patch": patch.to_dict(), "sysid": {"stages": ident["stages"]},
+              "stage_minutes": minutes,
+              "per_episode": {k: v["per_episode"] for k, v in evaluations.items()}}
+    atomic_write_text(out / "sim2real.json", json.dumps(result, indent=1, default=_json_default))
+    plot(result, out / "sim2real.png")
+    return result
+
+
+def _load_tracker(path):
+    from adadex.errors import CheckpointError
+    from adadex.modules.tracker import Tracker
+
+    try:
+        return Tracker.load(path)
+    except (CheckpointError, ValueError) as e:
+        raise ConfigError(f"tracker={path}: {str(e).split(' (')[0]}") from None
+
+
+def _keep(res: dict) -> dict:
+    return {"summary": res["summary"], "per_episode": res["per_episode"], "wall_s": res["wall_s"]}
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")

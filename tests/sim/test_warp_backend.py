@@ -238,7 +238,7 @@ def test_worlds_with_different_objects_and_sizes_match_rollout(warp, mug):
 @pytest.mark.parametrize("randomize", [False, True], ids=["patch", "patch+randomization"])
 def test_tracking_env_observes_the_same_on_both_backends(warp, tiny_dataset, randomize):
     """TrackingEnv(backend="warp") hands out the observations, rewards and errors of backend="rollout"
-    for a few steps: with a model patch on every world, and under Table 3's randomization (per-world
+    for a few steps: with a model patch of every effect stage on every world, and under Table 3's randomization (per-world
     masses, frictions, gains, object sizes and restitution, all drawn around the patch; the tiny
     dataset's references put two objects, at three sizes, in the three worlds). Measured: observations
     within 1.3e-5, rewards within 5e-5 of their size."""
@@ -248,7 +248,13 @@ def test_tracking_env_observes_the_same_on_both_backends(warp, tiny_dataset, ran
     from adadex.envs.tracking import TrackingEnv
     from adadex.sim.patch import ModelPatch
 
-    patch = ModelPatch().with_effect("kp_scale", ["arm_j1", "if_pip"], [0.8, 0.9]).with_effect("damping", ["if_pip"], 0.1)
+    # one effect of every stage: model (gains, damping, friction, a payload), structure (a transport
+    # delay: actuator history; a first-order lag: an activation), command (backlash), sensor (encoder)
+    patch = (ModelPatch().with_effect("kp_scale", ["arm_j1", "if_pip"], [0.8, 0.9]).with_effect("damping", ["if_pip"], 0.1)
+             .with_effect("coulomb_friction", ["arm_j4"], 0.5).with_effect("payload_mass", ["arm_j6"], 0.2)
+             .with_effect("actuator_delay", ["arm_j2", "if_pip"], [0.03, 0.05])
+             .with_effect("actuator_lag", ["arm_j3", "mf_pip"], [0.04, 0.1])
+             .with_effect("backlash", ["arm_j5"], 0.01).with_effect("encoder_offset", ["if_dip"], 0.02))
     kw = dict(num_worlds=3, split=None, seed=5, patch=patch, nthread=0,
               randomize=Randomization(proprio_noise=0.0, action_noise_uncorrelated=0.0) if randomize else None)
     envs = {b: TrackingEnv(tiny_dataset, backend=b, **kw) for b in ("rollout", "warp")}

@@ -13,9 +13,9 @@ Stages (:func:`run_sim2real`), each the library's own code:
 
 1. **measure** — ``adadex sysid excite`` on every joint of the robot (a lab does not know where the
    model is wrong), then the recording on the hidden robot (:meth:`HiddenRobot.record`);
-2. **identify** — ``adadex sysid diagnose`` → ``adadex sysid fit --accept`` → the identified patch
-   (the workbench's commands, run as the command line runs them), and the sysid error per stage
-   (:func:`adadex.sysid.report.error_stages`);
+2. **identify** — ``adadex sysid diagnose`` → ``adadex sysid fit --accept`` → the identified patch, and
+   the sysid error per stage (``adadex sysid compare --patch``): the workbench's commands, each run
+   as a user runs it, in its own process (this module sits in the training layer, below the CLI);
 3. **train** — modulators around the frozen tracker with :class:`~adadex.train.ppo.PPOTrainer` (the
    trainer behind ``recipes/train_modulator.py``): one under Table 3 on the nominal model
    (``modulator_table3``), one under :meth:`Randomization.from_patch` of the identified patch
@@ -142,12 +142,8 @@ class HiddenRobot:
     def record(self, plan, out, *, noise: float, seed: int) -> Path:
         """Run the excitation ``plan`` (a plan file of ``adadex sysid excite``) on the robot and write what
         its encoders measured (with ``noise`` rad of sensor noise) to ``out``: ``adadex sysid simulate``."""
-        import contextlib
-        import io
-
-        with contextlib.redirect_stdout(io.StringIO()):        # its message counts the hidden effects
-            sysid(["simulate", str(plan), "--patch", str(self._path), "--noise", repr(float(noise)),
-                   "--seed", str(seed), "--out", str(out)])
+        sysid(["simulate", str(plan), "--patch", str(self._path), "--noise", repr(float(noise)),    # quiet: its
+               "--seed", str(seed), "--out", str(out)], quiet=True)                           # message counts the effects
         print(f"recorded {out} on the hidden robot (sensor noise {noise:g} rad, seed {seed})", flush=True)
         return Path(out)
 
@@ -164,11 +160,24 @@ class HiddenRobot:
         return Randomization.from_patch(self._patch)
 
 
-def sysid(argv: list[str]) -> None:
-    """Run ``adadex sysid ARGV`` as the command line runs it; an error is raised, not printed."""
-    from adadex.cli import main
+def sysid(argv: list[str], *, quiet: bool = False, progress: bool = True) -> None:
+    """Run ``adadex sysid ARGV`` as a user runs it, in its own process (``python -m adadex.cli``): the
+    workbench as it ships, its output on this terminal (``quiet``: not its standard output; ``progress``:
+    its progress bars). A refusal or failure raises :class:`Sim2RealError` with the command's own line."""
+    import subprocess
+    import sys
 
-    main(["--debug", "sysid", *argv])
+    proc = subprocess.Popen([sys.executable, "-m", "adadex.cli", "sysid", *argv], stderr=subprocess.PIPE,
+                            stdout=subprocess.DEVNULL if quiet else None)
+    tail = b""
+    while chunk := proc.stderr.read1(4096) if hasattr(proc.stderr, "read1") else proc.stderr.read(4096):
+        tail = (tail + chunk)[-4000:]
+        if progress:
+            sys.stderr.buffer.write(chunk)
+            sys.stderr.flush()
+    if proc.wait() != 0:
+        lines = [x for x in tail.decode("utf-8", "replace").replace("\r", "\n").splitlines() if x.strip()]
+        raise Sim2RealError(f"adadex sysid {argv[0]} failed: {lines[-1] if lines else f'exit code {proc.returncode}'}")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -183,23 +192,28 @@ def excite(folder: Path, p: Sim2RealPreset) -> Path:
     return plan
 
 
-def identify(recording, folder, *, candidates=None, threads: int = 2) -> dict:
+def identify(recording, folder, *, candidates=None, threads: int = 2, progress: bool = True) -> dict:
     """diagnose → fit → patch on ``recording`` (a recording file) with the workbench's commands, into
-    ``folder`` (``diagnosis/``, ``patch.json``). Reads nothing but the recording. Returns ``{"patch":
-    ModelPatch, "diagnosis": Diagnosis, "stages": error_stages(...).to_dict()}``."""
-    from adadex.data.recording import load_recording
+    ``folder`` (``diagnosis/``, ``patch.json``, ``compare/``: the sysid error, baseline → each identified
+    effect added). Reads nothing but the recording. Returns ``{"patch": ModelPatch, "diagnosis": the
+    diagnosis.json fields, "stages": compare.json's stages}``."""
     from adadex.sim.patch import ModelPatch
-    from adadex.sysid.diagnose import Diagnosis
-    from adadex.sysid.report import error_stages
 
     folder = Path(folder)
-    sysid(["diagnose", str(recording), "--out", str(folder / "diagnosis"), "--threads", str(threads),
-           *(["--candidates", ",".join(candidates)] if candidates else [])])
-    sysid(["fit", str(recording), "--accept", str(folder / "diagnosis"), "--out", str(folder / "patch.json"),
-           "--threads", str(threads)])
-    patch = ModelPatch.load(folder / "patch.json")
-    stages = error_stages(load_recording(recording), patch, nthread=threads)
-    return {"patch": patch, "diagnosis": Diagnosis.load(folder / "diagnosis"), "stages": stages.to_dict()}
+    rec, threads = str(recording), ["--threads", str(threads)]
+    sysid(["diagnose", rec, "--out", str(folder / "diagnosis"), *threads,
+           *(["--candidates", ",".join(candidates)] if candidates else [])], progress=progress)
+    sysid(["fit", rec, "--accept", str(folder / "diagnosis"), "--out", str(folder / "patch.json"), *threads],
+          progress=progress)
+    sysid(["compare", rec, "--patch", str(folder / "patch.json"), "--out", str(folder / "compare"), *threads],
+          progress=progress)
+    compared = json.loads((folder / "compare" / "compare.json").read_text(encoding="utf-8"))
+    nominal = compared["nominal"]
+    stages = compared.get("stages") or {"stages": ["baseline (nominal model)"], "heldout": {"overall_rms_rad": [
+        nominal["overall_rms_rad"]]}}
+    return {"patch": ModelPatch.load(folder / "patch.json"),
+            "diagnosis": json.loads((folder / "diagnosis" / "diagnosis.json").read_text(encoding="utf-8")),
+            "stages": stages}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -365,12 +379,18 @@ def format_table(result: dict) -> str:
 
 def plot(result: dict, path) -> Path:
     """Each row's completion (with its interval) and T_o, and the sysid error falling (held-out RMS)."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     from adadex.io import atomic_write_bytes
-    from adadex.sysid import plots
 
     names = [n for n in ROWS if n in result["rows"]]
     rows = [result["rows"][n] for n in names]
-    fig, axes = plots.plt.subplots(1, 3, figsize=(14, 4))
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
     y = np.arange(len(names))
     comp = np.array([r["completion_pct"] for r in rows])
     ci = np.array([r["completion_pct_ci95"] for r in rows]).T
@@ -392,7 +412,10 @@ def plot(result: dict, path) -> Path:
     axes[2].set_title("sysid: the error falling", fontsize=9)
     fig.suptitle(f"sim-to-real on {result['real']}", fontsize=10)
     fig.tight_layout()
-    return atomic_write_bytes(path, plots.fig_to_png(fig))
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    return atomic_write_bytes(path, buf.getvalue())
 
 
 # ----------------------------------------------------------------------------------------------
@@ -473,7 +496,7 @@ def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "smal
     # 2. identify, from the recording alone
     t0 = time.perf_counter()
     print("\n[2/4] identify: adadex sysid diagnose → fit --accept → patch", flush=True)
-    ident = identify(recording, lab, candidates=p.candidates, threads=threads)
+    ident = identify(recording, lab, candidates=p.candidates, threads=threads, progress=progress)
     patch = ident["patch"]
     print(f"identified: {patch.describe()}", flush=True)
     stage("identify", t0)
@@ -520,8 +543,8 @@ def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "smal
               "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(p).items()},
               "episodes": len(episodes), "condition": f"{p.split} test, Table 3 randomization",
               **stats,
-              "diagnosis": {"verdict": d.verdict, "selected": d.selected, "explained_fraction": d.explained_fraction,
-                            "findings": d.findings, "wall_time_s": d.wall_time_s},
+              "diagnosis": {k: d.get(k) for k in ("verdict", "selected", "explained_fraction", "findings",
+                                                   "wall_time_s")},
               "identified_patch": patch.to_dict(), "sysid": {"stages": ident["stages"]},
               "stage_minutes": minutes,
               "per_episode": {k: v["per_episode"] for k, v in evaluations.items()}}

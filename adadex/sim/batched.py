@@ -34,41 +34,15 @@ Example
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
-
 import mujoco
 import numpy as np
 from mujoco import rollout as mj_rollout
 
 from adadex.errors import ArrayError, ConfigError
+from adadex.sim.readout import (  # noqa: F401  (re-exported: the names users import from here)
+    BACKENDS, CTRL_SPEC, FULLPHYSICS, MAX_OBJECT_SPEED, SimReadout, check_backend, flung)
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 from adadex.sim.scene import CONTROL_HZ
-
-#: m/s. No tabletop motion moves an object this fast: a faster one means the contact solver pumped
-#: energy in (a deep squeeze resolved at once) and the world is treated as unstable by the tracking
-#: env (``TrackingConfig.max_object_speed``) and the scripted grasp.
-MAX_OBJECT_SPEED = 4.0
-
-
-def flung(object_vel: np.ndarray, limit: float = MAX_OBJECT_SPEED) -> np.ndarray:
-    """(B,) whether each world's object moves faster than ``limit`` (m/s), from ``SimReadout.object_vel``."""
-    lin = np.asarray(object_vel)[..., :3]
-    return (lin * lin).sum(axis=-1) > limit * limit
-
-#: Physics backends of :class:`BatchedSim`: C MuJoCo's ``mujoco.rollout`` thread pool on the CPU
-#: cores, or MuJoCo Warp (:mod:`adadex.sim.warp_backend`; GPU or Warp's CPU device).
-BACKENDS = ("rollout", "warp")
-
-
-def check_backend(backend: str) -> str:
-    """``backend`` if it names a physics backend, else a ConfigError."""
-    if backend not in BACKENDS:
-        raise ConfigError(f"backend must be one of {', '.join(map(repr, BACKENDS))}, got {backend!r}")
-    return backend
-
-
-FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
-CTRL_SPEC = int(mujoco.mjtState.mjSTATE_CTRL)
 
 
 class RolloutPool:
@@ -90,19 +64,6 @@ class RolloutPool:
             self.close()
         except Exception:
             pass
-
-
-@dataclass
-class SimReadout:
-    """What one control step returns, all arrays with the batch dimension first."""
-
-    time: np.ndarray          # (B,)
-    joint_pos: np.ndarray     # (B, 22)
-    joint_vel: np.ndarray     # (B, 22)
-    link_pose: np.ndarray     # (B, 5, 7) palm + 4 fingertips, position + wxyz quaternion
-    object_pose: np.ndarray   # (B, 7); zeros when the scene has no object
-    object_vel: np.ndarray    # (B, 6) linear (world) and angular velocity; zeros without an object
-    unstable: np.ndarray      # (B,) bool
 
 
 class BatchedSim(RolloutPool):

@@ -90,7 +90,7 @@ import numpy as np
 import torch
 
 from adadex.errors import ArrayError, ConfigError
-from adadex.sim.batched import FULLPHYSICS, SimReadout
+from adadex.sim.readout import FULLPHYSICS, SimReadout
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 from adadex.sim.scene import CONTROL_HZ
 

@@ -305,11 +305,6 @@ class TrainConfig:
             v = getattr(self, name)
             if isinstance(v, dict):
                 setattr(self, name, sub(**v))
-        if self.sim.backend != "rollout":
-            # TrackingEnv(backend="warp") works; the trainer's env factories do not pass the setting yet
-            raise ConfigError(f"sim.backend={self.sim.backend!r}: the training envs do not take the warp backend "
-                              f"yet (TrackingEnvFactory in adadex/train/envs.py must pass it to TrackingEnv); "
-                              f"use sim.backend=rollout, or TrackingEnv(..., backend='warp') directly")
         self.reward = dict(self.reward or {})
         self._reward_config(None)             # unknown or out-of-range reward settings fail here
         self.randomization = dict(self.randomization or {})

@@ -41,13 +41,15 @@ class TrackingEnvFactory:
     #: picklable zero-argument callables, each returning a transform appended last, after ``transform`` and
     #: ``RewardSum`` (a user's own: ``PPOTrainer(env_transforms=…)``)
     transforms: tuple = ()
+    #: the physics backend (:data:`adadex.sim.batched.BACKENDS`; config ``sim.backend``)
+    backend: str = "rollout"
 
     def __call__(self) -> TransformedEnv:
         """The env, with each episode's return summed into ``("next", "episode_reward")`` for the logs,
         then the ``transforms``' transforms in order."""
         env = TrackingEnv(self.dataset, num_worlds=self.num_worlds, split=None, references=list(self.references),
                           config=self.config, randomize=self.randomize, patch=self.patch, nthread=self.nthread,
-                          seed=self.seed, scenes=self.scenes)
+                          seed=self.seed, scenes=self.scenes, backend=self.backend)
         env = TransformedEnv(env)
         if self.transform is not None:
             env.append_transform(self.transform())

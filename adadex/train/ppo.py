@@ -259,7 +259,7 @@ class PPOTrainer:
         return TrackingEnvFactory(str(self.dataset.path), tuple(self.references), num_worlds=c.worlds, seed=seed,
                                   randomize=self.cfg.randomization_config(),
                                   config=self.env_config, nthread=c.env_threads, transform=self.transform,
-                                  transforms=self.env_transforms)
+                                  transforms=self.env_transforms, backend=self.cfg.sim.backend)
 
     def _resume(self) -> bool:
         """Check ``out`` (:func:`~adadex.train.checkpoint.check_run`: someone else's folder, a run there
@@ -436,7 +436,7 @@ class PPOTrainer:
         res = evaluate(policy, self.dataset, split=None, references=eval_refs, env_transform=primer,
                        max_worlds=self.cfg.collector.worlds, config=self.env_config, progress=False,
                        randomize=self.cfg.randomization_config(), seed=self.cfg.seed + 17,
-                       nthread=self.cfg.collector.env_threads)
+                       nthread=self.cfg.collector.env_threads, backend=self.cfg.sim.backend)
         s = res["summary"]
         return {f"eval_{k}": v for k, v in s.items() if isinstance(v, (int, float))}
 

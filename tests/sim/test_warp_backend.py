@@ -3,6 +3,7 @@ Warp's CPU device. Every sim here uses one scene structure (the uniform-layout s
 capacities, so Warp compiles its kernels once per session (about a minute cold, cached afterwards)."""
 
 import copy
+import os
 import sys
 
 import mujoco
@@ -13,6 +14,9 @@ from adadex.errors import ConfigError
 from adadex.sim.batched import BatchedSim
 from adadex.sim.robot import joint_limits
 from adadex.sim.scene import OBJECT_QPOS, build_scene_model, build_scene_spec, home_state
+
+#: Warp's device for these tests: its CPU device here and in CI; ``cuda:0`` checks the same on a GPU.
+DEVICE = os.environ.get("ADADEX_WARP_TEST_DEVICE", "cpu")
 
 
 def test_missing_extra_says_how_to_install(monkeypatch):
@@ -25,12 +29,14 @@ def test_missing_extra_says_how_to_install(monkeypatch):
 
 @pytest.fixture(scope="module")
 def warp():
-    """Warp on its CPU device, quiet; the kernel cache is Warp's own (kept between runs)."""
+    """Warp on its CPU device (or ``ADADEX_WARP_TEST_DEVICE``), quiet; the kernel cache is Warp's own
+    (kept between runs)."""
     pytest.importorskip("mujoco_warp")
     import warp as wp
 
     wp.config.quiet = True
     wp.init()
+    wp.set_device(DEVICE)            # where TrackingEnv(backend="warp") puts its worlds
     return wp
 
 
@@ -40,7 +46,7 @@ def mug():
 
 
 def _sims(models, **kw):
-    return (BatchedSim(models, backend="warp", device="cpu", **kw), BatchedSim(models, nthread=2))
+    return (BatchedSim(models, backend="warp", device=DEVICE, **kw), BatchedSim(models, nthread=2))
 
 
 def _random_ctrls(model, steps, batch, seed, sigma=0.05):
@@ -81,7 +87,7 @@ def test_free_motion_and_per_world_gains_match_rollout(warp, mug):
     # the gains matter: the three worlds moved apart under the same commands
     assert np.abs(a.joint_pos[1] - a.joint_pos[2]).max() > 1e-3
     dev = ws.device_readout()
-    assert dev.joint_pos.device.type == "cpu" and dev.link_pose.shape == (3, 5, 7)
+    assert dev.joint_pos.device.type == DEVICE.split(":")[0] and dev.link_pose.shape == (3, 5, 7)
     np.testing.assert_allclose(dev.joint_pos.numpy(), a.joint_pos, atol=1e-7)
     np.testing.assert_allclose(ws.state[:, 1:1 + mug.nq], rs.state[:, 1:1 + mug.nq], atol=1e-4)
     # set_models writes a world's new parameters: world 1 back to nominal gains matches world 0
@@ -126,7 +132,7 @@ def test_scripted_grasp_lifts_and_slips_as_rollout(warp, mug, monkeypatch):
     made = []
 
     def warp_sim(model, batch, nthread=0):
-        made.append(BatchedSim(model, batch, backend="warp", device="cpu"))
+        made.append(BatchedSim(model, batch, backend="warp", device=DEVICE))
         return made[-1]
 
     monkeypatch.setattr(grasp, "BatchedSim", warp_sim)
@@ -171,11 +177,11 @@ def test_capacity_overflows_never_pass_silently(warp, mug):
     """Too few contact slots (shared by all worlds) raise naming nconmax; too few constraint rows
     (per world) flag that world unstable until it is reset."""
     qpos, ctrl = home_state(mug)
-    ws = BatchedSim([mug], backend="warp", device="cpu", nconmax=2)
+    ws = BatchedSim([mug], backend="warp", device=DEVICE, nconmax=2)
     ws.reset(qpos=qpos)
     with pytest.raises(ConfigError, match="raise nconmax"):
         ws.step(ctrl[None])
-    ws = BatchedSim([mug, mug], backend="warp", device="cpu", njmax=8)
+    ws = BatchedSim([mug, mug], backend="warp", device=DEVICE, njmax=8)
     ws.reset(qpos=qpos)
     assert ws.step(np.tile(ctrl, (2, 1))).unstable.tolist() == [True, True]
     assert ws.overflow_count == 2
@@ -187,10 +193,10 @@ def test_unbatchable_difference_is_refused(warp, mug):
     other = copy.copy(mug)
     other.geom_condim[-1] = 1 if mug.geom_condim[-1] != 1 else 3
     with pytest.raises(ConfigError, match="geom_condim"):
-        BatchedSim([mug, other], backend="warp", device="cpu")
+        BatchedSim([mug, other], backend="warp", device=DEVICE)
     with pytest.raises(ConfigError, match="uniform_layout"):
-        BatchedSim([mug, build_scene_model("torus_00")], backend="warp", device="cpu")
-    sim = BatchedSim([mug, mug], backend="warp", device="cpu")
+        BatchedSim([mug, build_scene_model("torus_00")], backend="warp", device=DEVICE)
+    sim = BatchedSim([mug, mug], backend="warp", device=DEVICE)
     with pytest.raises(ConfigError, match="geom_condim"):
         sim.set_models([1], [other])
     assert sim.models[1] is mug
@@ -282,5 +288,18 @@ def test_sim_backend_setting_is_validated():
     assert train_config({"dataset": "d", "out": "o", "sim": {"backend": "rollout"}}).sim.backend == "rollout"
     with pytest.raises(ConfigError, match=r"sim\.backend.*'rollout', 'warp'"):
         train_config({"dataset": "d", "out": "o", "sim": {"backend": "jax"}})
-    with pytest.raises(ConfigError, match="TrackingEnvFactory"):    # accepted, but not taken by the trainer yet
-        TrainConfig(dataset="d", out="o", sim={"backend": "warp"})
+    assert TrainConfig(dataset="d", out="o", sim={"backend": "warp"}).sim.backend == "warp"
+
+
+def test_trainer_envs_take_the_warp_backend(warp, tiny_dataset, tmp_path):
+    """``sim.backend=warp`` reaches the trainer's env factory (collection) and its evaluation."""
+    from adadex.sim.warp_backend import WarpSim
+    from adadex.train.config import CollectorConfig, TrainConfig
+    from adadex.train.ppo import PPOTrainer
+
+    cfg = TrainConfig(dataset=str(tiny_dataset), out=str(tmp_path / "run"), randomize=False, wandb=False,
+                      progress=False, eval_max_references=0, collector=CollectorConfig(worlds=2),
+                      sim={"backend": "warp"})
+    env = PPOTrainer(cfg).env_factory(0)()
+    assert isinstance(env.base_env.sim, WarpSim)
+    env.close()

@@ -304,6 +304,9 @@ class TrackingEnv(EnvBase):
             reference=Composite(hand_joint_pos=u(K, NUM_JOINTS), hand_link_pose=u(K, L, 7), object_pose=u(K, 7),
                                 shape=B),
             observation=u(OBS_DIM),
+            # True in the worlds a reset (re)started: what TorchRL's InitTracker would add, published by
+            # the env itself so a user's Collector(env, policy) has nothing to append or warn about
+            is_init=Categorical(2, shape=(*B, 1), dtype=torch.bool, device=self.device),
             privileged=Composite(
                 errors=Composite({k: u() for k in ERROR_NAMES}, shape=B),
                 unstable=Categorical(2, shape=(*B, 1), dtype=torch.bool, device=self.device),
@@ -396,6 +399,8 @@ class TrackingEnv(EnvBase):
         out[PRIVILEGED].update({"unstable": torch.zeros(*B, 1, dtype=torch.bool),
                                 "reward_terms": self._td({k: torch.zeros(*B) for k in TERM_NAMES})})
         out[PRIVILEGED] = self._td(out[PRIVILEGED])
+        out["is_init"] = (torch.ones(*B, 1, dtype=torch.bool) if mask is None
+                          else mask.reshape(*B, 1).to(torch.bool).cpu().clone())
         return self._td(out)
 
     def step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -450,7 +455,7 @@ class TrackingEnv(EnvBase):
         reward = reward - terms["termination"]
         t = torch.from_numpy
         out.update(reward=t(reward[:, None]), terminated=t(terminated[:, None]), truncated=t(truncated[:, None]),
-                   done=t((terminated | truncated)[:, None]))
+                   done=t((terminated | truncated)[:, None]), is_init=torch.zeros(*self.batch_size, 1, dtype=torch.bool))
         out[PRIVILEGED].update({"unstable": t(unstable[:, None]),
                                 "reward_terms": self._td({k: t(np.asarray(v, dtype=np.float32))
                                                           for k, v in terms.items()})})

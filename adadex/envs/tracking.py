@@ -380,8 +380,7 @@ class TrackingEnv(EnvBase):
         qpos = np.zeros((len(worlds), self.sim.models[0].nq))
         qpos[:, :NUM_JOINTS] = q
         qpos[:, OBJECT_QPOS] = obj
-        for j, w in enumerate(worlds):
-            self.sim.reset(qpos=qpos[j], worlds=[int(w)])
+        self.sim.reset(qpos=qpos, worlds=worlds)       # one call: on the warp backend, one device write
         self._q_target[worlds] = q
         self._servo_cmd[worlds] = q
 

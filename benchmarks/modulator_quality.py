@@ -13,7 +13,9 @@ episodes succeed (an untrained modulator moved replay's completion by up to 3.4 
 difference to the untrained modulator is what training learned.
 
 A row is ``CHANNELS[:inputs[:init_scale]]``: ``C+T`` (the defaults: the view, each channel's own
-scale), ``R+O+T:observation:0.5`` (the modulator as it was before 2026-11-27). Every run is kept
+scale), ``R+O+T:observation:0.5`` (the modulator as it was before 2026-11-27), ``C+T:prior=anchor``
+(channel C's palm around the object anchor's shift), ``C+T:hold=10:hold_C=0.5`` (C's exploration
+noise held for 10 steps at scale 0.5; :class:`~adadex.modules.modulator.Modulator`). Every run is kept
 under ``--runs`` and resumes (training from its checkpoint, evaluations from their JSON), so a
 killed benchmark continues where it stopped::
 
@@ -41,12 +43,27 @@ PAIRED = {"completion": "completion_pct", "object_completion": "object_completio
 
 
 def parse_row(text: str) -> dict:
+    """``CHANNELS[:inputs[:init_scale]][:option=value …]``; options: ``prior=anchor``, ``hold=K`` (steps
+    the exploration noise is held) and ``hold_X=scale`` (channel X's held-noise scale), the
+    :class:`~adadex.modules.modulator.Modulator` settings ``prior``, ``hold_steps``, ``hold_scale``."""
     parts = text.split(":")
+    options = [p for p in parts[1:] if "=" in p]
+    parts = [p for p in parts if "=" not in p]
     if not 1 <= len(parts) <= 3:
-        raise SystemExit(f"--rows: {text!r} is not CHANNELS[:inputs[:init_scale]]")
+        raise SystemExit(f"--rows: {text!r} is not CHANNELS[:inputs[:init_scale]][:option=value …]")
     row = {"channels": parts[0], "inputs": parts[1] if len(parts) > 1 else "view",
-           "init_scale": float(parts[2]) if len(parts) > 2 else None}
-    row["name"] = text.replace("+", "").replace(":", "_").replace(".", "")
+           "init_scale": float(parts[2]) if len(parts) > 2 and parts[2] != "default" else None, "modulator": {}}
+    for option in options:
+        key, value = option.split("=", 1)
+        if key == "prior":
+            row["modulator"]["prior"] = value
+        elif key == "hold":
+            row["modulator"]["hold_steps"] = int(value)
+        elif key.startswith("hold_"):
+            row["modulator"].setdefault("hold_scale", {})[key[5:]] = float(value)
+        else:
+            raise SystemExit(f"--rows: unknown option {key!r} in {text!r} (prior=, hold=, hold_X=)")
+    row["name"] = text.replace("+", "").replace(":", "_").replace(".", "").replace("=", "")
     return row
 
 
@@ -122,8 +139,13 @@ def main(argv=None) -> dict:
                              resume=(folder / "checkpoint.pt").is_file(),
                              ppo=PPOConfig(**{**ppo, "total_frames": a.frames}), collector=CollectorConfig(),
                              modulator=m, reward=reward, eval_max_references=0, wandb=False, progress=False)
+            # settings ModulatorSettings does not hold (prior, held noise): the trainer gets the modulator
+            # built as it would build it (seeded the same), and the control below is that modulator again
+            torch.manual_seed(seed)
+            policy = Modulator(row["channels"], hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
+                               inputs=m.inputs, history=m.history, **row["modulator"]) if row["modulator"] else None
             t0 = time.perf_counter()
-            trained = PPOTrainer(tc, run_name=f"{row['name']} seed {seed}").train()
+            trained = PPOTrainer(tc, run_name=f"{row['name']} seed {seed}", policy=policy).train()
             train_s = time.perf_counter() - t0
             mod = Modulator.load(trained["policy"])
             ev = evaluated(folder, make_policy(tracker, mod))
@@ -132,7 +154,7 @@ def main(argv=None) -> dict:
             # training learned with that reshuffle; "trained − untrained" does not
             torch.manual_seed(seed)
             fresh = Modulator(row["channels"], hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
-                              inputs=m.inputs, history=m.history)
+                              inputs=m.inputs, history=m.history, **row["modulator"])
             ctl = evaluated(folder / "untrained", make_policy(tracker, fresh))
             per_seed.append({"seed": seed, "train_s": train_s, **{k: ev["summary"][k] for k in METRICS},
                              "untrained": {k: ctl["summary"][k] for k in METRICS},

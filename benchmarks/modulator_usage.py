@@ -11,7 +11,12 @@ bootstrap interval over references (:func:`adadex.eval.paired.paired_bootstrap`)
 (mean |a| per action entry)::
 
     python benchmarks/modulator_usage.py --init-check --dataset data/small_pg [--channels R,T,O,R+O+T]
-        [--scales default,0.05,0.5] [--repeats 4] [--references 0] [--tracker PATH] [--out FILE]
+        [--scales default,0.05,0.5] [--modes deterministic,sampled] [--repeats 4] [--references 0]
+        [--tracker PATH] [--out FILE]
+
+A channel set may carry :class:`~adadex.modules.modulator.Modulator` settings, ``C+T:prior=anchor``
+(C's palm around the object anchor's shift: deterministic and untrained, it is the anchored
+feed-forward) or ``C:hold=10:hold_C=0.5`` (C's exploration noise held for 10 steps at scale 0.5).
 
 Without it: one row of a finished ``recipes/pipeline.py`` run (default ``ROT``, seed 0) — how much the
 trained modulator moves each channel and its completion, against a freshly initialised one of the
@@ -45,6 +50,24 @@ def _paired(row: dict, base: dict, metric: str) -> dict:
     d = paired_bootstrap(100.0 * np.asarray(a[metric], float), 100.0 * np.asarray(b[metric], float),
                          a["reference"], None)
     return {"diff": d["estimate"], "ci95": d["ci95"]}
+
+
+def modulator_options(spec: str) -> tuple[str, dict]:
+    """``CHANNELS[:option=value …]`` → (channels, Modulator settings): ``prior=anchor``, ``hold=K``
+    (``hold_steps``), ``hold_X=scale`` (channel X's ``hold_scale``)."""
+    channels, *options = spec.split(":")
+    out = {}
+    for option in options:
+        key, value = option.split("=", 1)
+        if key == "prior":
+            out["prior"] = value
+        elif key == "hold":
+            out["hold_steps"] = int(value)
+        elif key.startswith("hold_"):
+            out.setdefault("hold_scale", {})[key[5:]] = float(value)
+        else:
+            raise SystemExit(f"--channels: unknown option {key!r} in {spec!r} (prior=, hold=, hold_X=)")
+    return channels, out
 
 
 def init_check(a) -> dict:
@@ -85,18 +108,20 @@ def init_check(a) -> dict:
     print(f"tracker alone ({result['tracker']}): completion {base['summary']['completion_pct']:.1f} %, "
           f"object completion {base['summary']['object_completion_pct']:.1f} % ({len(episodes)} episodes)",
           flush=True)
-    for channels in a.channels.split(","):
+    for spec in a.channels.split(","):
+        channels, options = modulator_options(spec)
         layout = ModulationLayout(channels)
         for scale in a.scales.split(","):
             init = None if scale == "default" else float(scale)
             torch.manual_seed(a.seed)
-            mod = Modulator(channels, hidden=(256, 256, 128), init_scale=init)
+            mod = Modulator(channels, hidden=(256, 256, 128), init_scale=init, **options)
             policy = make_policy(tracker, mod, channels=channels)
             modes = (("deterministic", False), ("sampled", True)) if scale == a.scales.split(",")[0] else \
                 (("sampled", True),)
+            modes = tuple(m for m in modes if m[0] in a.modes.split(","))
             for mode, sample in modes:
                 res = run(policy, sample=sample, seed=a.seed)
-                row = {"channels": layout.name, "init_scale": channel_scales(layout, init), "mode": mode,
+                row = {"channels": layout.name, "options": options, "init_scale": channel_scales(layout, init), "mode": mode,
                        **summary(res), "channel_usage": channel_usage(res["rollouts"], channels)}
                 for metric in ("completion", "object_completion"):
                     row[f"{metric}_vs_tracker"] = _paired(res, base, metric)
@@ -104,7 +129,7 @@ def init_check(a) -> dict:
                 c, o = row["completion_vs_tracker"], row["object_completion_vs_tracker"]
                 usage = ", ".join(f"{k} {v:.3f}" for k, v in row["channel_usage"].items())
                 scales = ", ".join(f"{k} {v:g}" for k, v in row["init_scale"].items())
-                print(f"{layout.name:6s} {mode:13s} scale {scales:22s} completion {row['completion_pct']:5.1f} % "
+                print(f"{spec:6s} {mode:13s} scale {scales:22s} completion {row['completion_pct']:5.1f} % "
                       f"({c['diff']:+.1f} [{c['ci95'][0]:+.1f}, {c['ci95'][1]:+.1f}]), object "
                       f"{row['object_completion_pct']:5.1f} % ({o['diff']:+.1f} [{o['ci95'][0]:+.1f}, "
                       f"{o['ci95'][1]:+.1f}]); mean |a|: {usage}", flush=True)
@@ -162,6 +187,8 @@ def main(argv=None) -> dict:
     p.add_argument("--scales", default="default,0.5",
                    help="--init-check: exploration scales, comma-separated; 'default' is each channel's own")
     p.add_argument("--repeats", type=int, default=4, help="--init-check: Table 3 draws per test reference")
+    p.add_argument("--modes", default="deterministic,sampled",
+                   help="--init-check: which runs of each row (the deterministic one: the first scale only)")
     p.add_argument("--worlds", type=int, default=64)
     p.add_argument("--row", default="ROT")
     p.add_argument("--seed", type=int, default=0)

@@ -131,20 +131,30 @@ class ObjectAnchor(nn.Module):
     def weight(self, observation: torch.Tensor, ref_object_start: torch.Tensor) -> torch.Tensor:
         """(…,) anchor weight: 1 while the reference object is at rest, 0 once it travelled
         ``hold + release`` from its start."""
-        travel = torch.linalg.vector_norm(observation[..., _NEXT_REF_OBJECT] - ref_object_start[..., :3], dim=-1)
+        return self.travel_weight(torch.linalg.vector_norm(observation[..., _NEXT_REF_OBJECT]
+                                                           - ref_object_start[..., :3], dim=-1))
+
+    def travel_weight(self, travel: torch.Tensor) -> torch.Tensor:
+        """(…,) anchor weight of the reference object's travel (m) from its start at t+1."""
         return (1.0 - (travel - self.hold) / self.release).clamp(0.0, 1.0)
+
+    def palm_shift(self, offset_xy: torch.Tensor, travel: torch.Tensor) -> torch.Tensor:
+        """(…, 3) palm shift (m, base frame) of the anchor: ``w·Δ`` with the height left alone, from
+        the object's horizontal start offset ``Δ`` (…, 2) and the reference object's travel (…,)
+        (``reach`` applied). What :meth:`forward` moves the palm by; the modulator's anchor prior
+        (:class:`adadex.modules.modulator.ActionShift`) asks channel C for the same shift."""
+        weight = self.travel_weight(travel)
+        if self.reach > 0:
+            weight = weight * (offset_xy.norm(dim=-1) < self.reach)
+        return torch.cat([offset_xy * weight[..., None], torch.zeros_like(offset_xy[..., :1])], dim=-1)
 
     def forward(self, observation: torch.Tensor, object_start: torch.Tensor, ref_object_start: torch.Tensor
                 ) -> torch.Tensor:
         lead = observation.shape[:-1]
         obs = observation.reshape(-1, observation.shape[-1])
         start, ref_start = object_start.reshape(-1, 7), ref_object_start.reshape(-1, 7)
-        shift = torch.zeros(obs.shape[0], 6, dtype=obs.dtype, device=obs.device)   # palm: move, do not turn
-        shift[:, :2] = start[:, :2] - ref_start[:, :2]
-        weight = self.weight(obs, ref_start)
-        if self.reach > 0:
-            weight = weight * (shift[:, :2].norm(dim=-1) < self.reach)
-        shift = shift * weight[:, None]
+        travel = torch.linalg.vector_norm(obs[:, _NEXT_REF_OBJECT] - ref_start[:, :3], dim=-1)
+        shift = self.palm_shift(start[:, :2] - ref_start[:, :2], travel)       # palm: move, do not turn
         out = torch.zeros(obs.shape[0], NUM_JOINTS, dtype=obs.dtype, device=obs.device)
         rows = shift.any(dim=1).nonzero()[:, 0]      # the Jacobian only where there is a shift
         if len(rows):

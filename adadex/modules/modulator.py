@@ -19,6 +19,34 @@ What it reads (``inputs``):
   :func:`adadex.transforms.policy.make_policy`'s primer.
 * ``"observation"`` — the tracker's 273-D observation alone (checkpoints saved before the view).
 
+Two settings shift the action around a point other than zero (both off by default; both need the view):
+
+* ``prior="anchor"`` — channel C's palm action is an offset around the object anchor's palm shift
+  (:meth:`adadex.modules.anchor.ObjectAnchor.palm_shift`: the object's horizontal start offset,
+  faded as the reference carries the object), expressed in C's units (÷ ``lambda_palm``). The
+  untrained modulator (heads at zero) *is* the anchored feed-forward around the tracker it modulates;
+  training learns corrections, including not reaching. It reads the view's ``start_offset`` and
+  ``original_future`` and the reference object's start, ``("object", "reference_start")`` — the
+  entry the view's start offset and the anchored tracker read; nothing the simulator hides.
+* ``hold_steps=k`` with ``hold_scale`` — temporally correlated exploration: while the policy samples
+  (``ExplorationType.RANDOM``: collectors, ``evaluate(sample=True)``) the chosen channels' action is
+  shifted by ``hold_scale · z``, ``z ~ N(0, I)`` drawn at the episode's steps 0, k, 2k, … (the
+  view's phase) and held in between, so a tried palm offset lasts k steps; deterministic runs
+  (evaluation) use ``z = 0``.
+
+Both are per-sample bounds of the TanhNormal (:class:`ActionShift`, ``make_actor``'s ``bounds``):
+the action is ``shift + tanh(N(loc, scale))`` between ``shift ∓ 1``, and the collector stores the
+bounds it sampled between, ``("modulator", "low"/"high")``. PPO's loss reads those stored bounds
+(:func:`adadex.modules.nets.stored_bounds_actor`), so the ratio π_new/π_old is evaluated at exactly
+the shift the action was sampled around. Why the update stays valid with the held noise: ``z`` is an
+exogenous process (drawn on a schedule, never from the actions or the parameters), so the trajectory
+density factorises as p(z) · Π_t π_θ(a_t | s_t, z_t) · P(s_{t+1} | s_t, a_t), and ∇ log p(τ) = Σ_t
+∇ log π_θ(a_t | s_t, z_t): each step's fresh Gaussian given (s_t, z_t) is the policy whose
+log-probability PPO evaluates, and its ratio is exact. (Sampling a held Gaussian and scoring it with
+the per-step marginal, as gSDE does, is not: given s_t the held noise is not independent of the
+state it steered.) The critic does not see ``z``; its value is a baseline, so that biases nothing
+beyond what a bootstrapped value already does.
+
 * ``modulator.actor`` — in: its input; out: ``"action"`` (D), ``"action_log_prob"``,
   ``("modulator", "loc")``, ``("modulator", "scale")``.
 * ``modulator.critic`` — in: its input; out: ``"state_value"``.
@@ -43,14 +71,84 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-from adadex.envs.observation import OBS_DIM, OBSERVATION
+import torch
+from tensordict.nn import InteractionType, TensorDictModule
+from tensordict.nn.probabilistic import interaction_type
+from torch import nn
+
+from adadex.envs.observation import OBS_DIM, OBSERVATION, REF_OBJECT_START, REF_OFFSETS
 from adadex.errors import ConfigError, check_number
-from adadex.modules.channels import ModulationLayout
+from adadex.modules.anchor import ObjectAnchor
+from adadex.modules.channels import CHANNELS, PALM, ModulationLayout
 from adadex.modules.modulator_view import VIEW, ViewLayout
 from adadex.modules.nets import ActorCritic, make_actor, make_critic
+from adadex.sim.robot import NUM_JOINTS
 
 #: what a modulator may read (see the module docstring)
 INPUTS = ("view", "observation")
+#: the action's prior mean (see the module docstring): none, or the object anchor's palm shift on channel C
+PRIORS = (None, "anchor")
+#: the anchor the prior follows: the anchored feed-forward's (``Tracker(residual=…, anchor=0.05)``)
+PRIOR_ANCHOR = {"release": 0.05, "hold": 0.02, "reach": 0.0}
+_DEFAULT_LAMBDA_PALM = next(f.default for f in CHANNELS["C"].fields if f.name == "lambda_palm")
+
+
+class ActionShift(nn.Module):
+    """(view[, reference object start]) → (shift − 1, shift + 1): the per-sample bounds of the
+    modulator's TanhNormal, so its action is ``shift + tanh(·)`` (see the module docstring).
+
+    ``shift`` is zero except C's palm entries under ``prior="anchor"`` (the anchor's palm shift ÷
+    ``lambda_palm``) and, while sampling, the held noise of the ``hold`` entries. It holds no
+    parameters and no state-dict entries; the held noise (one row per world) is a plain attribute.
+
+    Args:
+        layout: the modulator's view layout.
+        prior: ``None`` or ``"anchor"``.
+        lambda_palm: m per unit of C's palm action (the env's ``ModulationConfig.lambda_palm``).
+        hold_steps: k, steps the noise is held (0: no held noise).
+        hold_scale: (D,) held-noise scale per flat action entry (0 where none).
+    """
+
+    def __init__(self, layout: ViewLayout, prior: str | None = None, lambda_palm: float = _DEFAULT_LAMBDA_PALM,
+                 hold_steps: int = 0, hold_scale: torch.Tensor | None = None):
+        super().__init__()
+        self.prior, self.lambda_palm, self.hold_steps = prior, float(lambda_palm), int(hold_steps)
+        part = layout.slices()
+        future = part["original_future"]
+        obj_t1 = future.start + (len(REF_OFFSETS) - 1) * NUM_JOINTS       # the object pose at t+1
+        self._obj_t1 = slice(obj_t1, obj_t1 + 3)
+        self._offset = slice(part["start_offset"].start, part["start_offset"].start + 2)
+        self._phase = part["phase"].start
+        self._palm = next((sl for key, sl, _ in layout.channels.segments if key == PALM), None)
+        self._anchor = ObjectAnchor(**PRIOR_ANCHOR) if prior == "anchor" else None
+        self._dim = layout.action_dim
+        self._hold_scale = None if hold_scale is None else hold_scale.detach().clone().float()
+        self._held = None            # (…, D) the held noise of each world
+
+    def forward(self, view: torch.Tensor, ref_object_start: torch.Tensor | None = None):
+        shift = view.new_zeros(*view.shape[:-1], self._dim)
+        if self._anchor is not None:
+            travel = torch.linalg.vector_norm(view[..., self._obj_t1] - ref_object_start[..., :3], dim=-1)
+            palm = self._anchor.palm_shift(view[..., self._offset], travel) / self.lambda_palm
+            shift = torch.cat([shift[..., :self._palm.start], palm, shift[..., self._palm.stop:]], -1)
+        if self.hold_steps and interaction_type() is InteractionType.RANDOM:
+            shift = shift + self.held_noise(view) * self._hold_scale.to(view)
+        return shift - 1.0, shift + 1.0
+
+    def held_noise(self, view: torch.Tensor) -> torch.Tensor:
+        """(…, D) noise held since the world's last step that was a multiple of ``hold_steps``
+        (drawn from torch's global generator, so a seeded run draws the same)."""
+        steps = torch.round(view[..., self._phase] * 100.0).long()
+        held = self._held
+        if held is None or held.shape != (*view.shape[:-1], self._dim) or held.device != view.device:
+            held = view.new_zeros(*view.shape[:-1], self._dim)
+            fresh = torch.ones_like(steps, dtype=torch.bool)
+        else:
+            fresh = steps % self.hold_steps == 0
+        if fresh.any():
+            held = torch.where(fresh[..., None], torch.randn(held.shape, dtype=held.dtype, device=held.device), held)
+        self._held = held
+        return held
 
 
 def channel_scales(layout: ModulationLayout, init_scale=None) -> dict[str, float]:
@@ -85,12 +183,22 @@ class Modulator(ActorCritic):
         loc_bound: > 0 bounds the pre-tanh mean to ±loc_bound (see :class:`~adadex.modules.tracker.Tracker`).
         inputs: ``"view"`` or ``"observation"`` (see the module docstring).
         history: previous frames in the view.
+        prior: ``None`` or ``"anchor"``: channel C's palm action is an offset around the object
+            anchor's palm shift (see the module docstring; needs C and the view).
+        lambda_palm: m per unit of C's palm action, as the env's ``ModulationConfig.lambda_palm``
+            (the prior is expressed in C's units).
+        hold_steps: > 0 holds exploration noise for this many steps on the ``hold_scale`` channels
+            (see the module docstring; needs the view); 0: off.
+        hold_scale: the held noise's scale in action units: a number for every channel, or
+            ``{name: scale}`` by channel (``"C"``) or entry (``"palm"``, ``"grip"``, …; an entry's
+            own before its channel's); what is left out holds none.
     """
 
     kind = "modulator"
 
     def __init__(self, channels="R+O+T", hidden: Sequence[int] = (512, 256, 128), init_scale=None,
-                 loc_bound: float = 0.0, inputs: str = "view", history: int = 3):
+                 loc_bound: float = 0.0, inputs: str = "view", history: int = 3, prior: str | None = None,
+                 lambda_palm: float = _DEFAULT_LAMBDA_PALM, hold_steps: int = 0, hold_scale=None):
         super().__init__()
         self.layout = ModulationLayout(channels)
         if not self.layout.dim:
@@ -101,12 +209,51 @@ class Modulator(ActorCritic):
         scales = channel_scales(self.layout, init_scale)
         self.view = ViewLayout(self.layout.channels, history) if inputs == "view" else None
         self.obs_key, obs_dim = (VIEW, self.view.dim) if self.view is not None else (OBSERVATION, OBS_DIM)
+        shift, held = self._shift(prior, lambda_palm, hold_steps, hold_scale)
         self.config = {"channels": self.layout.name, "hidden": list(hidden), "init_scale": scales,
                        "loc_bound": float(loc_bound), "inputs": inputs, "history": int(history)}
+        if shift is not None:         # only then: checkpoints without these settings keep their config
+            self.config.update(prior=prior, lambda_palm=float(lambda_palm), hold_steps=int(hold_steps),
+                               hold_scale=held)
         self.actor = make_actor(self.obs_key, obs_dim, self.layout.channel_sizes, -1.0, 1.0, hidden,
                                 namespace="modulator", init_scale=[scales[c] for c in self.layout.channels],
-                                loc_bound=loc_bound)
+                                loc_bound=loc_bound, bounds=shift)
         self.critic = make_critic(self.obs_key, obs_dim, hidden)
+
+    def _shift(self, prior, lambda_palm, hold_steps, hold_scale):
+        """The :class:`ActionShift` bounds module and the held scales per channel, or (None, {})."""
+        if prior not in PRIORS:
+            raise ConfigError(f"Modulator.prior must be one of {PRIORS}, got {prior!r}")
+        check_number("Modulator.lambda_palm", lambda_palm, strict_low=True)
+        check_number("Modulator.hold_steps", hold_steps, integer=True)
+        if prior == "anchor" and "C" not in self.layout:
+            raise ConfigError(f"Modulator(prior='anchor') shifts channel C's palm, which {self.layout.name} lacks")
+        if hold_scale is None:
+            held = {}
+        elif isinstance(hold_scale, Mapping):
+            held = {str(k): float(v) for k, v in hold_scale.items()}
+        else:
+            held = dict.fromkeys(self.layout.channels, float(hold_scale))
+        entries = {key[-1]: c.name for c in self.layout.records for key in c.keys}    # e.g. "palm" → "C"
+        unknown = sorted(set(held) - set(self.layout.channels) - set(entries))
+        if unknown:
+            raise ConfigError(f"Modulator.hold_scale: {unknown} are neither channels of {self.layout.name} nor "
+                              f"their entries {sorted(entries)}")
+        for c, v in held.items():
+            check_number(f"Modulator.hold_scale[{c}]", v)
+        if bool(hold_steps) != any(v > 0 for v in held.values()):
+            raise ConfigError(f"Modulator: hold_steps={hold_steps} and hold_scale={hold_scale!r} go together "
+                              "(held noise needs both > 0; off: hold_steps=0, hold_scale=None)")
+        if prior is None and not hold_steps:
+            return None, {}
+        if self.view is None:
+            raise ConfigError("Modulator(prior=…/hold_steps=…) reads the view: inputs='view'")
+        scale = torch.zeros(self.layout.dim)
+        for key, sl, _ in self.layout.segments:         # an entry's own scale before its channel's
+            scale[sl] = held.get(key[-1], held.get(entries[key[-1]], 0.0))
+        keys = [VIEW] + ([REF_OBJECT_START] if prior == "anchor" else [])
+        module = ActionShift(self.view, prior, lambda_palm, hold_steps, scale if hold_steps else None)
+        return TensorDictModule(module, in_keys=keys, out_keys=[("modulator", "low"), ("modulator", "high")]), held
 
     @property
     def channels(self) -> tuple[str, ...]:

@@ -91,9 +91,15 @@ def physics_fps(model, B: int, steps: int, device: str, substeps: int) -> dict:
             run()
         _sync(device)
         dt = time.perf_counter() - t0
-        overflow = int(np.asarray(d.overflow.numpy()).any()) if hasattr(d, "overflow") else None
+        from mujoco_warp._src.types import OverflowType
+
+        flags = np.bitwise_or.reduce(np.asarray(d.overflow.numpy()).reshape(-1))
+        solver = int(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
+    # capacity: contacts or constraint rows dropped (must be 0); solver: an iteration limit was reached in
+    # some world (MuJoCo Warp prints a line for it; the step still completes, as C MuJoCo's would)
     return {"fps": B * steps / dt, "step_ms": dt / steps * 1e3, "compile_s": compile_s,
-            "graph": graph is not None, "overflow": overflow}
+            "graph": graph is not None, "capacity_overflow": bool(flags & ~solver),
+            "solver_iteration_limit": bool(flags & solver)}
 
 
 def sim_fps(dataset, refs, B: int, steps: int, device: str) -> dict:

@@ -284,7 +284,6 @@ def _policy_ms(factory, pc, calls: int = 300) -> tuple[float, float]:
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     from adadex.envs.observation import OBJECT_START
-    from adadex.modules.tracker import Tracker
 
     env = factory()
     td = env.reset()
@@ -292,8 +291,7 @@ def _policy_ms(factory, pc, calls: int = 300) -> tuple[float, float]:
     td[OBJECT_START][:, 0] += 0.03
     out = []
     for anchor in (0.0, pc.anchor or 0.05):
-        policy = Tracker(hidden=pc.hidden, residual=pc.residual, init_scale=pc.init_scale, loc_bound=pc.loc_bound,
-                         anchor=anchor).sampling_policy()
+        policy = dataclasses.replace(pc, anchor=anchor).tracker().sampling_policy()
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
             for _ in range(20):
                 policy(td.clone())
@@ -323,7 +321,6 @@ def main(argv=None) -> dict:
 
     from adadex.data.reference import ReferenceDataset
     from adadex.envs.tracking import episode_references
-    from adadex.modules.tracker import Tracker
     from adadex.train.collectors import collector_devices, local_collector, make_collector, start_worker_server
     from adadex.train.config import CollectorConfig, PolicyConfig, PPOConfig, TrainConfig
     from adadex.train.envs import TrackingEnvFactory
@@ -336,8 +333,7 @@ def main(argv=None) -> dict:
         batches = max(1, a.frames // fpb)
         factory = TrackingEnvFactory(str(dataset), refs, num_worlds=B, seed=0, nthread=2)
         pc = PolicyConfig()
-        policy = Tracker(hidden=pc.hidden, residual=pc.residual, init_scale=pc.init_scale,
-                         loc_bound=pc.loc_bound, anchor=pc.anchor).sampling_policy()
+        policy = pc.tracker().sampling_policy()
         res = {"worlds": B, "frames_per_batch": fpb, "batches": batches, "references": len(refs)}
 
         recorders, timers = [], {"policy": _Timer(policy, "forward")}

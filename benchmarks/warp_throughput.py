@@ -156,14 +156,12 @@ def env_fps(dataset, refs, B: int, steps: int, device: str) -> dict:
 
 def collect_fps(dataset, refs, B: int, steps: int, device: str) -> dict:
     """TorchRL ``Collector`` with the sampling ``Tracker`` on the GPU, over the warp env."""
-    from adadex.modules.tracker import Tracker
     from adadex.train.collectors import local_collector
     from adadex.train.config import PolicyConfig
     from adadex.train.envs import TrackingEnvFactory
 
     pc = PolicyConfig()
-    policy = Tracker(hidden=pc.hidden, residual=pc.residual, init_scale=pc.init_scale, loc_bound=pc.loc_bound,
-                     anchor=pc.anchor).sampling_policy().to(device if device.startswith("cuda") else "cpu")
+    policy = pc.tracker().sampling_policy().to(device if device.startswith("cuda") else "cpu")
     factory = TrackingEnvFactory(str(dataset), tuple(refs), num_worlds=B, seed=0, backend="warp")
     fpb = B * steps
     col = local_collector(factory, policy, frames_per_batch=fpb, total_frames=-1)

@@ -182,6 +182,17 @@ class PolicyConfig:
             raise ConfigError(f"PolicyConfig.anchor_reach={self.anchor_reach} limits the object anchor, which is off "
                               f"(anchor={self.anchor}); set policy.anchor > 0 or drop anchor_reach")
 
+    def tracker(self, max_action: float | None = None):
+        """The :class:`~adadex.modules.tracker.Tracker` these settings describe (untrained): the one place a
+        tracker is built from them, so every trainer and benchmark builds the same one. ``max_action``:
+        the env's action bound (``TrackingConfig.max_action``; default the Tracker's own)."""
+        from adadex.modules.tracker import Tracker
+
+        extra = {} if max_action is None else {"max_action": max_action}
+        return Tracker(hidden=self.hidden, init_scale=self.init_scale, residual=self.residual,
+                       loc_bound=self.loc_bound, anchor=self.anchor, anchor_reach=self.anchor_reach,
+                       anchor_iterations=self.anchor_iterations, **extra)
+
 
 @dataclass
 class ModulatorSettings:

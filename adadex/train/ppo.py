@@ -159,10 +159,7 @@ class PPOTrainer:
             self._check_policy(policy)
             self.policy = policy
         elif m is None:
-            p = cfg.policy
-            self.policy = Tracker(hidden=p.hidden, max_action=env_config.max_action, init_scale=p.init_scale,
-                                  residual=p.residual, loc_bound=p.loc_bound, anchor=p.anchor,
-                                  anchor_reach=p.anchor_reach, anchor_iterations=p.anchor_iterations)
+            self.policy = cfg.policy.tracker(max_action=env_config.max_action)
         else:
             self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
                                     inputs=m.inputs, history=m.history)

@@ -137,3 +137,15 @@ def test_a_policy_that_does_not_fit_the_run_is_refused_in_one_line(tiny_dataset,
     mod = Modulator("R+O+T", hidden=(16,))                       # the right size: taken as it is
     trainer = PPOTrainer(cfg, policy=mod)
     assert trainer.policy is mod and trainer.env_action_dim() == 198
+
+
+def test_policy_config_builds_the_tracker_it_describes():
+    """PolicyConfig.tracker() is the one place a tracker is built from the settings: every field arrives."""
+    from adadex.train.config import PolicyConfig
+
+    pc = PolicyConfig(hidden=(32, 16), residual=0.2, init_scale=0.1, loc_bound=4.0, anchor=0.04,
+                      anchor_reach=0.12, anchor_iterations=2)
+    cfg = pc.tracker(max_action=0.2).config
+    assert cfg["hidden"] == [32, 16] and cfg["max_action"] == 0.2
+    for k in ("residual", "init_scale", "loc_bound", "anchor", "anchor_reach", "anchor_iterations"):
+        assert cfg[k] == getattr(pc, k), k

@@ -130,6 +130,9 @@ RESUME_NEUTRAL = frozenset({
     # PPO: how long, and how the steps are spread over threads, processes and machines
     "ppo.total_frames", "ppo.update_threads", "collector.env_threads", "collector.workers", "collector.backend",
     "collector.ray_address", "collector.start_method",
+    # … and on which devices: the same computation, rounded as that device rounds (the warp backend's
+    # physics agrees with the rollout backend's to 1e-5 rad; tests/sim/test_warp_backend.py)
+    "ppo.device", "sim.backend",
     # distillation: how long, threads, how often a metrics row is written
     "steps", "threads", "log_every",
 })

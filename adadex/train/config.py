@@ -12,6 +12,7 @@ adadex.errors.ConfigError: CollectorConfig.backend must be 'local' or 'ray', got
 from __future__ import annotations
 
 import dataclasses
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,9 +62,17 @@ class PPOConfig:
     #: reference's future object positions clipped; yet specialists trained with running statistics
     #: completed less (89.4 / 90.1 % against 90.9 / 91.2 %, seeds 0 / 1; docs/training-log.md)
     obs_norm: str = "first_batch"
+    #: where the policy, the critic, GAE and the minibatch updates run: ``"cpu"`` or a CUDA device
+    #: (``"cuda"``, ``"cuda:1"``). The env stays where its backend puts it; the collector moves each
+    #: step's observation to the policy's device and the batch back to the host, and the update moves
+    #: the batch to this device. A CUDA device needs the local collector with one worker.
+    device: str = "cpu"
 
     def __post_init__(self):
         check_number("PPOConfig.update_threads", self.update_threads, integer=True)
+        if not (isinstance(self.device, str) and re.fullmatch(r"cpu|cuda(:\d+)?", self.device)):
+            raise ConfigError(f"PPOConfig.device (ppo.device) must be 'cpu' or a CUDA device ('cuda', 'cuda:1'), "
+                              f"got {self.device!r}")
         for k in ("total_frames", "frames_per_batch", "epochs", "minibatch_size"):
             check_number(f"PPOConfig.{k}", getattr(self, k), low=1, integer=True)
         check_numbers("PPOConfig", self, ("lr", "clip_epsilon", "entropy_coef", "critic_coef", "max_grad_norm",

@@ -32,6 +32,7 @@ and docs/training.md, "Your own modules").
 
 from __future__ import annotations
 
+import copy
 import functools
 import os
 import pickle
@@ -164,6 +165,8 @@ class PPOTrainer:
             self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
                                     inputs=m.inputs, history=m.history)
         self.ppo = cfg.ppo
+        self.device = self._check_device(torch.device(self.ppo.device))
+        self.policy.to(self.device)                # before the loss takes its parameters
         actor = self.policy.actor
         if getattr(actor, "_sampling_parts", None) is not None:          # built by make_actor
             actor = stored_bounds_actor(actor)
@@ -178,7 +181,7 @@ class PPOTrainer:
         self.obs_key = getattr(self.policy, "obs_key", OBSERVATION)
         #: DexTrack-style imitation (paper B.2.1): (actions [references, window, 22], mask [references,
         #: window]) — the teacher's action for each dataset reference and step, where one was logged
-        self.teacher = teacher
+        self.teacher = None if teacher is None else tuple(t.to(self.device) for t in teacher)
         if teacher is not None and not self.ppo.imitation_coef > 0:
             raise ConfigError("a teacher table was given but ppo.imitation_coef is 0")
         self.iteration, self.frames = 0, 0
@@ -190,6 +193,23 @@ class PPOTrainer:
         self.buffer: TensorDictReplayBuffer | None = None
 
     # -- pieces -----------------------------------------------------------------------------------
+    def _check_device(self, device: torch.device) -> torch.device:
+        """``ppo.device`` if this run can use it: a CUDA device torch sees, with the local one-worker
+        collector (workers in other processes or on other machines get the weights on the host)."""
+        if device.type == "cpu":
+            return device
+        if not torch.cuda.is_available():
+            raise ConfigError(f"{self.run_name}: ppo.device={self.ppo.device!r} but torch sees no CUDA device "
+                              f"(torch {torch.__version__}); use ppo.device=cpu")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ConfigError(f"{self.run_name}: ppo.device={self.ppo.device!r} but torch sees "
+                              f"{torch.cuda.device_count()} CUDA device(s)")
+        c = self.cfg.collector
+        if c.backend != "local" or c.workers != 1:
+            raise ConfigError(f"{self.run_name}: ppo.device={self.ppo.device!r} needs collector.backend=local "
+                              f"collector.workers=1 (got {c.backend}, {c.workers} workers)")
+        return device
+
     def _check_env_transforms(self, env_transforms) -> tuple:
         out = tuple(env_transforms)
         for t in out:
@@ -288,11 +308,12 @@ class PPOTrainer:
 
     def _update(self, data: TensorDictBase) -> dict:
         """GAE, then ``epochs`` passes of minibatch PPO updates over ``data`` ([N, T])."""
+        data = data.to(self.device)
         with torch.no_grad():
             self.gae(data)
         flat = data.select(*self._minibatch_keys()).reshape(-1)
         if self.buffer is None or self.buffer.storage.max_size != flat.numel():
-            self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(flat.numel()),
+            self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(flat.numel(), device=self.device),
                                                  sampler=SamplerWithoutReplacement(),
                                                  batch_size=self.ppo.minibatch_size)
         buffer = self.buffer
@@ -425,10 +446,12 @@ class PPOTrainer:
         refs = references if references is not None else self.references
         eval_refs = (episode_references(self.dataset, self.cfg.eval_split, self.env_config.window)
                      if self.cfg.eval_split is not None else refs)[: self.cfg.eval_max_references]
-        policy, primer = self.policy.actor, None
+        # evaluated on the host, beside the env: a copy when the run trains on another device
+        trained = self.policy if self.device.type == "cpu" else copy.deepcopy(self.policy).to("cpu")
+        policy, primer = trained.actor, None
         if self.transform is not None:
             t = self.transform
-            policy = make_policy(Tracker.load(t.tracker), self.policy, channels=t.channels, config=t.config)
+            policy = make_policy(Tracker.load(t.tracker), trained, channels=t.channels, config=t.config)
             primer = policy.primer
         res = evaluate(policy, self.dataset, split=None, references=eval_refs, env_transform=primer,
                        max_worlds=self.cfg.collector.worlds, config=self.env_config, progress=False,

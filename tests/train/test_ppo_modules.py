@@ -149,3 +149,27 @@ def test_policy_config_builds_the_tracker_it_describes():
     assert cfg["hidden"] == [32, 16] and cfg["max_action"] == 0.2
     for k in ("residual", "init_scale", "loc_bound", "anchor", "anchor_reach", "anchor_iterations"):
         assert cfg[k] == getattr(pc, k), k
+
+
+def test_ppo_device_is_checked(tiny_dataset, tmp_path):
+    """ppo.device names cpu or a CUDA device; a CUDA device torch cannot see is refused before anything runs."""
+    import pytest
+    import torch
+
+    from adadex.errors import ConfigError
+    from adadex.train.config import CollectorConfig, PPOConfig, TrainConfig
+    from adadex.train.ppo import PPOTrainer
+
+    for bad in ("tpu", "cuda:x", "gpu", 3):
+        with pytest.raises(ConfigError, match="ppo.device"):
+            PPOConfig(device=bad)
+    assert PPOConfig(device="cuda:1").device == "cuda:1"
+    cfg = TrainConfig(dataset=str(tiny_dataset), out=str(tmp_path / "run"), randomize=False, wandb=False,
+                      progress=False, collector=CollectorConfig(worlds=2), ppo=PPOConfig(device="cuda"))
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="sees no CUDA device"):
+            PPOTrainer(cfg)
+    cpu = PPOTrainer(TrainConfig(dataset=str(tiny_dataset), out=str(tmp_path / "run2"), randomize=False,
+                                 wandb=False, progress=False, collector=CollectorConfig(worlds=2)))
+    assert cpu.device == torch.device("cpu")
+    assert all(p.device.type == "cpu" for p in cpu.loss.parameters())

@@ -13,7 +13,8 @@ Measured per B (default 256, 1,024, 4,096, 8,192), each part alone and in this o
 * ``collect``: TorchRL ``Collector`` on that env with the residual ``Tracker`` sampling (what PPO
   collects with), the policy on the GPU;
 * ``ppo``: ``PPOTrainer`` iterations (collect + GAE + minibatch updates) on that env, as the trainer
-  builds them (``sim.backend=warp``).
+  builds them (``sim.backend=warp``; ``ppo.device`` the GPU when there is one — before 2026-11-27's
+  ``ppo.device`` setting the updates ran on the host).
 
 Each part is timed over ``--steps`` frames after one warm-up pass (kernels compile on first use: the
 cold compile is reported separately as ``compile_s``). The JSON is rewritten after every part, so a
@@ -187,7 +188,8 @@ def ppo_fps(dataset, B: int, steps: int, device: str, iterations: int = 3) -> di
     with tempfile.TemporaryDirectory() as tmp:
         cfg = TrainConfig(dataset=str(dataset), out=str(Path(tmp) / "ppo"), randomize=False, wandb=False,
                           progress=False, eval_max_references=0, checkpoint_every=10 ** 6,
-                          ppo=PPOConfig(total_frames=fpb * (iterations + 1), frames_per_batch=fpb),
+                          ppo=PPOConfig(total_frames=fpb * (iterations + 1), frames_per_batch=fpb,
+                                        device=device if device.startswith("cuda") else "cpu"),
                           collector=CollectorConfig(worlds=B), sim=SimConfig(backend="warp"),
                           policy=PolicyConfig())
         t0 = time.perf_counter()

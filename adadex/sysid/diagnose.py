@@ -17,6 +17,17 @@ best are reported as alternatives of one hypothesis (on a position servo, viscou
 ``kd_scale`` are such a pair). The same effect selected on several joints becomes one hypothesis
 over those joints.
 
+A joint that no sequence excites (it holds its pose while others move) is judged on every sequence, as
+:func:`~adadex.sysid.compare.localize` judges it. A joint none of whose held-out sequences shows its
+error above the noise (a knock-on seen in a few sequences) is scored on all of its sequences.
+
+A load first: with several failing joints, one payload on one link (any link at or below a failing
+joint, recorded or not) is screened before any joint is fitted — one Gauss–Newton step per link on all
+the failing joints' errors, the best two fitted — and kept when it explains most of their held-out
+error (:data:`LOAD_FIRST_AT`); the joints it explains are its knock-ons, and only the others are then
+fitted joint by joint (a 0.6 kg mass on the palm is one ``payload_mass`` on the palm's link, not a
+payload on the shoulder, armature on the elbow and 13 finger hypotheses).
+
 A joint with too few sequences to hold any out (fewer than three of its own) is scored on its
 training sequences only: the diagnosis lists it in ``train_only_joints``, says so in its findings,
 marks its hypotheses ``"scored_on": "train"`` and gives them no held-out figure
@@ -40,8 +51,17 @@ explains their held-out sequences as well (a mass on the hand is one hypothesis,
 shoulder plus armature on the elbow). A candidate fitted at (or within 0.1 % of the bounds of) its
 absent value explains nothing
 and is dropped; explained fractions are reported clipped at 0. A selected value whose 95 % interval
-reaches its bounds or spans half of them is reported as not identifiable from the recording, with the
-``adadex sysid excite`` command whose excitation would pin it down (:data:`EXCITATION_FOR`).
+spans half of its bounds is reported as not identifiable from the recording, with the
+``adadex sysid excite`` command whose excitation would pin it down (:data:`EXCITATION_FOR`); one that
+reaches a bound is not selected at all (below).
+
+No spurious effect: after the joint refit every selected effect must explain at least
+:data:`MIN_EXPLAINED` of its joints' held-out excess error beyond what all the other selected effects
+explain (its joint, and the knock-on joints its source explained; weakest dropped first,
+:func:`_prune`); an effect at its absent value is dropped; a value on a bound of the library
+(:func:`on_bound`: damping at its largest value) is not selected but reported in ``suggestions``, with
+the ``adadex sysid excite`` command that would identify it. A hypothesis explaining under
+:data:`MIN_EXPLAINED` is not stored.
 
 Verdicts: ``nothing_missing`` (no joint's error is above its noise floor), ``explained`` (every
 failing joint's held-out excess error falls by at least ``explained_at``), ``unexplained`` (the
@@ -50,6 +70,7 @@ best candidates explain too little; the report says how much).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from dataclasses import dataclass, field
@@ -74,6 +95,9 @@ COUPLED_XTOL = 1e-7
 #: a pending joint enters a source's coupled fit when the source's effect moves it by this fraction
 #: of its residual
 COUPLING_MIN = 0.1
+#: A selected effect must explain at least this fraction of its joints' held-out excess error beyond what
+#: the other selected effects explain (see :func:`_prune`); a hypothesis explaining less is not stored.
+MIN_EXPLAINED = 0.05
 
 
 class DiagnosisError(AdadexError, ValueError):
@@ -111,6 +135,9 @@ class Diagnosis:
     train_only_joints: list[str] = field(default_factory=list)   # scored on training sequences only
     model: str = "builtin"      # the model id the diagnosis replayed on
     stage_times_s: dict = field(default_factory=dict)   # wall time per stage (localize, fit, relocalize, …)
+    #: effects the data point to but cannot pin down (their value sits on a bound), each with the
+    #: ``adadex sysid excite`` command that would identify it; never selected
+    suggestions: list[dict] = field(default_factory=list)
 
     def patch(self, robot=None) -> ModelPatch:
         """The selected effects as a model patch (of ``robot``'s model; default the built-in)."""
@@ -129,7 +156,7 @@ class Diagnosis:
                 "selected": self.selected, "explained_fraction": self.explained_fraction,
                 "findings": self.findings, "wall_time_s": self.wall_time_s,
                 "train_only_joints": self.train_only_joints, "model": self.model,
-                "stage_times_s": self.stage_times_s}
+                "stage_times_s": self.stage_times_s, "suggestions": self.suggestions}
 
     def save(self, directory) -> Path:
         return atomic_write_text(Path(directory) / "diagnosis.json", json.dumps(self.to_dict(), indent=2))
@@ -152,9 +179,10 @@ class Diagnosis:
         except (OSError, ValueError, TypeError) as e:   # bad UTF-8 or JSON, missing or unknown fields
             raise DiagnosisError(f"{p}: not a readable diagnosis ({type(e).__name__}: {e})") from None
         if not (isinstance(d.verdict, str) and isinstance(d.selected, list) and isinstance(d.hypotheses, list)
-                and isinstance(d.model, str) and isinstance(d.train_only_joints, list)):
-            raise DiagnosisError(f"{p}: not a readable diagnosis (verdict, selected, hypotheses, model or "
-                                 "train_only_joints of the wrong type)")
+                and isinstance(d.model, str) and isinstance(d.train_only_joints, list)
+                and isinstance(d.suggestions, list)):
+            raise DiagnosisError(f"{p}: not a readable diagnosis (verdict, selected, hypotheses, model, "
+                                 "train_only_joints or suggestions of the wrong type)")
         return d
 
 
@@ -199,11 +227,29 @@ class _Setting:
     noise: np.ndarray
     seq_meta: list[dict]
     holdout: np.ndarray
+    #: (S, J) each sequence's MSE on the starting patch (None: every held-out sequence scores)
+    base_mse: np.ndarray | None = None
 
     def sequences(self, joint: str) -> tuple[np.ndarray, np.ndarray]:
-        """(training, held-out) indices of the sequences that excite ``joint`` (all, if unlabelled)."""
-        own = np.array([i for i, s in enumerate(self.seq_meta) if s.get("joint", joint) == joint])
+        """(training, held-out) indices of the sequences that excite ``joint``: all, if unlabelled or if
+        none excites it (a joint that only holds its pose is judged on every sequence, as
+        :func:`~adadex.sysid.compare.localize` judges it)."""
+        own = np.array([i for i, s in enumerate(self.seq_meta) if s.get("joint", joint) == joint], dtype=np.int64)
+        if own.size == 0:
+            own = np.arange(len(self.seq_meta), dtype=np.int64)
         return _split(own, self.holdout)
+
+    def scored(self, joint: str) -> np.ndarray:
+        """The sequences ``joint`` is scored on: its held-out ones, or all of its own when none of the
+        held-out ones shows its error above the noise (a knock-on seen in a few sequences only, none of
+        them held out: scored on the sequences that show it rather than given a meaningless 0 %)."""
+        train, held = self.sequences(joint)
+        if self.base_mse is None:
+            return held
+        col, n2 = self.joint_names.index(joint), self.noise2(joint)
+        if np.any(self.base_mse[held, col] - n2 > 2.0 * n2):
+            return held
+        return np.unique(np.concatenate([train, held])).astype(np.int64)
 
     def train_only(self, joint: str) -> bool:
         """True if ``joint`` has too few sequences to hold any out (then it is scored on its training set)."""
@@ -226,7 +272,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     rep = Replayer(recording, nthread=nthread)
     base_patch = base_patch if base_patch is not None else ModelPatch(robot=rep.robot)
     noise = noise_floor(recording.joint_pos)
-    times = {"localize": 0.0, "fit": 0.0, "relocalize": 0.0, "joint_refit_and_scoring": 0.0}
+    times = {"localize": 0.0, "load": 0.0, "fit": 0.0, "relocalize": 0.0, "joint_refit_and_scoring": 0.0}
     tick = time.perf_counter()
 
     def lap(stage: str) -> None:
@@ -235,7 +281,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         times[stage] += now - tick
         tick = now
 
-    baseline, failing, findings = _localize_failing_joints(recording, base_patch, rep, noise)
+    baseline, failing, findings, base_mse = _localize_failing_joints(recording, base_patch, rep, noise)
     lap("localize")
     if joints is not None:
         failing = list(joints)
@@ -247,7 +293,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
 
     seq_meta = list(recording.meta.get("sequences") or [{} for _ in range(recording.num_sequences)])
     setting = _Setting(replayer=rep, base_patch=base_patch, joint_names=list(recording.joint_names), noise=noise,
-                       seq_meta=seq_meta, holdout=heldout_mask(recording))
+                       seq_meta=seq_meta, holdout=heldout_mask(recording), base_mse=base_mse)
     first_rounds: dict[str, list[Candidate]] = {}
     selected_per_joint: dict[str, list[Candidate]] = {}
     explained: dict[str, float] = {}
@@ -257,13 +303,38 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     # one moved it differently is not given an explanation of its own.
     pending, knock_on = list(failing), []
     moves: dict[str, list[str]] = {}   # a source joint -> the knock-on joints that stopped failing with its effects
+    carried: dict[str, list[str]] = {}   # a single load's joint -> the failing joints it explains
+    load_gone: list[str] = []            # failing joints that no longer fail with a load found first
+    # A load first: one payload where it hangs, felt on several joints of its chain, is one source.
+    load = (_load_first(setting, failing, explained_at) if joints is None and len(failing) >= 2
+            and "payload_mass" in candidates else None)
+    lap("load")
+    if load is not None:
+        cand, reds = load
+        selected_per_joint[cand.joint] = [cand]
+        first_rounds[cand.joint] = [cand]
+        still = _still_failing(setting, failing, _patch_of(selected_per_joint, base_patch))
+        lap("relocalize")
+        # the joints it explains: those that no longer fail are its knock-ons (no effect of their own, not
+        # scored), those it explains well enough are scored on it; the others are fitted on top of it
+        load_gone = [j for j in failing if j not in still and j != cand.joint]
+        carried[cand.joint] = [j for j in failing if j not in still or reds[j] >= explained_at or j == cand.joint]
+        knock_on = [j for j in carried[cand.joint] if j != cand.joint]
+        explained.update({j: reds[j] for j in carried[cand.joint]})
+        pending = [j for j in failing if j not in carried[cand.joint]]
+        bar.update(len(carried[cand.joint]) * len(candidates))
+        findings.append(f"{', '.join(carried[cand.joint])}: one {cand.effect} on the link of {cand.joint} "
+                        f"({_link_names(setting, cand.joint)}; {cand.value:.4g} "
+                        f"{get_effect(cand.effect).params[0].unit}) explains their errors: it moves with all of them"
+                        + (f"; {', '.join(load_gone)} no longer fail with it (knock-ons)." if load_gone else "."))
     while pending:
         joint = pending.pop(0)
-        first_rounds[joint], chosen = _forward_selection(
+        tried, chosen = _forward_selection(
             setting, joint, candidates, max_effects=max_effects_per_joint, min_gain=min_gain, tie=tie,
             refine_top=refine_top, bar=bar, patch=_patch_of(selected_per_joint, base_patch),
             moved=pending if joints is None else ())
-        selected_per_joint[joint] = chosen
+        first_rounds[joint] = first_rounds.get(joint, []) + tried
+        selected_per_joint[joint] = selected_per_joint.get(joint, []) + chosen
         explained[joint] = chosen[-1].heldout_error_reduction if chosen else 0.0
         lap("fit")
         if chosen and pending and joints is None:
@@ -276,9 +347,10 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
             bar.update(len(gone) * len(candidates))
     bar.close()
     for joint in knock_on:
-        selected_per_joint[joint] = []
-    carried: dict[str, list[str]] = {}   # a single load's joint -> the failing joints it explains
-    load = _single_load_alternative(setting, selected_per_joint, explained, tie, candidates) if joints is None else None
+        if joint not in carried:
+            selected_per_joint[joint] = []
+    load = (_single_load_alternative(setting, selected_per_joint, explained, tie, candidates)
+            if joints is None and not carried else None)
     if load is not None:
         cand, affected = load
         for j in affected:
@@ -293,10 +365,15 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
 
     if sum(len(c) for c in selected_per_joint.values()) > 1:
         _refit_jointly(setting, selected_per_joint, refine_passes, skip=set(carried), moves=moves)
-    if sum(len(c) for c in selected_per_joint.values()) > 1 or knock_on:
+    suggestions, removed = _prune(setting, selected_per_joint, carried, moves, failing)
+    for joint, c in removed:
+        if not selected_per_joint[joint]:     # a source left with nothing: the joints it explained count again
+            freed = carried.pop(joint, []) + moves.pop(joint, [])
+            knock_on = [j for j in knock_on if j not in freed]
+    if sum(len(c) for c in selected_per_joint.values()) > 1 or knock_on or removed:
         explained.update(_score_jointly(setting, selected_per_joint, carried))
     explained = {j: max(0.0, v) for j, v in explained.items() if j in failing}
-    loaded = {j: selected_per_joint[k] for k, aff in carried.items() for j in aff}
+    loaded = {j: selected_per_joint[k] for k, aff in carried.items() for j in aff if j not in load_gone}
     own_knock_on = [j for j in knock_on if j not in loaded]
     if own_knock_on:
         findings.append(f"{', '.join(own_knock_on)}: no effect of their own; their error follows from the effects "
@@ -304,7 +381,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
                         "in the model).")
     lap("joint_refit_and_scoring")
 
-    hypotheses = _hypotheses(first_rounds, selected_per_joint)
+    hypotheses = _hypotheses(first_rounds, selected_per_joint, setting.train_only)
     selected = _merge_over_joints(selected_per_joint, rep.robot)
     train_only = [j for j in failing if setting.train_only(j)]
     _mark_train_only(hypotheses, selected, train_only)
@@ -314,10 +391,11 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     if train_only:
         sentences.insert(0, f"Too few sequences to hold any out on {', '.join(train_only)} (at least 3 of a "
                             f"joint's own are needed): scored on the training sequences only, no held-out figure.")
+    findings += [s["finding"] for s in suggestions]      # before the per-joint lines, which end the findings
     return Diagnosis(verdict=verdict, baseline_error=baseline, hypotheses=hypotheses, selected=selected,
                      explained_fraction=explained, findings=findings + sentences,
                      wall_time_s=time.perf_counter() - t0, train_only_joints=train_only, model=rep.robot.model_id,
-                     stage_times_s={k: round(v, 3) for k, v in times.items()})
+                     stage_times_s={k: round(v, 3) for k, v in times.items()}, suggestions=suggestions)
 
 
 def _mark_train_only(hypotheses: list[dict], selected: list[dict], train_only: list[str]) -> None:
@@ -333,14 +411,15 @@ def _mark_train_only(hypotheses: list[dict], selected: list[dict], train_only: l
 
 
 def _localize_failing_joints(recording, base_patch: ModelPatch, rep: Replayer, noise: np.ndarray):
-    """Replay on ``base_patch``: the baseline errors, the failing joints and the localization's sentences."""
+    """Replay on ``base_patch``: the baseline errors, the failing joints, the localization's sentences and
+    each sequence's MSE per joint, (S, J)."""
     cmp = compare(recording, base_patch, replayer=rep)
     loc = localize(cmp)
     names = list(recording.joint_names)
     baseline = {"overall_rms_rad": float(cmp.rms()),
                 "per_joint_rms_rad": dict(zip(names, map(float, cmp.rms_per_joint()))),
                 "noise_floor_rad": dict(zip(names, map(float, noise)))}
-    return baseline, loc.failing_joints, list(loc.sentences)
+    return baseline, loc.failing_joints, list(loc.sentences), np.mean(cmp.error ** 2, axis=1)
 
 
 def _still_failing(setting: _Setting, joints: list[str], patch: ModelPatch) -> list[str]:
@@ -369,7 +448,7 @@ def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects
     adds ``min_gain`` (the first only needs a positive score). Returns the first round's candidates,
     ranked, and the chosen effects in order. ``moved``: the failing joints still pending, whose errors
     the refined candidates are fitted to as well (see :func:`_fit_and_score_candidates`)."""
-    train, held = setting.sequences(joint)
+    train, held = setting.sequences(joint)[0], setting.scored(joint)
     n2 = setting.noise2(joint)
     chosen: list[Candidate] = []
     patch = setting.base_patch if patch is None else patch
@@ -385,7 +464,7 @@ def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects
             break
         best = cands[0]
         best.alternatives = _lookalikes(best, cands[1:], tie)
-        chosen.append(best)
+        chosen.append(dataclasses.replace(best))   # refined later; the hypothesis keeps its first-round fit
         patch = patch.with_effect(best.effect, [joint], [[best.value]])
         if best.heldout_error_reduction >= 0.98:
             break
@@ -500,6 +579,155 @@ def _lookalikes(best: Candidate, others: list[Candidate], tie: float) -> list[st
     return [c.effect for c in others if best.heldout_error_reduction - c.heldout_error_reduction < tie
             or c.effect in get_effect(best.effect).lookalikes and
             best.heldout_error_reduction - c.heldout_error_reduction < 3 * tie]
+
+
+#: a single load found before any joint is fitted (:func:`_load_first`) is kept when it explains this
+#: fraction of the failing joints' held-out excess error on average
+LOAD_FIRST_AT = 0.6
+#: how many links, ranked by their Gauss–Newton step, are searched for the load's mass
+LOAD_SHORTLIST = 4
+#: the search starts only if the best link's Gauss–Newton step removes this fraction of the error (the
+#: step underestimates a load several-fold; a true load's step removes well over half)
+LOAD_SCREEN_AT = 0.3
+
+
+def _load_first(setting: _Setting, failing: list[str], explained_at: float):
+    """One payload on one link that explains the failing joints together, before any joint is fitted:
+    ``(candidate, held-out reduction per failing joint)`` or None.
+
+    A mass hung on a link is felt on every joint that carries it (a sag under gravity, more inertia) and,
+    as knock-ons, on the joints it moves; fitted joint by joint it becomes a payload here, armature there.
+    Every link at or below a failing joint can carry it. Each is screened by one Gauss–Newton step
+    (one replay at a small mass gives the residual's sensitivity to the mass, hence a first guess of the
+    mass and of the error left) on the errors of every recorded joint, each in units of its noise floor
+    (the likelihood): the joints that carry the load weigh by how clearly they feel it, and a joint that
+    does not fail tells where the load is not (a mass on the forearm's far link would move the wrist,
+    which matches). The screen and the search replay only the two training sequences where each recorded
+    joint errs most (a load shows in every sequence: 22 failing joints replay 44 sequences per step, not
+    the whole recording). Unless the best step removes :data:`LOAD_SCREEN_AT` of the error, no load is
+    searched; else the :data:`LOAD_SHORTLIST` most promising links are (bounded Brent up from the step's
+    guess: the response is far from linear in the mass), the best scored on the held-out sequences. It
+    is kept if it explains at least :data:`LOAD_FIRST_AT`
+    of the failing joints' held-out excess error on average and its value is not on a bound."""
+    rep, robot = setting.replayer, setting.replayer.robot
+    links = _links_below(setting, failing)
+    if not links:
+        return None
+    base = setting.base_patch
+
+    def objective(train: dict):
+        """The residual function on ``train`` (joint -> its sequences), every recorded joint in units of
+        its noise, scaled so that the starting patch's squared norm is 1; and that starting residual."""
+        seqs = np.unique(np.concatenate(list(train.values()))).astype(np.int64)
+        rows = {j: np.searchsorted(seqs, t) for j, t in train.items()}
+        cols = {j: setting.joint_names.index(j) for j in train}
+        measured = rep.rec.joint_pos[seqs]
+
+        def parts(patch: ModelPatch) -> list[np.ndarray]:
+            sim = rep.simulate(patch, sequences=seqs)
+            return [(sim[rows[j], :, cols[j]] - measured[rows[j], :, cols[j]]).ravel() for j in train]
+
+        p0 = parts(base)
+        w = [1.0 / np.sqrt(p.size * setting.noise2(j)) for j, p in zip(train, p0)]      # in units of its noise
+        total = float(np.sqrt(sum(float((p * wi) @ (p * wi)) for p, wi in zip(p0, w))))
+        w = [wi / total for wi in w]
+        return (lambda patch: np.concatenate([p * wi for p, wi in zip(parts(patch), w)]),
+                np.concatenate([p * wi for p, wi in zip(p0, w)]))
+
+    # every recorded joint counts: a load where it does not hang moves joints that do not fail. The
+    # screen replays the two training sequences where each joint errs most (every joint on all of them)
+    few = np.unique(np.concatenate([_most_telling(setting, j, 2) for j in setting.joint_names])).astype(np.int64)
+    residual, r0 = objective({j: few for j in setting.joint_names})
+    eff = get_effect("payload_mass")
+    screened = []
+    for k in links:
+        hi = float(eff.bounds([k], robot)[1][0, 0])
+        delta = 0.1 * hi
+        J = (residual(base.with_effect("payload_mass", [k], [[delta]])) - r0) / delta
+        jj = float(J @ J)
+        if jj <= 0:
+            continue
+        mass = float(np.clip(-(J @ r0) / jj, 0.0, hi))
+        screened.append((float(np.sum((r0 + mass * J) ** 2)), k, mass, hi))
+    screened.sort()
+    if not screened or screened[0][0] > 1.0 - LOAD_SCREEN_AT:
+        return None        # no link's step explains enough for a load to be worth a search
+    residual, _ = objective({j: setting.sequences(j)[0] for j in setting.joint_names})   # the search: all
+    found: dict[str, tuple[float, float]] = {}     # link -> (best cost, its mass) of every evaluation
+
+    def cost_at(k: str):
+        def cost(x: float) -> float:
+            r = residual(base.with_effect("payload_mass", [k], [[float(x)]]))
+            c = float(r @ r)
+            if c < found.get(k, (np.inf, 0.0))[0]:
+                found[k] = (c, float(x))
+            return c
+        return cost
+
+    his = {}
+    for _, k, guess, hi in screened[:LOAD_SHORTLIST]:
+        if guess > 1e-3 * hi:     # a wide bracket up from the step's guess, then a narrow one around the best
+            his[k] = hi
+            minimize_scalar(cost_at(k), bounds=(0.5 * guess, min(hi, 4.0 * guess)), method="bounded",
+                            options={"xatol": 0.01 * guess, "maxiter": 10})
+    for k in sorted(found, key=lambda k: found[k][0])[:2]:
+        x = found[k][1]
+        minimize_scalar(cost_at(k), bounds=(0.85 * x, min(his[k], 1.15 * x)), method="bounded",
+                        options={"xatol": 5e-4 * x, "maxiter": 12})
+    if not found:
+        return None
+    k = min(found, key=lambda k: found[k][0])
+    (c, x), hi, cost = found[k], his[k], cost_at(k)
+    ci = _load_ci95(cost, x, 0.0, hi)
+    if c >= 1.0 or on_bound("payload_mass", k, x, ci, robot) or _is_absent("payload_mass", x, k, robot):
+        return None
+    before = _heldout_mse(setting, base, failing)
+    after = _heldout_mse(setting, base.with_effect("payload_mass", [k], [[x]]), failing)
+    reds = {j: _reduction(before[j], after[j], setting.noise2(j)) for j in failing}
+    red = float(np.mean(list(reds.values())))
+    if red < LOAD_FIRST_AT:
+        return None
+    return Candidate(effect="payload_mass", joint=k, value=x, ci95=ci, train_error_reduction=1.0 - c,
+                     heldout_error_reduction=red, score=red - COMPLEXITY_PENALTY), reds
+
+
+def _most_telling(setting: _Setting, joint: str, n: int) -> np.ndarray:
+    """The ``n`` training sequences of ``joint`` with its largest error on the starting patch."""
+    train = setting.sequences(joint)[0]
+    if setting.base_mse is None or train.size <= n:
+        return train
+    col = setting.joint_names.index(joint)
+    return train[np.argsort(-setting.base_mse[train, col])[:n]]
+
+
+def _links_below(setting: _Setting, joints: list[str]) -> list[str]:
+    """The robot's joints (all of its table, recorded or not) whose link is at or below the link of one
+    of ``joints``: where a load felt on ``joints`` can hang."""
+    m = setting.replayer.model_for(setting.base_patch)[0]
+    robot = setting.replayer.robot
+    jnt = robot_ids(m, np.arange(robot.num_joints))[0]
+    body = dict(zip(robot.names, (int(b) for b in m.jnt_bodyid[jnt])))
+    tops = {body[j] for j in joints}
+    out = []
+    for name, b in body.items():
+        while b not in tops and b > 0:
+            b = int(m.body_parentid[b])
+        if b in tops:
+            out.append(name)
+    return out
+
+
+def _link_names(setting: _Setting, joint: str) -> str:
+    """The bodies of the link ``joint`` moves (its own and those welded to it), by name."""
+    import mujoco
+
+    from adadex.sim.effects import link_bodies
+
+    m = setting.replayer.model_for(setting.base_patch)[0]
+    jnt = robot_ids(m, np.arange(setting.replayer.robot.num_joints))[0]
+    i = list(setting.replayer.robot.names).index(joint)
+    bodies = link_bodies(m, [jnt[i]])[0]
+    return ", ".join(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(b)) or f"body {b}" for b in bodies)
 
 
 def _single_load_alternative(setting: _Setting, selected_per_joint: dict, explained: dict, tie: float,
@@ -622,6 +850,89 @@ def _refit_jointly(setting: _Setting, selected_per_joint: dict, passes: int, ski
                 c.value, c.ci95 = r.value, r.ci95
 
 
+def _heldout_mse(setting: _Setting, patch: ModelPatch, joints) -> dict[str, np.ndarray]:
+    """Per joint of ``joints``, the MSE of each of its held-out sequences under ``patch`` (one replay)."""
+    held = {j: setting.scored(j).astype(np.int64) for j in joints}
+    seqs = np.unique(np.concatenate(list(held.values())))
+    sim = setting.replayer.simulate(patch, sequences=seqs)
+    measured = setting.replayer.rec.joint_pos[seqs]
+    out = {}
+    for j, h in held.items():
+        col, rows = setting.joint_names.index(j), np.searchsorted(seqs, h)
+        out[j] = np.mean((sim[rows, :, col] - measured[rows, :, col]) ** 2, axis=1)
+    return out
+
+
+def on_bound(effect: str, joint: str, value: float, ci95, robot=None) -> bool:
+    """Whether the value or its 95 % interval reaches a bound of the effect other than its absent value:
+    the data want more than the library allows, or cannot say how much (damping pinned at its
+    largest value, a mass at its limit)."""
+    eff = get_effect(effect)
+    lo, hi = (float(b[0, 0]) for b in eff.bounds([joint], robot))
+    absent, tol = float(eff.absent_values()[0]), 1e-3 * (hi - lo)
+    a, b = min(ci95[0], value), max(ci95[1], value)
+    return (b >= hi - tol and absent != hi) or (a <= lo + tol and absent != lo)
+
+
+def _suggestion(c: Candidate, robot) -> dict:
+    """A value that sits on a bound, as a suggestion with the excitation that would identify it."""
+    eff = get_effect(c.effect)
+    model = "" if robot is None or robot.builtin or robot.path is None else f" --model {robot.path}"
+    command = f"adadex sysid excite --joints {c.joint} {EXCITATION_FOR.get(c.effect, '')}".rstrip() + model
+    unit = eff.params[0].unit
+    finding = (f"Suggestion, not selected: {c.effect} on {c.joint} ({eff.param_names[0]} = {c.value:.4g} {unit}) "
+               f"sits on a bound of what the library allows (95% interval [{c.ci95[0]:.3g}, {c.ci95[1]:.3g}] "
+               f"{unit}); this recording cannot pin it down. To identify it run `{command}`.")
+    return {"effect": c.effect, "joints": [c.joint], "params": {eff.param_names[0]: [c.value]},
+            "ci95": {eff.param_names[0]: [list(c.ci95)]}, "unit": unit, "excite": command, "finding": finding}
+
+
+def _prune(setting: _Setting, selected_per_joint: dict, carried: dict, moves: dict, failing) -> tuple[list, list]:
+    """The selection rule, applied to the effects chosen (in place): a value at its absent value is
+    dropped; a value on a bound (:func:`on_bound`) becomes a suggestion; then, weakest first, an effect
+    is dropped while it explains less than :data:`MIN_EXPLAINED` of its joints' held-out excess error
+    beyond what all the other selected effects explain. Its joints: the joint it is on and the failing
+    joints its source explained as knock-ons (``moves``), or, for a single load, the joints it carries
+    (``carried``). Returns (suggestions, the removed ``(joint, candidate)`` pairs)."""
+    robot = setting.replayer.robot
+    suggestions, removed = [], []
+    for joint, chosen in selected_per_joint.items():
+        for c in list(chosen):
+            if _is_absent(c.effect, c.value, joint, robot):
+                chosen.remove(c)
+                removed.append((joint, c))
+            elif on_bound(c.effect, joint, c.value, c.ci95, robot):
+                chosen.remove(c)
+                removed.append((joint, c))
+                suggestions.append(_suggestion(c, robot))
+
+    def its_joints(joint: str) -> list[str]:
+        own = carried.get(joint) or [joint, *moves.get(joint, ())]
+        return [j for j in dict.fromkeys(own) if j in failing] or [joint]
+
+    items = [(j, c) for j, chosen in selected_per_joint.items() for c in chosen]
+    if not items:
+        return suggestions, removed
+    scored = sorted({k for j, _ in items for k in its_joints(j)})
+    before = _heldout_mse(setting, setting.base_patch, scored)
+    while items:
+        full = _heldout_mse(setting, _patch_of(selected_per_joint, setting.base_patch), scored)
+        margins = []
+        for joint, c in items:
+            without = {j: [x for x in chosen if x is not c] for j, chosen in selected_per_joint.items()}
+            js = its_joints(joint)
+            less = _heldout_mse(setting, _patch_of(without, setting.base_patch), js)
+            margins.append(float(np.mean([_reduction(before[k], full[k], setting.noise2(k))
+                                          - _reduction(before[k], less[k], setting.noise2(k)) for k in js])))
+        i = int(np.argmin(margins))
+        if margins[i] >= MIN_EXPLAINED:
+            break
+        joint, c = items.pop(i)
+        selected_per_joint[joint].remove(c)
+        removed.append((joint, c))
+    return suggestions, removed
+
+
 def _score_jointly(setting: _Setting, selected_per_joint: dict, carried=None) -> dict[str, float]:
     """Each joint's held-out excess-error reduction with all selected effects in place; also stored on
     the joint's last chosen candidate. A load in ``carried`` (joint -> the joints it explains) is scored
@@ -631,23 +942,29 @@ def _score_jointly(setting: _Setting, selected_per_joint: dict, carried=None) ->
     carried = carried or {}
     for joint, chosen in sorted(selected_per_joint.items(), key=lambda kv: kv[0] in carried):
         if joint in carried:
-            chosen[-1].heldout_error_reduction = float(np.mean([explained[j] for j in carried[joint]]))
-            continue
-        _, held = setting.sequences(joint)
+            if joint not in setting.joint_names:     # a load on a link whose joint is not recorded
+                chosen[-1].heldout_error_reduction = float(np.mean([explained[j] for j in carried[joint]]))
+                continue
+        held = setting.scored(joint)
         hf = JointFitter(setting.replayer, joint, held, setting.base_patch)
         red = _reduction(hf.mse_per_sequence(setting.base_patch), hf.mse_per_sequence(full), setting.noise2(joint))
+        explained[joint] = red
+        if joint in carried:
+            red = float(np.mean([explained[j] for j in carried[joint]]))
         if chosen:
             chosen[-1].heldout_error_reduction = red
-        explained[joint] = red
     return explained
 
 
-def _hypotheses(first_rounds: dict, selected_per_joint: dict) -> list[dict]:
-    """Every first-round candidate of every joint as a hypothesis, best score first; each joint's best
-    carries its look-alike alternatives."""
+def _hypotheses(first_rounds: dict, selected_per_joint: dict, train_only=lambda joint: False) -> list[dict]:
+    """Every first-round candidate of every joint that explains at least :data:`MIN_EXPLAINED` of its
+    held-out excess error (training error, on a joint ``train_only`` says has no held-out sequences) as a
+    hypothesis, best score first; each joint's best carries its look-alike alternatives."""
     hypotheses = []
     for joint, cands in first_rounds.items():
         for c in cands:
+            if max(c.heldout_error_reduction, c.train_error_reduction if train_only(joint) else -1.0) < MIN_EXPLAINED:
+                continue      # explains (next to) nothing: not an explanation, not stored
             hypotheses.append({"effect": c.effect, "joints": [joint],
                                "params": {get_effect(c.effect).param_names[0]: [c.value]},
                                "ci95": {get_effect(c.effect).param_names[0]: [list(c.ci95)]},

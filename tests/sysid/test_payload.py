@@ -1,0 +1,34 @@
+"""A payload is one payload where it hangs (issue 43): a mass hung on a link with an MjSpec edit, felt on
+a few recorded joints of its chain and, as knock-ons, on the joints it moves, is one ``payload_mass`` on
+that link with the mass within 10 %. Here a fingertip; the palm and the forearm, slower, are in
+``benchmarks/sysid_diagnosis.py --payloads`` with their figures."""
+
+import numpy as np
+import pytest
+
+from adadex.sysid.diagnose import diagnose
+from tests.sysid import hidden
+
+TIP_MASS = 0.05   # kg on the index fingertip (if_ds, the link of if_dip), at its centre of mass
+
+
+@pytest.fixture(scope="module")
+def fingertip_load():
+    model = hidden.edited_model(hidden.hang_mass("if_ds", TIP_MASS, (0.0, 0.0, 0.0197)), "fingertip_load")
+    rec = hidden.recording(model, ["if_mcp", "if_pip"], seed=4)
+    return diagnose(rec, progress=False)
+
+
+def test_a_mass_on_a_fingertip_is_one_payload_on_that_link(fingertip_load):
+    d = fingertip_load
+    assert d.verdict == "explained", d.findings
+    assert [(h["effect"], h["joints"]) for h in d.selected] == [("payload_mass", ["if_dip"])], d.selected
+    np.testing.assert_allclose(d.selected[0]["params"]["mass"], TIP_MASS, rtol=0.1)
+    assert all(d.selected[0]["identifiable"])
+    # the joints it moves are its knock-ons, explained by it and given nothing of their own
+    assert set(d.explained_fraction) >= {"if_mcp", "if_pip"}
+    assert min(d.explained_fraction.values()) >= 0.8, d.explained_fraction
+    assert [h["joints"] for h in d.hypotheses if h["joints"] != ["if_dip"]] == [], d.hypotheses
+    assert any("one payload_mass on the link of if_dip (if_ds" in f for f in d.findings), d.findings
+    assert d.suggestions == []
+    assert "load" in d.stage_times_s

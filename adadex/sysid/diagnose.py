@@ -586,9 +586,10 @@ def _lookalikes(best: Candidate, others: list[Candidate], tie: float) -> list[st
 LOAD_FIRST_AT = 0.6
 #: how many links, ranked by their Gauss–Newton step, are searched for the load's mass
 LOAD_SHORTLIST = 4
-#: the search starts only if the best link's Gauss–Newton step removes this fraction of the error (the
-#: step underestimates a load several-fold; a true load's step removes well over half)
-LOAD_SCREEN_AT = 0.3
+#: the search starts only if the best link's Gauss–Newton step removes this fraction of the error: a true
+#: load's step removes about 0.8 (0.6 kg at the palm, 1 kg on the forearm), a delay on the shoulder and
+#: friction on a finger 0.36 (with a mass on the shoulder's own link)
+LOAD_SCREEN_AT = 0.5
 
 
 def _load_first(setting: _Setting, failing: list[str], explained_at: float):

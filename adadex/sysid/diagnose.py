@@ -1045,7 +1045,8 @@ def _verdict(explained: dict, selected_per_joint: dict, explained_at: float,
     findings = []
     for joint, v in explained.items():
         chosen = selected_per_joint[joint]
-        what = " + ".join(_describe(c, robot) for c in chosen) or "nothing"
+        # an effect that explains (next to) nothing of this joint is not printed as its explanation
+        what = (" + ".join(_describe(c, robot) for c in chosen) if v >= MIN_EXPLAINED else "") or "nothing"
         on = "training (no sequence held out)" if joint in train_only else "held-out"
         findings.append(f"{joint}: {what} explains {100 * v:.0f}% of the {on} error above the noise floor.")
     if verdict == "unexplained":

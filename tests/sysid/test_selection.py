@@ -76,3 +76,13 @@ def test_hidden_friction_is_the_only_explanation_and_nothing_below_five_percent_
     assert not any("explains 0%" in f for f in d.findings), d.findings
     d.save(tmp_path)
     assert Diagnosis.load(tmp_path).to_dict() == d.to_dict()
+
+
+def test_an_effect_explaining_under_five_percent_of_a_joint_is_not_printed_as_its_explanation():
+    from adadex.sysid.diagnose import _verdict
+
+    load = _cand("payload_mass", "arm_j6", 0.6, (0.59, 0.61))
+    verdict, findings = _verdict({"arm_j2": 0.9, "if_dip": 0.02}, {"arm_j2": [load], "if_dip": [load]}, 0.8)
+    assert verdict == "unexplained"
+    assert findings[0].startswith("arm_j2: payload_mass (mass = 0.6 kg) explains 90%")
+    assert findings[1].startswith("if_dip: nothing explains 2%"), findings

@@ -22,10 +22,11 @@ A joint that no sequence excites (it holds its pose while others move) is judged
 error above the noise (a knock-on seen in a few sequences) is scored on all of its sequences.
 
 A load first: with several failing joints, one payload on one link (any link at or below a failing
-joint, recorded or not) is screened before any joint is fitted — one Gauss–Newton step per link on all
-the failing joints' errors, the best two fitted — and kept when it explains most of their held-out
-error (:data:`LOAD_FIRST_AT`); the joints it explains are its knock-ons, and only the others are then
-fitted joint by joint (a 0.6 kg mass on the palm is one ``payload_mass`` on the palm's link, not a
+joint, recorded or not) is screened before any joint is fitted — one Gauss–Newton step per link on every
+recorded joint's error in units of its noise, the :data:`LOAD_SHORTLIST` best searched when a step
+removes :data:`LOAD_SCREEN_AT` of it (:func:`_load_first`) — and kept when it explains most of the
+failing joints' held-out error (:data:`LOAD_FIRST_AT`); the joints it explains are its knock-ons, and
+only the others are then fitted joint by joint (a 0.6 kg mass on the palm is one ``payload_mass`` on the palm's link, not a
 payload on the shoulder, armature on the elbow and 13 finger hypotheses).
 
 A joint with too few sequences to hold any out (fewer than three of its own) is scored on its

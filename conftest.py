@@ -20,7 +20,8 @@ def _one_torch_thread():
 #: (pytest-xdist with ``--dist loadfile``, set in pyproject.toml) start them at once and the many
 #: short files fill in around them, instead of one long file running alone at the end
 LONG_FILES = ("tests/train/test_pipeline.py", "tests/train/test_ppo.py", "tests/sysid/test_hidden_effects.py",
-              "tests/packaging/test_wheel.py", "tests/train/test_distill.py", "tests/sim/test_warp_backend.py")
+              "tests/packaging/test_wheel.py", "tests/train/test_distill.py", "tests/sim/test_warp_backend.py",
+              "tests/train/test_sim2real.py")
 
 
 def pytest_collection_modifyitems(config, items):

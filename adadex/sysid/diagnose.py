@@ -26,8 +26,8 @@ joint, recorded or not) is screened before any joint is fitted — one Gauss–N
 recorded joint's error in units of its noise, the :data:`LOAD_SHORTLIST` best searched when a step
 removes :data:`LOAD_SCREEN_AT` of it (:func:`_load_first`) — and kept when it explains most of the
 failing joints' held-out error (:data:`LOAD_FIRST_AT`); the joints it explains are its knock-ons, and
-only the others are then fitted joint by joint (a 0.6 kg mass on the palm is one ``payload_mass`` on the palm's link, not a
-payload on the shoulder, armature on the elbow and 13 finger hypotheses).
+only the others are then fitted joint by joint (a 0.6 kg mass on the palm is one ``payload_mass`` on the
+palm's link, not a payload on the shoulder, armature on the elbow and 13 finger hypotheses).
 
 A joint with too few sequences to hold any out (fewer than three of its own) is scored on its
 training sequences only: the diagnosis lists it in ``train_only_joints``, says so in its findings,
@@ -71,7 +71,6 @@ best candidates explain too little; the report says how much).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import time
 from dataclasses import dataclass, field
@@ -382,7 +381,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
                         "in the model).")
     lap("joint_refit_and_scoring")
 
-    hypotheses = _hypotheses(first_rounds, selected_per_joint, setting.train_only)
+    hypotheses = _hypotheses(first_rounds, selected_per_joint, setting.train_only, rep.robot)
     selected = _merge_over_joints(selected_per_joint, rep.robot)
     train_only = [j for j in failing if setting.train_only(j)]
     _mark_train_only(hypotheses, selected, train_only)
@@ -465,7 +464,7 @@ def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects
             break
         best = cands[0]
         best.alternatives = _lookalikes(best, cands[1:], tie)
-        chosen.append(dataclasses.replace(best))   # refined later; the hypothesis keeps its first-round fit
+        chosen.append(best)      # the same object as its hypothesis: the joint refit refines both
         patch = patch.with_effect(best.effect, [joint], [[best.value]])
         if best.heldout_error_reduction >= 0.98:
             break
@@ -958,15 +957,17 @@ def _score_jointly(setting: _Setting, selected_per_joint: dict, carried=None) ->
     return explained
 
 
-def _hypotheses(first_rounds: dict, selected_per_joint: dict, train_only=lambda joint: False) -> list[dict]:
+def _hypotheses(first_rounds: dict, selected_per_joint: dict, train_only=lambda joint: False,
+                robot=None) -> list[dict]:
     """Every first-round candidate of every joint that explains at least :data:`MIN_EXPLAINED` of its
     held-out excess error (training error, on a joint ``train_only`` says has no held-out sequences) as a
     hypothesis, best score first; each joint's best carries its look-alike alternatives."""
     hypotheses = []
     for joint, cands in first_rounds.items():
         for c in cands:
-            if max(c.heldout_error_reduction, c.train_error_reduction if train_only(joint) else -1.0) < MIN_EXPLAINED:
-                continue      # explains (next to) nothing: not an explanation, not stored
+            if (max(c.heldout_error_reduction, c.train_error_reduction if train_only(joint) else -1.0) < MIN_EXPLAINED
+                    or _is_absent(c.effect, c.value, joint, robot)):
+                continue      # explains (next to) nothing, or refined to its absent value: not stored
             hypotheses.append({"effect": c.effect, "joints": [joint],
                                "params": {get_effect(c.effect).param_names[0]: [c.value]},
                                "ci95": {get_effect(c.effect).param_names[0]: [list(c.ci95)]},

@@ -173,3 +173,25 @@ def test_ppo_device_is_checked(tiny_dataset, tmp_path):
                                  wandb=False, progress=False, collector=CollectorConfig(worlds=2)))
     assert cpu.device == torch.device("cpu")
     assert all(p.device.type == "cpu" for p in cpu.loss.parameters())
+
+
+def test_modulator_prior_and_held_exploration_reach_the_trained_modulator(tiny_dataset, tmp_path):
+    """modulator.prior / hold_steps / hold_scale (and modulation.lambda_palm) build the Modulator trained."""
+    import pytest
+
+    from adadex.errors import ConfigError
+    from adadex.modules.tracker import Tracker
+    from adadex.train.config import CollectorConfig, ModulatorSettings, TrainConfig
+    from adadex.train.ppo import PPOTrainer
+
+    Tracker(hidden=(16, 16)).save(tmp_path / "tracker.pt")
+    m = ModulatorSettings(tracker=str(tmp_path / "tracker.pt"), channels="C+T", hidden=(16, 16), prior="anchor",
+                          hold_steps=5, hold_scale={"palm": 0.1}, modulation={"lambda_palm": 0.08})
+    cfg = TrainConfig(dataset=str(tiny_dataset), out=str(tmp_path / "run"), randomize=False, wandb=False,
+                      progress=False, collector=CollectorConfig(worlds=2), modulator=m)
+    got = PPOTrainer(cfg).policy.config
+    assert (got["prior"], got["hold_steps"], got["lambda_palm"]) == ("anchor", 5, 0.08)
+    with pytest.raises(ConfigError, match="modulator.prior"):
+        ModulatorSettings(tracker=str(tmp_path / "tracker.pt"), channels="C+T", prior="object")
+    with pytest.raises(ConfigError, match="hold_scale"):
+        ModulatorSettings(tracker=str(tmp_path / "tracker.pt"), channels="C+T", hold_steps=5)

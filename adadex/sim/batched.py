@@ -40,7 +40,7 @@ from mujoco import rollout as mj_rollout
 
 from adadex.errors import ArrayError, ConfigError
 from adadex.sim.readout import (  # noqa: F401  (re-exported: the names users import from here)
-    BACKENDS, CTRL_SPEC, FULLPHYSICS, MAX_OBJECT_SPEED, SimReadout, check_backend, flung)
+    BACKENDS, CTRL_SPEC, FULLPHYSICS, MAX_OBJECT_SPEED, SimReadout, check_backend, flung, reset_states)
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 from adadex.sim.scene import CONTROL_HZ
 
@@ -190,20 +190,9 @@ class BatchedSim(RolloutPool):
         idx = np.arange(self.batch_size) if worlds is None else np.asarray(worlds, dtype=np.int64).reshape(-1)
         if idx.size and (idx.min() < 0 or idx.max() >= self.batch_size):
             raise IndexError(f"world indices {idx.tolist()} out of range for batch_size={self.batch_size}")
-        m0 = self._models[0]
-        qpos_b = None if qpos is None else np.broadcast_to(np.asarray(qpos, float), (idx.size, m0.nq))
-        qvel_b = None if qvel is None else np.broadcast_to(np.asarray(qvel, float), (idx.size, m0.nv))
-        d = self._datas[0]
-        for j, w in enumerate(idx):
-            m = self._models[w]
-            mujoco.mj_resetData(m, d)
-            if qpos_b is not None:
-                d.qpos[:] = qpos_b[j]
-            if qvel_b is not None:
-                d.qvel[:] = qvel_b[j]
-            mujoco.mj_forward(m, d)
-            mujoco.mj_getState(m, d, self.state[w], FULLPHYSICS)
-            self._last_sens[w] = d.sensordata
+        states, sens = reset_states(self._models, self._datas[0], idx, qpos, qvel, self.nstate)
+        self.state[idx] = states
+        self._last_sens[idx] = sens
         return self.readout()
 
     def set_state(self, state: np.ndarray, worlds=None) -> None:

@@ -53,3 +53,28 @@ class SimReadout:
     object_pose: np.ndarray   # (B, 7); zeros when the scene has no object
     object_vel: np.ndarray    # (B, 6) linear (world) and angular velocity; zeros without an object
     unstable: np.ndarray      # (B,) bool
+
+
+def reset_states(models, data: mujoco.MjData, worlds: np.ndarray, qpos=None, qvel=None, nstate: int = 0
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The full-physics states (``(len(worlds), nstate)``, ``mj_getState``'s layout) and sensor values of
+    ``worlds`` reset to ``qpos``/``qvel`` (broadcast over them; default each model's ``qpos0`` and zero
+    velocity), computed with C MuJoCo's ``mj_forward`` on ``data`` (sized for every model): what every
+    backend's ``reset`` writes into its worlds."""
+    m0 = models[0]
+    n = len(worlds)
+    qpos_b = None if qpos is None else np.broadcast_to(np.asarray(qpos, float), (n, m0.nq))
+    qvel_b = None if qvel is None else np.broadcast_to(np.asarray(qvel, float), (n, m0.nv))
+    states = np.empty((n, nstate or mujoco.mj_stateSize(m0, FULLPHYSICS)))
+    sens = np.empty((n, m0.nsensordata))
+    for j, w in enumerate(worlds):
+        m = models[w]
+        mujoco.mj_resetData(m, data)
+        if qpos_b is not None:
+            data.qpos[:] = qpos_b[j]
+        if qvel_b is not None:
+            data.qvel[:] = qvel_b[j]
+        mujoco.mj_forward(m, data)
+        mujoco.mj_getState(m, data, states[j], FULLPHYSICS)
+        sens[j] = data.sensordata
+    return states, sens

@@ -90,7 +90,7 @@ import numpy as np
 import torch
 
 from adadex.errors import ArrayError, ConfigError
-from adadex.sim.readout import FULLPHYSICS, SimReadout
+from adadex.sim.readout import FULLPHYSICS, SimReadout, reset_states
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 from adadex.sim.scene import CONTROL_HZ
 
@@ -578,22 +578,7 @@ class WarpSim:
         the hot path) and are written to the device.
         """
         idx = self._worlds(worlds)
-        m0 = self._models[0]
-        qpos_b = None if qpos is None else np.broadcast_to(np.asarray(qpos, float), (idx.size, m0.nq))
-        qvel_b = None if qvel is None else np.broadcast_to(np.asarray(qvel, float), (idx.size, m0.nv))
-        states = np.empty((idx.size, self.nstate))
-        sens = np.empty((idx.size, m0.nsensordata))
-        d = self._host_data
-        for j, w in enumerate(idx):
-            m = self._models[w]
-            mujoco.mj_resetData(m, d)
-            if qpos_b is not None:
-                d.qpos[:] = qpos_b[j]
-            if qvel_b is not None:
-                d.qvel[:] = qvel_b[j]
-            mujoco.mj_forward(m, d)
-            mujoco.mj_getState(m, d, states[j], FULLPHYSICS)
-            sens[j] = d.sensordata
+        states, sens = reset_states(self._models, self._host_data, idx, qpos, qvel, self.nstate)
         if idx.size:
             self._write_state(idx, states)
             self._sens[torch.as_tensor(idx, device=self.torch_device)] = torch.from_numpy(sens).to(

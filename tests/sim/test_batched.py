@@ -113,16 +113,22 @@ def test_bad_inputs_raise(model):
         sim.step(np.zeros((3, 22)))
 
 
-def test_unstable_world_is_flagged_and_others_continue():
-    spec = build_scene_spec(objects.OBJECT_NAMES[0])
-    stable = spec.compile()
+def diverging_model(spec):
+    """The scene of ``spec`` with absurd, unlimited servo stiffness and no armature: it diverges at this
+    timestep (the unstable world of the backends' tests)."""
     wild = spec.compile()
-    # Absurd, unlimited servo stiffness without armature diverges at this timestep.
     wild.actuator_gainprm[:, 0] *= 1e4
     wild.actuator_biasprm[:, 1] *= 1e4
     wild.actuator_forcerange[:] *= 1e4
     wild.jnt_actfrcrange[:] *= 1e4
     wild.dof_armature[:] = 0
+    return wild
+
+
+def test_unstable_world_is_flagged_and_others_continue():
+    spec = build_scene_spec(objects.OBJECT_NAMES[0])
+    stable = spec.compile()
+    wild = diverging_model(spec)
     qpos, ctrl = home_state(stable)
     sim = BatchedSim([stable, wild], nthread=2)
     sim.reset(qpos=qpos)

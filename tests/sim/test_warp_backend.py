@@ -14,6 +14,7 @@ from adadex.errors import ConfigError
 from adadex.sim.batched import BatchedSim
 from adadex.sim.robot import joint_limits
 from adadex.sim.scene import OBJECT_QPOS, build_scene_model, build_scene_spec, home_state
+from tests.sim.test_batched import diverging_model
 
 #: Warp's device for these tests: its CPU device here and in CI; ``cuda:0`` checks the same on a GPU.
 DEVICE = os.environ.get("ADADEX_WARP_TEST_DEVICE", "cpu")
@@ -150,12 +151,7 @@ def test_scripted_grasp_lifts_and_slips_as_rollout(warp, mug, monkeypatch):
 def test_unstable_world_is_flagged_and_others_unaffected(warp):
     spec = build_scene_spec("mug_00", uniform_layout=True)
     stable = spec.compile()
-    wild = spec.compile()
-    wild.actuator_gainprm[:, 0] *= 1e4
-    wild.actuator_biasprm[:, 1] *= 1e4
-    wild.actuator_forcerange[:] *= 1e4
-    wild.jnt_actfrcrange[:] *= 1e4
-    wild.dof_armature[:] = 0
+    wild = diverging_model(spec)
     ws, rs = _sims([stable, wild, stable])
     qpos, ctrl = home_state(stable)
     ws.reset(qpos=qpos)

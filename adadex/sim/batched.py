@@ -40,9 +40,9 @@ from mujoco import rollout as mj_rollout
 
 from adadex.errors import ArrayError, ConfigError
 from adadex.sim.readout import (  # noqa: F401  (re-exported: the names users import from here)
-    BACKENDS, CTRL_SPEC, FULLPHYSICS, MAX_OBJECT_SPEED, SimReadout, check_backend, flung, reset_states)
+    BACKENDS, CTRL_SPEC, FULLPHYSICS, MAX_OBJECT_SPEED, SimReadout, check_backend, control_substeps, flung, reset_states,
+    world_models)
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
-from adadex.sim.scene import CONTROL_HZ
 
 
 class RolloutPool:
@@ -95,21 +95,11 @@ class BatchedSim(RolloutPool):
         if device is not None and str(device) != "cpu":
             raise ConfigError(f"device={device!r}: the rollout backend runs on the CPU; use backend='warp' "
                               f"for another device")
-        if isinstance(models, mujoco.MjModel):
-            if batch_size is None or batch_size < 1:
-                raise ConfigError(f"batch_size must be a positive integer with a single model, got {batch_size!r}")
-            self._models = [models] * batch_size
-        else:
-            self._models = list(models)
-            if batch_size is not None and batch_size != len(self._models):
-                raise ConfigError(f"batch_size={batch_size} but {len(self._models)} models were given")
+        self._models = world_models(models, batch_size)
         if nthread < 0:
             raise ConfigError(f"nthread must be >= 0, got {nthread}")
         m0 = self._models[0]
-        if substeps is None:
-            substeps = max(1, int(round(1.0 / (CONTROL_HZ * m0.opt.timestep))))
-        if substeps < 1:
-            raise ConfigError(f"substeps must be >= 1, got {substeps}")
+        substeps = control_substeps(m0, substeps)
         self.nstate = mujoco.mj_stateSize(m0, FULLPHYSICS)
         for i, m in enumerate(self._models[1:], start=1):
             # The thread-local MjData are sized for model 0, so structure must match exactly.

@@ -13,6 +13,7 @@ import mujoco
 import numpy as np
 
 from adadex.errors import ConfigError
+from adadex.sim.scene import CONTROL_HZ
 
 #: m/s. No tabletop motion moves an object this fast: a faster one means the contact solver pumped
 #: energy in (a deep squeeze resolved at once) and the world is treated as unstable by the tracking
@@ -78,3 +79,27 @@ def reset_states(models, data: mujoco.MjData, worlds: np.ndarray, qpos=None, qve
         mujoco.mj_getState(m, data, states[j], FULLPHYSICS)
         sens[j] = data.sensordata
     return states, sens
+
+
+def world_models(models, batch_size: int | None) -> list[mujoco.MjModel]:
+    """One model per world: ``models`` (one ``MjModel`` shared by ``batch_size`` worlds, or a sequence of
+    one per world), checked as every backend's constructor checks it."""
+    if isinstance(models, mujoco.MjModel):
+        if batch_size is None or batch_size < 1:
+            raise ConfigError(f"batch_size must be a positive integer with a single model, got {batch_size!r}")
+        return [models] * batch_size
+    out = list(models)
+    if not out:
+        raise ConfigError("models must not be empty")
+    if batch_size is not None and batch_size != len(out):
+        raise ConfigError(f"batch_size={batch_size} but {len(out)} models were given")
+    return out
+
+
+def control_substeps(model: mujoco.MjModel, substeps: int | None) -> int:
+    """Physics steps per control step: ``substeps``, or as many as make one 12 Hz control step."""
+    if substeps is None:
+        substeps = max(1, int(round(1.0 / (CONTROL_HZ * model.opt.timestep))))
+    if substeps < 1:
+        raise ConfigError(f"substeps must be >= 1, got {substeps}")
+    return int(substeps)

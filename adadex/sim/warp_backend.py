@@ -90,9 +90,8 @@ import numpy as np
 import torch
 
 from adadex.errors import ArrayError, ConfigError
-from adadex.sim.readout import FULLPHYSICS, SimReadout, reset_states
+from adadex.sim.readout import FULLPHYSICS, SimReadout, control_substeps, reset_states, world_models
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
-from adadex.sim.scene import CONTROL_HZ
 
 #: Contacts per world allocated on the device (MuJoCo Warp shares them across worlds:
 #: ``naconmax = nconmax * B``). A pinch grasp makes ~17; the table, fingers and object rarely 40.
@@ -333,24 +332,12 @@ class WarpSim:
                  njmax: int = DEFAULT_NJMAX, nthread: int = 0, cuda_graph: bool = True):
         wp, mjw = _import_warp()
         self._wp, self._mjw = wp, mjw
-        if isinstance(models, mujoco.MjModel):
-            if batch_size is None or batch_size < 1:
-                raise ConfigError(f"batch_size must be a positive integer with a single model, got {batch_size!r}")
-            self._models = [models] * batch_size
-        else:
-            self._models = list(models)
-            if not self._models:
-                raise ConfigError("models must not be empty")
-            if batch_size is not None and batch_size != len(self._models):
-                raise ConfigError(f"batch_size={batch_size} but {len(self._models)} models were given")
+        self._models = world_models(models, batch_size)
         for name, v in (("nconmax", nconmax), ("njmax", njmax)):
             if not isinstance(v, (int, np.integer)) or v < 1:
                 raise ConfigError(f"{name} must be a positive integer, got {v!r}")
         m0 = self._models[0]
-        if substeps is None:
-            substeps = max(1, int(round(1.0 / (CONTROL_HZ * m0.opt.timestep))))
-        if substeps < 1:
-            raise ConfigError(f"substeps must be >= 1, got {substeps}")
+        substeps = control_substeps(m0, substeps)
         self.batch_size = len(self._models)
         self.nthread = nthread
         self.substeps = int(substeps)

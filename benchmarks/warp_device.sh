@@ -2,7 +2,7 @@
 # Run benchmarks/warp_throughput.py on a GPU machine whose Python (3.12) already holds torch and nothing
 # of adadex's other dependencies, and that cannot reach a package index.
 #
-#   bash benchmarks/warp_device.sh pack      # here: wheels for CPython 3.12 into .dev1/ and .dev2/
+#   bash benchmarks/warp_device.sh pack [DATASET [--force]]   # here: wheels for CPython 3.12 into .dev1/ and .dev2/
 #   bash benchmarks/warp_device.sh install   # there: unpack them into /tmp/site (PYTHONPATH)
 #
 # Why two folders: warp-lang's wheel is 149 MB (its warp.so holds NVRTC and fat binaries for every GPU
@@ -23,8 +23,19 @@ WHEELS=(mujoco==4.0.0 mujoco-core==4.0.0 glfw==2.11.0 torchrl==0.14.1 tensordict
 case "$mode" in
 pack)
     dataset=${2:-data/small_pg}
+    force=${3:-}
+    # .dev1/.dev2 are this script's own output: refuse to write into folders it did not make
+    for d in .dev1 .dev2; do
+        if [ -e "$d" ] && [ ! -f "$d/.warp_device_pack" ] && [ "$force" != "--force" ]; then
+            echo "benchmarks/warp_device.sh: error: $d exists and was not written by this script; move it or add --force" >&2
+            exit 2
+        fi
+    done
+    [ -d "$dataset/frames" ] || { echo "benchmarks/warp_device.sh: error: no dataset at $dataset (adadex data build ...)" >&2; exit 2; }
+    rm -rf .dev1 .dev2
     tmp=$(mktemp -d)
     mkdir -p .dev1 .dev2
+    touch .dev1/.warp_device_pack .dev2/.warp_device_pack
     grep -qx "/.dev1/" .git/info/exclude 2>/dev/null || printf '/.dev1/\n/.dev2/\n' >> .git/info/exclude
     pip download -q --no-deps "${PLAT[@]}" -d .dev1 "${WHEELS[@]}"
     pip download -q --no-deps "${PLAT[@]}" -d "$tmp" warp-lang==1.19.0
@@ -68,7 +79,7 @@ PY
         || echo "wheels installed into /tmp/site; warp-lang comes with .dev2"
     ;;
 *)
-    echo "usage: bash benchmarks/warp_device.sh pack [DATASET] | install" >&2
+    echo "usage: bash benchmarks/warp_device.sh pack [DATASET [--force]] | install" >&2
     exit 2
     ;;
 esac

@@ -13,6 +13,7 @@ R      ``("modulation", "ref_hand")``    (…, 4, 22)    joint residual of the r
 R      ``("modulation", "ref_object")``  (…, 4, 6)     object residual there: position (3) + rotation vector (3)
 C      ``("modulation", "palm")``        (…, 3)        palm position offset of the whole visible reference (compact R)
 C      ``("modulation", "grip")``        (…, 4)        closure of each finger's flexion joints there (compact R)
+A      ``("modulation", "reach")``       (…, 1)        how far the visible reference's palm moves onto the object where it lies
 O      ``("modulation", "latent")``      (…, 64)       residual of the object latent (f̃ = f + λ·a)
 T      ``("modulation", "action")``      (…, 22)       residual added to the tracker's action
 =====  ==============================  ==============  =====================================================
@@ -33,7 +34,7 @@ loop over it; none of them names a channel.
 **Adding a channel touches one place**: one more :class:`Channel` record in :data:`CHANNELS` below
 (its position is its place in the order). Its behaviour is then its transform class — a
 :class:`adadex.transforms.modulation.ChannelTransform` subclass declared with ``channel="X"``
-(beside R, O and T in :mod:`adadex.transforms.modulation`), which binds itself to the record.
+(beside R, C, A, O and T in :mod:`adadex.transforms.modulation`), which binds itself to the record.
 
 Channels are chosen by a string — ``"R+O+T"``, ``"R+T"``, ``"O"``, ``"none"`` … — so that an
 ablation is a config value, never an edit of code.
@@ -77,6 +78,10 @@ OBJECT_EDIT = (MOD, "object_edit")
 #: The compact channel C: a palm position offset (3) and one closure per finger (index, middle, ring, thumb)
 PALM = (MOD, "palm")
 GRIP = (MOD, "grip")
+#: The anchor-reach channel A: one number, how far the reference's palm moves onto the object where it lies,
+#: and the reach it latched at the episode's first step (weight, latched flag)
+REACH = (MOD, "reach")
+REACH_STATE = (MOD, "reach_state")
 #: per finger of GRIP, the flexion joints it closes
 GRIP_JOINTS = (("if_mcp", "if_pip", "if_dip"), ("mf_mcp", "mf_pip", "mf_dip"), ("rf_mcp", "rf_pip", "rf_dip"),
                ("th_mcp", "th_ipl"))
@@ -180,6 +185,14 @@ CHANNELS: Mapping[str, Channel] = _registry(
                                               "dip; thumb: mcp, ipl) of the visible reference close (+) or open (−) "
                                               "by up to this much (rad)")),
             edits="observation", init_scale=0.03),
+    Channel("A", "object-anchor reach: the visible reference's palm moved onto the object where it lies, by a "
+                 "chosen fraction of the anchor's shift",
+            entries=((REACH, (1,)),),
+            state=((REACH_STATE, (2,)),),
+            fields=(Field("reach_latched", True, "the reach chosen at an episode's first step holds for the whole "
+                                                 "episode (an episode-level decision: reach for the displaced object "
+                                                 "or not); ``False`` chooses it anew every step"),),
+            edits="observation", init_scale=1.0),
     Channel("O", "object latent",
             entries=((LATENT, (LATENT_DIM,)),),
             fields=(Field("lambda_latent", 0.25, "λ_latent: f̃ = clip(f + λ·a, −1, 1) (the latent is tanh-bounded). "
@@ -210,7 +223,7 @@ def bind_transform(channel: str, cls: type) -> Channel:
 
 
 def parse_channels(channels: str | tuple | list) -> tuple[str, ...]:
-    """``"R+O+T"`` / ``"T+R"`` / ``"none"`` / ``""`` / ``("R", "T")`` → channels in canonical order (R, O, T)."""
+    """``"R+O+T"`` / ``"T+R"`` / ``"none"`` / ``""`` / ``("R", "T")`` → channels in canonical order (R, C, A, O, T)."""
     if isinstance(channels, str):
         text = channels.strip()
         parts = [] if text.lower() in ("", "none") else [p.strip().upper() for p in text.replace(",", "+").split("+")]

@@ -79,7 +79,7 @@ from torch import nn
 from adadex.envs.observation import OBS_DIM, OBSERVATION, REF_OBJECT_START, REF_OFFSETS
 from adadex.errors import ConfigError, check_number
 from adadex.modules.anchor import ObjectAnchor
-from adadex.modules.channels import CHANNELS, PALM, ModulationLayout
+from adadex.modules.channels import CHANNELS, PALM, REACH, ModulationLayout
 from adadex.modules.modulator_view import VIEW, ViewLayout
 from adadex.modules.nets import ActorCritic, make_actor, make_critic
 from adadex.sim.robot import NUM_JOINTS
@@ -192,13 +192,17 @@ class Modulator(ActorCritic):
         hold_scale: the held noise's scale in action units: a number for every channel, or
             ``{name: scale}`` by channel (``"C"``) or entry (``"palm"``, ``"grip"``, …; an entry's
             own before its channel's); what is left out holds none.
+        reach_latched: with channel A (and the view): its reach entry is a fixed N(0, 1) after the
+            episode's first step, where the env's ``ModulationConfig.reach_latched`` (the default)
+            ignores it — the two must agree. Only the first step's reach is then scored by PPO.
     """
 
     kind = "modulator"
 
     def __init__(self, channels="R+O+T", hidden: Sequence[int] = (512, 256, 128), init_scale=None,
                  loc_bound: float = 0.0, inputs: str = "view", history: int = 3, prior: str | None = None,
-                 lambda_palm: float = _DEFAULT_LAMBDA_PALM, hold_steps: int = 0, hold_scale=None):
+                 lambda_palm: float = _DEFAULT_LAMBDA_PALM, hold_steps: int = 0, hold_scale=None,
+                 reach_latched: bool = True):
         super().__init__()
         self.layout = ModulationLayout(channels)
         if not self.layout.dim:
@@ -215,9 +219,15 @@ class Modulator(ActorCritic):
         if shift is not None:         # only then: checkpoints without these settings keep their config
             self.config.update(prior=prior, lambda_palm=float(lambda_palm), hold_steps=int(hold_steps),
                                hold_scale=held)
+        latched = None
+        if "A" in self.layout:           # only then: checkpoints without channel A keep their config
+            self.config["reach_latched"] = bool(reach_latched)
+            if reach_latched and self.view is not None:
+                reach = next(sl for key, sl, _ in self.layout.segments if key == REACH)
+                latched = (self.view.slices()["phase"].start, reach)
         self.actor = make_actor(self.obs_key, obs_dim, self.layout.channel_sizes, -1.0, 1.0, hidden,
                                 namespace="modulator", init_scale=[scales[c] for c in self.layout.channels],
-                                loc_bound=loc_bound, bounds=shift)
+                                loc_bound=loc_bound, bounds=shift, latched=latched)
         self.critic = make_critic(self.obs_key, obs_dim, hidden)
 
     def _shift(self, prior, lambda_palm, hold_steps, hold_scale):

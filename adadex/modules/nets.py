@@ -62,13 +62,20 @@ class GaussianHeads(nn.Module):
     """obs → (loc, scale): a shared trunk, then one linear head per output group, concatenated in
     order. The last layers start small (``init_gain``) so the initial mean action is near 0.
     ``init_scale`` is the initial exploration scale, one for all heads or one per head (the
-    modulator sizes each channel's own)."""
+    modulator sizes each channel's own).
+
+    ``latched = (i, entries)`` (optional): where ``obs[..., i] > 0`` the ``entries`` (a slice of the
+    output) are a fixed N(0, 1) that no parameter moves — entries the environment ignores there (a
+    choice it latched earlier, e.g. channel A's reach after the episode's first step). Their samples
+    then carry no parameter's log-probability, so PPO's ratio and gradient come only from the entries
+    that act, instead of from noise the environment throws away."""
 
     def __init__(self, obs_dim: int, head_sizes: Sequence[int], hidden: Sequence[int], *,
                  init_gain: float = 0.01, init_scale: float | Sequence[float] = 1.0, activation=nn.ELU,
-                 loc_bound: float = 0.0):
+                 loc_bound: float = 0.0, latched: tuple[int, slice] | None = None):
         super().__init__()
         self.loc_bound = float(loc_bound)
+        self.latched = latched
         self.norm = Normalizer(obs_dim)
         self.trunk = MLP(in_features=obs_dim, out_features=hidden[-1], num_cells=list(hidden[:-1]),
                          activation_class=activation, activate_last_layer=True)
@@ -89,13 +96,21 @@ class GaussianHeads(nn.Module):
         loc = torch.cat(locs, -1)
         if self.loc_bound > 0:
             loc = self.loc_bound * torch.tanh(loc / self.loc_bound)
-        return loc, torch.cat(scales, -1)
+        scale = torch.cat(scales, -1)
+        if self.latched is not None:
+            index, entries = self.latched
+            fixed = torch.zeros(loc.shape[-1], dtype=torch.bool, device=loc.device)
+            fixed[entries] = True
+            fixed = fixed & (obs[..., index:index + 1] > 0)
+            loc = torch.where(fixed, torch.zeros_like(loc), loc)
+            scale = torch.where(fixed, torch.ones_like(scale), scale)
+        return loc, scale
 
 
 def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, high: float, hidden: Sequence[int], *,
                namespace: str, action_key="action", init_scale: float | Sequence[float] = 1.0,
                bounds: TensorDictModule | None = None, loc_bound: float = 0.0,
-               torchrl_tanh_loc: bool = False) -> ProbabilisticActor:
+               torchrl_tanh_loc: bool = False, latched: tuple[int, slice] | None = None) -> ProbabilisticActor:
     """A TanhNormal actor reading ``obs_key`` (flat), writing ``action_key`` and its log-prob, with
     the distribution parameters under ``(namespace, "loc")`` / ``(namespace, "scale")``.
 
@@ -108,13 +123,15 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
     float32 rounds onto the bound, whose log-probability then moves by tens of nats under a small
     weight change: PPO's ratio overflows (seen after 3.6 M frames of a specialist).
 
+    ``latched`` (optional): entries fixed to N(0, 1) where an observation entry is > 0 (:class:`GaussianHeads`).
+
     ``torchrl_tanh_loc`` bounds it with TorchRL's ``TanhNormal(tanh_loc=True)`` instead, as checkpoints
     saved before 2026-11-25 did. That is not the same for per-sample bounds: TorchRL 0.14 then also
     adds the bounds' centre ``(low + high) / 2`` to the pre-tanh mean, so a residual tracker's zero
     correction became ``residual·tanh(feed-forward)`` on top of the feed-forward (tested in
     ``tests/modules/test_policy_modules.py``). Kept only so those checkpoints act as they were trained."""
     net = GaussianHeads(obs_dim, head_sizes, hidden, init_scale=init_scale,
-                        loc_bound=0.0 if torchrl_tanh_loc else loc_bound)
+                        loc_bound=0.0 if torchrl_tanh_loc else loc_bound, latched=latched)
     loc, scale = (namespace, "loc"), (namespace, "scale")
     module = TensorDictModule(net, in_keys=[obs_key], out_keys=[loc, scale])
     dim = sum(head_sizes)

@@ -44,10 +44,10 @@ from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs import Compose, Transform
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from adadex.envs.observation import OBJECT_LATENT, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, REF_OFFSETS, \
-    flat_from_tensordict
-from adadex.modules.channels import GRIP_JOINTS, HAND_EDIT, MOD, OBJECT_EDIT, PALM, Channel, ModulationConfig, \
-    ModulationLayout, bind_transform
+from adadex.envs.observation import OBJECT_LATENT, OBJECT_START, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, \
+    REF_OBJECT_START, REF_OFFSETS, flat_from_tensordict
+from adadex.modules.channels import GRIP_JOINTS, HAND_EDIT, MOD, OBJECT_EDIT, PALM, REACH_STATE, Channel, \
+    ModulationConfig, ModulationLayout, bind_transform
 from adadex.modules.modulator_view import VIEW, ViewLayout, next_view_state, view_features
 from adadex.quat import quat_from_rotvec, quat_mul, rotvec_from_quat
 from adadex.sim.robot import JOINT_NAMES, NUM_JOINTS
@@ -300,19 +300,89 @@ class CompactModulation(ChannelTransform, channel="C"):
             return td
         palm, grip = a[0] * self.config.lambda_palm, a[1] * self.config.lambda_grip
         ref = td.get(REF_JOINT_POS)                       # (…, 5, 22)
-        lead, k = ref.shape[:-2], ref.shape[-2]
-        edit = (grip @ self._grip.to(grip))[..., None, :].expand(*lead, k, NUM_JOINTS).clone()
-        q = ref[..., :6].reshape(-1, 6)
-        shift = palm[..., None, :].expand(*lead, k, 3).reshape(-1, 3)
-        rows = shift.any(dim=1).nonzero()[:, 0]           # the Jacobian only where the palm moves
-        if len(rows):
-            flat = edit.reshape(-1, NUM_JOINTS)
-            flat[rows, :6] = self._shift(q[rows], shift[rows])
-            edit = flat.reshape(*lead, k, NUM_JOINTS)
-        td.set(REF_JOINT_POS, ref + edit)
-        if OBSERVATION in td.keys():
-            td.set(OBSERVATION, flat_from_tensordict(td))
-        return td
+        edit = (grip @ self._grip.to(grip))[..., None, :].expand(*ref.shape[:-1], NUM_JOINTS).clone()
+        return move_visible_reference(td, self._shift, palm, edit)
+
+
+def move_visible_reference(td: TensorDictBase, palm_shift, palm: torch.Tensor,
+                           edit: torch.Tensor | None = None) -> TensorDictBase:
+    """Add ``edit`` (…, 5, 22) to the visible reference joints (offsets 0, 1, 2, 4, 12) with their arm
+    joints replaced by the change that moves each frame's palm by ``palm`` (…, 3) (m, base frame)
+    without turning it (``palm_shift``: a :class:`adadex.modules.anchor.PalmShift`); reassembles the
+    273-D observation. Channels C and A move the reference this way."""
+    ref = td.get(REF_JOINT_POS)                           # (…, 5, 22)
+    lead, k = ref.shape[:-2], ref.shape[-2]
+    edit = ref.new_zeros(ref.shape) if edit is None else edit
+    q = ref[..., :6].reshape(-1, 6)
+    shift = palm[..., None, :].expand(*lead, k, 3).reshape(-1, 3)
+    rows = shift.any(dim=1).nonzero()[:, 0]               # the Jacobian only where the palm moves
+    if len(rows):
+        flat = edit.reshape(-1, NUM_JOINTS).clone()
+        flat[rows, :6] = palm_shift(q[rows], shift[rows])
+        edit = flat.reshape(*lead, k, NUM_JOINTS)
+    td.set(REF_JOINT_POS, ref + edit)
+    if OBSERVATION in td.keys():
+        td.set(OBSERVATION, flat_from_tensordict(td))
+    return td
+
+
+class AnchorReach(ChannelTransform, channel="A"):
+    """Channel A, the object-anchor reach: one number, how far the visible reference's palm moves onto
+    the object where it lies. The object anchor (:class:`adadex.modules.anchor.ObjectAnchor`, with the
+    anchored feed-forward's settings, :data:`adadex.modules.modulator.PRIOR_ANCHOR`) gives the palm
+    shift — the object's horizontal start offset, faded out as the reference carries the object — and
+    the action chooses the fraction of it, ``w = clip(0.5 + a, 0, 1)``: a ≤ −0.5 leaves the reference
+    alone (replay around kinematic replay), a ≥ 0.5 is the full anchor. Every visible frame moves
+    (as channel C's palm, :func:`move_visible_reference`).
+
+    Why a channel: the anchored feed-forward carries the object (object completion +11 around replay)
+    but costs the paper's completion where the object lies far off (past ~8 cm the hand holding it
+    is that far off the reference palm); whether to reach is a decision per episode, and a modulator
+    exploring C's palm around the anchor (``Modulator(prior="anchor")``) never tried not reaching
+    (docs/modulation.md). With ``reach_latched`` (default) the reach chosen at the episode's first step
+    holds for the episode: the carried state ``("modulation", "reach_state")`` = (w, latched), zero at
+    reset; later steps' reach entries are ignored, so the first step's sample is the exploration and
+    the decision (and the modulator's view shows the latched w).
+    """
+
+    def __init__(self, config: ModulationConfig = ModulationConfig()):
+        super().__init__(config, (REF_JOINT_POS, OBSERVATION))
+        from adadex.modules.anchor import ObjectAnchor
+        from adadex.modules.modulator import PRIOR_ANCHOR
+
+        self._anchor = ObjectAnchor(**PRIOR_ANCHOR)
+
+    def state_shapes(self) -> dict:
+        """The latched reach, ``("modulation", "reach_state")``; none with ``reach_latched=False``."""
+        return dict(self.channel.state) if self.config.reach_latched else {}
+
+    def next_state(self, td: TensorDictBase) -> dict:
+        if not self.config.reach_latched:
+            return {}
+        return {REACH_STATE: td.get(REACH_STATE)}
+
+    def weight(self, td: TensorDictBase) -> torch.Tensor | None:
+        """(…,) the fraction of the anchor's shift this step (latching it at the episode's first step)."""
+        a = self._inputs(td)
+        if a is None:
+            return None
+        w = (0.5 + a[0][..., 0]).clamp(0.0, 1.0)
+        if self.config.reach_latched:
+            state = td.get(REACH_STATE, None)
+            if state is None:
+                state = w.new_zeros(*w.shape, 2)
+            w = torch.where(state[..., 1] > 0.5, state[..., 0], w)
+            td.set(REACH_STATE, torch.stack([w, torch.ones_like(w)], -1))
+        return w
+
+    def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
+        w = self.weight(td)
+        if w is None:
+            return td
+        start, ref_start = td.get(OBJECT_START), td.get(REF_OBJECT_START)
+        travel = torch.linalg.vector_norm(td.get(REF_OBJECT_POSE)[..., 1, :3] - ref_start[..., :3], dim=-1)
+        palm = self._anchor.palm_shift(start[..., :2] - ref_start[..., :2], travel) * w[..., None]
+        return move_visible_reference(td, self._anchor._shift, palm)
 
 
 class LatentModulation(ChannelTransform, channel="O"):
@@ -442,7 +512,7 @@ class ModulatorView(CarriedState, Transform):
 
 def channel_transforms(channels, config: ModulationConfig = ModulationConfig()) -> list[ChannelTransform]:
     """The channel transforms for ``channels``, in inverse-path order: the channels that edit the
-    tracker's observation, then those that edit its action, each group in registry order (R, O then T)."""
+    tracker's observation, then those that edit its action, each group in registry order (R, C, A, O then T)."""
     records = ModulationLayout(channels).records
     return [c.transform(config) for edits in ("observation", "action") for c in records if c.edits == edits]
 
@@ -452,7 +522,7 @@ def modulation(channels="R+O+T", tracker=None, config: ModulationConfig = Modula
     """The modulator's env as one transform: ``TransformedEnv(TrackingEnv(…), modulation(channels, tracker))``.
 
     Inverse path (what the modulator's action goes through): split the flat action → the channels
-    that edit the tracker's observation (R → O) → frozen tracker → those that edit its action (T)
+    that edit the tracker's observation (R → C → A → O) → frozen tracker → those that edit its action (T)
     → env. Every subset of channels works, ``"none"`` included (the outer action is then empty and
     the env runs the tracker alone). ``view`` (a modulator's :attr:`~adadex.modules.modulator.Modulator.view`)
     adds :class:`ModulatorView`, which writes what that modulator reads.

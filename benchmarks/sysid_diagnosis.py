@@ -9,11 +9,12 @@ correct top-1 fits, held-out excess-error reduction, verdict, wall time and the 
 the diagnosis (localize, fit, relocalize, joint refit and scoring).
 Target: the whole diagnosis under 5 minutes on 2 cores.
 
-``--payloads``: a mass hung on a link with an MjSpec edit of the exported world (palm, index fingertip,
-forearm; 2 s pre-roll at rest, 0.2 mrad noise, all 22 joints measured while 2-4 joints of the chain are
-excited; ``tests/sysid/hidden.py``), diagnosed on the built-in model. Reported per case: the selected
-effects, whether the one selected effect is ``payload_mass`` on the link that carries the mass, the
-mass's relative error (target ≤ 10 %), the explained fractions, the verdict and the wall time.
+``--payloads``: a mass hung on a link with an MjSpec edit of the exported world (palm: at its flange, at
+its own centre of mass and at its link's; index fingertip, forearm; 2 s pre-roll at rest, 0.2 mrad
+noise, all 22 joints measured while 2-4 joints of the chain are excited; ``tests/sysid/hidden.py``),
+diagnosed on the built-in model. Reported per case: the selected effects, whether the one selected
+effect is ``payload_mass`` on the link that carries the mass, the mass's relative error (target ≤ 10 %),
+the explained fractions, the verdict and the wall time.
 
     python benchmarks/sysid_diagnosis.py [--seed 0] [--out FILE]
     python benchmarks/sysid_diagnosis.py --payloads [--out FILE]
@@ -37,10 +38,15 @@ from adadex.sysid.excite import design_excitation, simulate_recording
 RESULTS = Path(__file__).resolve().parent / "results"
 
 #: (case, body the mass hangs on, position in the body's frame, kg, excited joints, the robot joint whose
-#: link carries the body). Positions: the body's centre of mass (link4, if_ds); the palm's frame origin (the
-#: flange), as payload_mass puts its mass at the centre of mass of the joint's own body (link6 here).
+#: link carries the body). ``payload_mass`` puts its mass at the combined centre of mass of the link (link4;
+#: if_ds; link6 and the palm together, 4.3 cm beyond the palm's frame origin). Positions: that point
+#: (link4, if_ds: their own centre of mass; ``palm_link_com``); the palm's own centre of mass, 1.2 cm beyond
+#: it (6.5 cm beyond link6's); the palm's frame origin (the flange, 1 cm from link6's centre of mass).
+_WRIST = ("arm_j2", "arm_j3", "arm_j5", "th_mcp")
 PAYLOADS = (
-    ("palm", "palm", (0.0, 0.0, 0.0), 0.6, ("arm_j2", "arm_j3", "arm_j5", "th_mcp"), "arm_j6"),
+    ("palm", "palm", (0.0, 0.0, 0.0), 0.6, _WRIST, "arm_j6"),
+    ("palm_com", "palm", (0.0, -0.00247478, 0.05493321), 0.6, _WRIST, "arm_j6"),
+    ("palm_link_com", "palm", (0.0, -0.00190976, 0.04324141), 0.6, _WRIST, "arm_j6"),
     ("fingertip", "if_ds", (0.0, 0.0, 0.0197), 0.05, ("if_mcp", "if_pip"), "if_dip"),
     ("forearm", "link4", (0.0, 0.026, -0.025), 1.0, ("arm_j2", "arm_j3", "arm_j4"), "arm_j4"),
 )

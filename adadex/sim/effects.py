@@ -15,7 +15,8 @@ Where an effect acts:
   *Scale* effects (``mass_scale``, ``friction_scale``, ``damping_scale``) re-size the model's own
   values — the nominal numbers were off — so a patch applies them to the snapshot first
   (:meth:`Effect.rescale`) and every other effect acts on top: ``damping`` adds to the scaled
-  joint damping, ``payload_mass`` to the scaled link mass, whatever the order in the patch.
+  joint damping, ``payload_mass`` to the scaled link mass (at the scaled link's centre of mass),
+  whatever the order in the patch.
 * ``structure`` — needs a change to the model's structure before compiling (an actuator history
   buffer for a transport delay, an activation state for a first-order lag); made only when the
   value differs from absent, then the value itself is again a model parameter.
@@ -160,6 +161,8 @@ class ModelBase:
     dynprm: np.ndarray
     body_inertia: np.ndarray
     geom_friction: np.ndarray
+    body_ipos: np.ndarray                    # a payload moves its body's centre of mass …
+    body_iquat: np.ndarray                   # … and turns its principal axes
     forcelimited: np.ndarray | None = None   # a torque limit may limit a servo the model leaves unlimited
 
     def restore(self, m: mujoco.MjModel) -> None:
@@ -173,9 +176,13 @@ class ModelBase:
         m.actuator_forcerange[:] = self.forcerange
         m.jnt_actfrcrange[:] = self.actfrcrange
         mass_changed = not (np.array_equal(m.body_mass, self.body_mass)
-                            and np.array_equal(m.body_inertia, self.body_inertia))
+                            and np.array_equal(m.body_inertia, self.body_inertia)
+                            and np.array_equal(m.body_ipos, self.body_ipos)
+                            and np.array_equal(m.body_iquat, self.body_iquat))
         m.body_mass[:] = self.body_mass
         m.body_inertia[:] = self.body_inertia
+        m.body_ipos[:] = self.body_ipos
+        m.body_iquat[:] = self.body_iquat
         if mass_changed:
             set_const(m)
         m.actuator_delay[:] = self.actuator_delay
@@ -190,7 +197,8 @@ class ModelBase:
                    m.jnt_stiffness.copy(), m.actuator_gainprm.copy(), m.actuator_biasprm.copy(),
                    m.actuator_forcerange.copy(), m.jnt_actfrcrange.copy(), m.body_mass.copy(),
                    m.actuator_delay.copy(), m.actuator_dynprm.copy(), m.body_inertia.copy(),
-                   m.geom_friction.copy(), forcelimited=m.actuator_forcelimited.copy())
+                   m.geom_friction.copy(), m.body_ipos.copy(), m.body_iquat.copy(),
+                   forcelimited=m.actuator_forcelimited.copy())
 
     def copy(self) -> "ModelBase":
         return copy.deepcopy(self)
@@ -492,7 +500,15 @@ class KdScale(Effect):
 
 
 class PayloadMass(Effect):
-    """Extra point mass (kg) at the centre of mass of the link the joint moves.
+    """Extra point mass (kg) at the centre of mass of the link the joint moves: the combined centre of
+    mass of the joint's body and the bodies welded to it (:func:`link_bodies`; on the built-in arm_j6,
+    link6 and the palm), so the link's centre of mass stays where it was.
+
+    The mass is attached to the joint's own body: its mass grows by m, its centre of mass
+    (``body_ipos``) moves to the mass-weighted mean of the old one and the point, and its inertia
+    tensor about the new centre of mass gains the parallel-axis terms of both, re-diagonalized into
+    ``body_inertia`` and ``body_iquat`` (a proper rotation). Everything is computed from the snapshot,
+    so a patch applies it once whatever the model held; at 0 the body is the snapshot's, bit for bit.
 
     Residual signature: error growing with acceleration on that joint and its parents, and a
     static sag under gravity on the joints that carry it (pose dependent).
@@ -504,9 +520,61 @@ class PayloadMass(Effect):
     lookalikes = ("armature",)
 
     def apply_model(self, m, base, jid, values):
-        body = m.jnt_bodyid[robot_ids(m, jid)[0]]
-        m.body_mass[body] = base.body_mass[body] + values[:, 0]
+        jnt = robot_ids(m, jid)[0]
+        for bodies, j, mass in zip(_links(m, jnt)[0], jnt, values[:, 0]):
+            body = m.jnt_bodyid[j]
+            m.body_mass[body] = base.body_mass[body]
+            m.body_ipos[body] = base.body_ipos[body]
+            m.body_iquat[body] = base.body_iquat[body]
+            m.body_inertia[body] = base.body_inertia[body]
+            if mass != 0.0:
+                _add_point_mass(m, base, body, float(mass), _link_com(m, base, body, bodies))
         set_const(m)
+
+
+def _link_com(m: mujoco.MjModel, base: ModelBase, body: int, bodies: np.ndarray) -> np.ndarray:
+    """The combined centre of mass of ``bodies`` (``body`` and bodies welded below it, parents first)
+    with ``base``'s masses, in ``body``'s frame; ``body``'s own when the link has no mass."""
+    from adadex.geometry import compose   # imports torch: only when a payload is applied
+
+    pose = {int(body): np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])}   # each body's pose in body's frame
+    weighted, total = np.zeros(3), 0.0
+    for b in bodies:
+        b = int(b)
+        if b not in pose:
+            pose[b] = compose(pose[int(m.body_parentid[b])], np.concatenate([m.body_pos[b], m.body_quat[b]]))
+        com = compose(pose[b], np.concatenate([base.body_ipos[b], [1.0, 0.0, 0.0, 0.0]]))[:3]
+        weighted += base.body_mass[b] * com
+        total += base.body_mass[b]
+    return weighted / total if total > 0 else base.body_ipos[body].copy()
+
+
+def _add_point_mass(m: mujoco.MjModel, base: ModelBase, body: int, mass: float, point: np.ndarray) -> None:
+    """Set ``body`` to ``base``'s body plus a point ``mass`` at ``point`` (body frame): mass, centre of
+    mass, and the inertia tensor about the new centre of mass (parallel axis), re-diagonalized."""
+    from adadex.geometry import Rotation, quat, rotation   # imports torch: only when a payload is applied
+
+    m0, c0 = float(base.body_mass[body]), base.body_ipos[body]
+    total = m0 + mass
+    if not (np.isfinite(mass) and total > 0):
+        name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, body)
+        raise EffectError(f"payload_mass: mass={mass:g} kg on body {name!r} leaves it a mass of {total:g} kg; "
+                          f"a payload must leave a positive, finite mass")
+    axes = rotation(base.body_iquat[body]).as_matrix()          # principal axes, as columns in the body frame
+    com = (m0 * c0 + mass * point) / total
+
+    def shift(r):                                               # inertia of a unit point mass at r about 0
+        return np.dot(r, r) * np.eye(3) - np.outer(r, r)
+
+    inertia = (axes * base.body_inertia[body]) @ axes.T + m0 * shift(c0 - com) + mass * shift(point - com)
+    moments, vecs = np.linalg.eigh(0.5 * (inertia + inertia.T))
+    moments, vecs = moments[::-1], vecs[:, ::-1]                 # largest first, as MuJoCo's compiler
+    if np.linalg.det(vecs) < 0:
+        vecs = vecs * np.array([1.0, 1.0, -1.0])                 # a proper rotation (det +1)
+    m.body_mass[body] = total
+    m.body_ipos[body] = com
+    m.body_iquat[body] = quat(Rotation.from_matrix(vecs))
+    m.body_inertia[body] = np.maximum(moments, 0.0)
 
 
 class JointSpring(Effect):

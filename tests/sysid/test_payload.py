@@ -1,7 +1,8 @@
 """A payload is one payload where it hangs (issue 43): a mass hung on a link with an MjSpec edit, felt on
 a few recorded joints of its chain and, as knock-ons, on the joints it moves, is one ``payload_mass`` on
-that link with the mass within 10 %. Here a fingertip; the palm and the forearm, slower, are in
-``benchmarks/sysid_diagnosis.py --payloads`` with their figures."""
+that link with the mass within 10 %. Here a fingertip and the palm at its own centre of mass (the link
+of arm_j6 is link6 and the palm); the palm at its flange and at its link's centre of mass, and the
+forearm, are in ``benchmarks/sysid_diagnosis.py --payloads`` with their figures."""
 
 import numpy as np
 import pytest
@@ -10,6 +11,8 @@ from adadex.sysid.diagnose import diagnose
 from tests.sysid import hidden
 
 TIP_MASS = 0.05   # kg on the index fingertip (if_ds, the link of if_dip), at its centre of mass
+PALM_MASS = 0.6   # kg at the palm's own centre of mass, 6.5 cm beyond link6's
+PALM_COM = (0.0, -0.00247478, 0.05493321)
 
 
 @pytest.fixture(scope="module")
@@ -32,3 +35,22 @@ def test_a_mass_on_a_fingertip_is_one_payload_on_that_link(fingertip_load):
     assert any("one payload_mass on the link of if_dip (if_ds" in f for f in d.findings), d.findings
     assert d.suggestions == []
     assert "load" in d.stage_times_s
+
+
+@pytest.fixture(scope="module")
+def palm_load():
+    model = hidden.edited_model(hidden.hang_mass("palm", PALM_MASS, PALM_COM), "palm_load")
+    rec = hidden.recording(model, ["arm_j2", "arm_j3", "arm_j5", "th_mcp"], seed=0)
+    return diagnose(rec, progress=False)
+
+
+def test_a_mass_at_the_palms_centre_of_mass_is_one_payload_on_its_link(palm_load):
+    """payload_mass hangs its mass at the combined centre of mass of link6 and the palm, 1.2 cm short of
+    the palm's own: the fit puts 0.637 kg there for 0.6 kg (the longer lever arm), one effect, explained.
+    (When payload_mass hung it at link6's centre of mass, 6.5 cm short, this was a payload on arm_j5.)"""
+    d = palm_load
+    assert d.verdict == "explained", d.findings
+    assert [(h["effect"], h["joints"]) for h in d.selected] == [("payload_mass", ["arm_j6"])], d.selected
+    np.testing.assert_allclose(d.selected[0]["params"]["mass"], PALM_MASS, rtol=0.1)
+    assert min(d.explained_fraction.values()) >= 0.8, d.explained_fraction
+    assert d.suggestions == []

@@ -14,7 +14,8 @@ Per step:
 * observation: structured entries and the flat 273-D ``"observation"`` (see
   :mod:`adadex.envs.observation`), plus the current joint targets ``("proprio", "joint_target")``
   (not part of the 273-D vector), the object latent from ``latent_fn`` (default: the shipped point-cloud
-  encoder's latent, :func:`adadex.envs.latent.encoder_latent`);
+  encoder's latent, :func:`adadex.envs.latent.encoder_latent`); the object's point cloud, for an
+  encoder in the policy graph, is added by the transform :class:`adadex.transforms.object_points.ObjectPoints`;
 * reward: :func:`adadex.envs.reward.tracking_reward`;
 * ``"privileged"`` — ground truth for evaluation and logs, which a policy never reads (see
   :data:`adadex.envs.observation.PRIVILEGED`): ``("privileged", "errors")`` the per-frame metric

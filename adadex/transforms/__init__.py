@@ -1,6 +1,6 @@
 """TorchRL transforms for the three modulation channels — reference (R), object latent (O),
-action (T) — the tracker-in-the-loop transform that turns a TrackingEnv into the modulator's env, and
-the modulated policy graph.
+action (T) — the tracker-in-the-loop transform that turns a TrackingEnv into the modulator's env, the
+modulated policy graph, and the object point clouds its encoder reads.
 
 The names below are re-exported here (``from adadex.transforms import modulation, make_policy``) and
 imported on first use.
@@ -17,6 +17,7 @@ _EXPORTS = {
                                      "TrackerInTheLoop", "FlatModulationAction",
                                      "ModulatorView"),
     "adadex.transforms.policy": ("make_policy", "ModulatedPolicy"),
+    "adadex.transforms.object_points": ("ObjectPoints",),
 }
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
@@ -26,3 +27,4 @@ if TYPE_CHECKING:      # the same names, for type checkers and IDEs
         CompactModulation, ChannelTransform, TrackerInTheLoop, FlatModulationAction, ModulatorView
     )
     from adadex.transforms.policy import make_policy, ModulatedPolicy
+    from adadex.transforms.object_points import ObjectPoints

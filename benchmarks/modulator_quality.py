@@ -15,7 +15,9 @@ difference to the untrained modulator is what training learned.
 A row is ``CHANNELS[:inputs[:init_scale]]``: ``C+T`` (the defaults: the view, each channel's own
 scale), ``R+O+T:observation:0.5`` (the modulator as it was before 2026-11-27), ``C+T:prior=anchor``
 (channel C's palm around the object anchor's shift), ``C+T:hold=10:hold_C=0.5`` (C's exploration
-noise held for 10 steps at scale 0.5; :class:`~adadex.modules.modulator.Modulator`). Every run is kept
+noise held for 10 steps at scale 0.5; :class:`~adadex.modules.modulator.Modulator`), ``A`` (channel A,
+the object-anchor reach chosen once per episode; its rows also report the reach the trained and the
+untrained modulator choose, by the object's start offset). Every run is kept
 under ``--runs`` and resumes (training from its checkpoint, evaluations from their JSON), so a
 killed benchmark continues where it stopped::
 
@@ -65,6 +67,43 @@ def parse_row(text: str) -> dict:
             raise SystemExit(f"--rows: unknown option {key!r} in {text!r} (prior=, hold=, hold_X=)")
     row["name"] = text.replace("+", "").replace(":", "_").replace(".", "").replace("=", "")
     return row
+
+
+#: the object's horizontal start offset |Δ| (m): bins of the reach report (channel A)
+OFFSET_BINS = (0.0, 0.02, 0.04, 0.06, 0.08, 0.10, float("inf"))
+
+
+def reach_by_offset(policy, ds, episodes, config, seed: int = 20_000, max_worlds: int = 64) -> dict:
+    """Channel A's deterministic reach per evaluation episode — the weight it latched at the first
+    step — by the object's horizontal start offset: what the gate learned, on the evaluation's own
+    draws (the same references, chunks and env seeds as ``evaluate``)."""
+    from torchrl.envs import TransformedEnv
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from adadex.envs.observation import OBJECT_START, REF_OBJECT_START
+    from adadex.envs.randomization import Randomization
+    from adadex.envs.tracking import TrackingEnv
+    from adadex.eval.evaluate import chunk_seed
+    from adadex.modules.channels import REACH_STATE
+
+    reach, offset = [], []
+    for k in range(0, len(episodes), max_worlds):
+        chunk = episodes[k:k + max_worlds]
+        env = TransformedEnv(TrackingEnv(ds, num_worlds=len(chunk), split=None, references=chunk, draw="cycle",
+                                         config=config, seed=chunk_seed(seed, k // max_worlds),
+                                         randomize=Randomization(), nthread=2), policy.primer())
+        with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+            td = env.rollout(1, policy, break_when_any_done=False)
+        env.close()
+        reach.append(td["next", REACH_STATE][:, 0, 0])
+        offset.append(torch.linalg.vector_norm(td[OBJECT_START][:, 0, :2] - td[REF_OBJECT_START][:, 0, :2], dim=-1))
+    reach, offset = torch.cat(reach).numpy(), torch.cat(offset).numpy()
+    bins = []
+    for lo, hi in zip(OFFSET_BINS[:-1], OFFSET_BINS[1:]):
+        m = (offset >= lo) & (offset < hi)
+        bins.append({"offset_cm": [100 * lo, None if hi == float("inf") else 100 * hi], "episodes": int(m.sum()),
+                     "mean_reach": float(reach[m].mean()) if m.any() else None})
+    return {"mean_reach": float(reach.mean()), "by_offset": bins}
 
 
 def main(argv=None) -> dict:
@@ -156,7 +195,10 @@ def main(argv=None) -> dict:
             fresh = Modulator(row["channels"], hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
                               inputs=m.inputs, history=m.history, **row["modulator"])
             ctl = evaluated(folder / "untrained", make_policy(tracker, fresh))
-            per_seed.append({"seed": seed, "train_s": train_s, **{k: ev["summary"][k] for k in METRICS},
+            reach = {} if "A" not in mod.channels else \
+                {"reach": reach_by_offset(make_policy(tracker, mod), ds, episodes, config),
+                 "untrained_reach": reach_by_offset(make_policy(tracker, fresh), ds, episodes, config)}
+            per_seed.append({"seed": seed, "train_s": train_s, **{k: ev["summary"][k] for k in METRICS}, **reach,
                              "untrained": {k: ctl["summary"][k] for k in METRICS},
                              "per_episode": ev["per_episode"], "untrained_episodes": ctl["per_episode"]})
         refs = np.concatenate([s["per_episode"]["reference"] for s in per_seed])
@@ -175,6 +217,15 @@ def main(argv=None) -> dict:
                  **{k: float(np.mean([s[k] for s in per_seed])) for k in METRICS}, "vs_tracker": diffs,
                  "vs_untrained": learned}
         result["rows"][row["name"]] = entry
+        if "reach" in per_seed[0]:
+            cells = []
+            for i, b in enumerate(per_seed[0]["reach"]["by_offset"]):
+                lo, hi = b["offset_cm"]
+                means = [s["reach"]["by_offset"][i]["mean_reach"] for s in per_seed]
+                cells.append(f"{lo:.0f}–{'' if hi is None else f'{hi:.0f}'} cm "
+                             + "/".join("—" if v is None else f"{v:.2f}" for v in means))
+            print(f"{'':24s} channel A's reach per seed (untrained: {per_seed[0]['untrained_reach']['mean_reach']:.2f}) "
+                  f"by the object's start offset: " + ", ".join(cells), flush=True)
         c, o = diffs["completion_pct"], diffs["object_completion_pct"]
         print(f"{row['name']:24s} completion {entry['completion_pct']:5.1f} % ({c['diff']:+.1f} [{c['ci95'][0]:+.1f}, "
               f"{c['ci95'][1]:+.1f}])  object {entry['object_completion_pct']:5.1f} % ({o['diff']:+.1f} "

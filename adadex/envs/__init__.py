@@ -1,5 +1,6 @@
 """TorchRL environments: the batched tracking environment, its observation layout, reward and
-domain randomization; importing this package registers ``adadex/Tracking-v0`` with gymnasium.
+domain randomization, and the chunked rollout loop of evaluation and teacher rollouts; importing
+this package registers ``adadex/Tracking-v0`` with gymnasium.
 
 The names below are re-exported here (``from adadex.envs import TrackingEnv, TrackingConfig``) and
 imported on first use.
@@ -18,6 +19,7 @@ _EXPORTS = {
     "adadex.envs.randomization": ("Randomization", "EffectRange", "ModelRandomizer"),
     "adadex.envs.reward": ("RewardConfig", "tracking_reward"),
     "adadex.envs.replay": ("replay_policy",),
+    "adadex.envs.chunked": ("chunked_rollouts", "RolloutChunk", "chunk_seed"),
     "adadex.envs.frame_errors": ("Thresholds", "frame_success", "object_success"),
     "adadex.envs.observation": ("OBS_DIM", "LATENT_DIM", "flat_observation",
                                 "flat_from_tensordict"),
@@ -32,6 +34,7 @@ if TYPE_CHECKING:      # the same names, for type checkers and IDEs
     from adadex.envs.randomization import Randomization, EffectRange, ModelRandomizer
     from adadex.envs.reward import RewardConfig, tracking_reward
     from adadex.envs.replay import replay_policy
+    from adadex.envs.chunked import chunked_rollouts, RolloutChunk, chunk_seed
     from adadex.envs.frame_errors import Thresholds, frame_success, object_success
     from adadex.envs.observation import OBS_DIM, LATENT_DIM, flat_observation, flat_from_tensordict
     from adadex.envs.latent import EncoderLatents, encoder_latent, fixed_object_latent

@@ -3,14 +3,16 @@
 :func:`evaluate` runs each reference of the split once, in chunks of at most ``max_worlds``
 worlds stepped together (world ``w`` of a chunk tracks its ``w``-th reference), for the full
 episode window, deterministically (``ExplorationType.DETERMINISTIC``), and reads the per-frame
-errors the environment writes — no physics is recomputed. A trajectory that ends early (object
-or palm beyond the termination errors, unstable physics) counts its missing frames as failures.
-Each chunk's environment draws with its own seed (the first with ``seed``, chunk k with one derived
-from ``(seed, k)``), so a reference listed again beyond ``max_worlds`` meets new randomization
-draws, not a copy of its first episode. Two policies evaluated on the same ``references`` list with
-the same ``seed`` and ``max_worlds`` meet the same draws in every episode (the env draws start
-states from one stream and per-step noise from another, neither depending on the actions), so
-their per-episode results pair up (:mod:`adadex.eval.paired`).
+errors the environment writes — no physics is recomputed. The loop is
+:func:`~adadex.envs.chunked.chunked_rollouts`, the one teacher rollouts run too. A trajectory that
+ends early (object or palm beyond the termination errors, unstable physics) counts its missing
+frames as failures. Each chunk's environment draws with its own seed (the first with ``seed``,
+chunk k with one derived from ``(seed, k)``, :func:`~adadex.envs.chunked.chunk_seed`), so a
+reference listed again beyond ``max_worlds`` meets new randomization draws, not a copy of its first
+episode. Two policies evaluated on the same ``references`` list with the same ``seed`` and
+``max_worlds`` meet the same draws in every episode (the env draws start states from one stream and
+per-step noise from another, neither depending on the actions), so their per-episode results pair
+up (:mod:`adadex.eval.paired`).
 
 Besides the summary, the result keeps every episode (``per_episode``: the reference's dataset index
 and name, its repeat — how many times the reference appeared before it in the list —, completion,
@@ -34,14 +36,13 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-import numpy as np
 import torch
-from torchrl.envs import TransformedEnv
-from torchrl.envs.utils import ExplorationType, set_exploration_type
-from tqdm.auto import tqdm
+from torchrl.envs.utils import ExplorationType
 
 from adadex.data.reference import ReferenceDataset
-from adadex.envs.tracking import TrackingConfig, TrackingEnv, episode_references
+# chunk_seed was defined here first; it stays importable from this module
+from adadex.envs.chunked import chunk_seed, chunked_rollouts  # noqa: F401
+from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import ConfigError
 from adadex.eval.metrics import ERROR_NAMES, Thresholds, from_rollout, summarize
 from adadex.eval.reward_check import episode_returns, spearman_by_episode
@@ -97,28 +98,21 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
     if not refs:
         raise ConfigError(f"{ds.path}: no reference in split {split} has a {config.window}-frame episode window")
     steps = config.window - 1
-    chunks = [refs[i:i + max_worlds] for i in range(0, len(refs), max_worlds)]
     per_chunks, names, rollouts, returns = [], [], [], []
     seed = env_kwargs.pop("seed", 0)
-    bar = tqdm(total=len(refs) * steps, unit="frame", desc="evaluate", disable=not progress)
     t0 = time.perf_counter()
-    for k, chunk in enumerate(chunks):
-        env = TrackingEnv(ds, num_worlds=len(chunk), split=None, references=chunk, draw="cycle", config=config,
-                          seed=chunk_seed(seed, k), **env_kwargs)
-        if env_transform is not None:
-            env = TransformedEnv(env, env_transform())
-        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM if sample else ExplorationType.DETERMINISTIC):
-            td = env.reset()
-            names += [ds.entries[i]["name"] for i in chunk]
-            td = env.rollout(steps, policy, tensordict=td, auto_reset=False, break_when_any_done=False,
-                             callback=lambda *_: bar.update(len(chunk)))
-        per_chunks.append(from_rollout(td, lengths=torch.full((len(chunk),), steps), thresholds=thresholds,
-                                       reference_motion=reference_motion(ds, chunk, steps)))
+    for chunk in chunked_rollouts(policy, ds, refs, max_worlds=max_worlds, seed=seed, config=config,
+                                  env_transform=env_transform,
+                                  exploration=ExplorationType.RANDOM if sample else ExplorationType.DETERMINISTIC,
+                                  progress=progress, desc="evaluate", **env_kwargs):
+        td, chunk_refs = chunk.rollout, chunk.references
+        names += [ds.entries[i]["name"] for i in chunk_refs]
+        per_chunks.append(from_rollout(td, lengths=torch.full((len(chunk_refs),), steps), thresholds=thresholds,
+                                       reference_motion=reference_motion(ds, chunk_refs, steps)))
         returns.append(episode_returns(td))
         if keep_rollouts:
             rollouts.append(td)
-        env.close()
-    bar.close()
+        del chunk, td          # the next chunk's rollout runs without this one held
     per = {k: torch.cat([p[k] for p in per_chunks]) for k in per_chunks[0]}
     out = {"split": list(split) if split else None, "references": len(refs), "steps": steps,
            "wall_s": time.perf_counter() - t0, "summary": summarize(per),
@@ -156,15 +150,6 @@ def reference_motion(dataset: ReferenceDataset, references, steps: int) -> torch
     frames = base[:, None] + torch.arange(steps + 1)[None]
     pos = torch.as_tensor(pose[frames.reshape(-1)])[..., :3].to(torch.float64).reshape(len(references), steps + 1, 3)
     return torch.linalg.vector_norm(pos[:, 1:] - pos[:, :1], dim=-1)
-
-
-def chunk_seed(seed: int | None, chunk: int) -> int | None:
-    """The env seed of chunk ``chunk`` of an evaluation seeded ``seed``: ``seed`` itself for the
-    first (an evaluation that fits one chunk draws as it always did), independent ones after it;
-    ``None`` (fresh entropy) stays ``None``."""
-    if seed is None or chunk == 0:
-        return seed
-    return int(np.random.SeedSequence([int(seed), chunk]).generate_state(1)[0])
 
 
 def format_summary(summary: dict) -> str:

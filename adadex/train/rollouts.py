@@ -29,8 +29,10 @@ no half-written buffer)::
     out/rollouts.json   per reference: episodes tried and kept, success rate, frames stored; the
                         teachers (name, checkpoint, Tracker config, references); the settings
 
-Episodes run in chunks of at most ``max_worlds`` worlds, as :func:`adadex.eval.evaluate.evaluate`
-runs them; the ``k``-th chunk (counted over all teachers in order) uses env seed ``seed + k``, so
+Episodes run in chunks of at most ``max_worlds`` worlds by the loop evaluation runs too
+(:func:`adadex.envs.chunked.chunked_rollouts`, one call per teacher). The ``k``-th chunk (counted
+over all teachers in order) uses env seed ``seed + k`` — not evaluation's
+:func:`~adadex.envs.chunked.chunk_seed`; kept so that existing rollouts stay reproducible — so
 ``evaluate(teacher.actor, ds, references=chunk, seed=seed + k, randomize=Randomization())``
 reproduces its episodes exactly.
 
@@ -48,16 +50,15 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
-from tensordict import TensorDictBase
 from torchrl.data import LazyMemmapStorage, ReplayBuffer, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm.auto import tqdm
 
 from adadex.data.reference import ReferenceDataset
+from adadex.envs.chunked import chunked_rollouts
 from adadex.envs.observation import JOINT_POS, JOINT_TARGET, LINK_POSE, OBJECT_LATENT, OBJECT_POSE, OBSERVATION
 from adadex.envs.randomization import Randomization
-from adadex.envs.tracking import TrackingConfig, TrackingEnv, episode_references
+from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import AdadexError, ConfigError, check_number
 from adadex.eval.metrics import Thresholds, from_rollout
 from adadex.io import atomic_write_text, output_folder
@@ -128,6 +129,12 @@ def _episode_list(refs: Sequence[int], episodes: int) -> list[int]:
     return [r for _ in range(episodes) for r in refs]
 
 
+def _consecutive_seeds(seed: int, chunk: int) -> int:
+    """The env seed of chunk ``chunk`` of a teacher whose first chunk is seeded ``seed`` (the
+    module docstring's ``seed + k``, numbered over all teachers)."""
+    return seed + chunk
+
+
 def teacher_rollouts(teachers: Mapping, dataset, out, *, episodes_per_reference: int = 4,
                      randomize: Randomization | bool | None = True, seed: int = 0, max_worlds: int = 64,
                      criterion: str = "mean_error", thresholds: Thresholds = Thresholds(),
@@ -187,11 +194,10 @@ def teacher_rollouts(teachers: Mapping, dataset, out, *, episodes_per_reference:
         chunk_index, episode, kept_frames = 0, 0, 0
         for ti, (name, path, tracker, refs) in enumerate(plan):
             tried_t = kept_t = 0
-            episodes = _episode_list(refs, episodes_per_reference)
-            for start in range(0, len(episodes), max_worlds):
-                chunk = episodes[start:start + max_worlds]
-                td = _run_chunk(tracker, ds, chunk, seed=seed + chunk_index, randomize=randomize, config=config,
-                                nthread=nthread, bar=bar)
+            for c in chunked_rollouts(tracker.actor, ds, _episode_list(refs, episodes_per_reference),
+                                      max_worlds=max_worlds, seed=seed + chunk_index, derive_seed=_consecutive_seeds,
+                                      config=config, bar=bar, randomize=randomize, nthread=nthread):
+                chunk, td = c.references, c.rollout
                 chunk_index += 1
                 metrics = from_rollout(td, lengths=torch.full((len(chunk),), steps), thresholds=thresholds)
                 ok = succeeded(metrics)
@@ -219,7 +225,7 @@ def teacher_rollouts(teachers: Mapping, dataset, out, *, episodes_per_reference:
                     e["kept"] += int(ok[b])
                     e["frames"] += int(keep[b].sum())
                     e["_completion"].append(float(metrics["completion"][b]))
-                del td, rows
+                del c, td, rows        # the next chunk's rollout runs without this one held
             teacher_info.append({"name": name, "path": path, "config": dict(tracker.config), "references": refs,
                                  "episodes_tried": tried_t, "episodes_kept": kept_t})
         bar.close()
@@ -244,21 +250,6 @@ def teacher_rollouts(teachers: Mapping, dataset, out, *, episodes_per_reference:
                 "per_reference": {str(r): per_ref[r] for r in sorted(per_ref)}}
         atomic_write_text(tmp / INFO, json.dumps(info, indent=1))
     return info
-
-
-def _run_chunk(tracker: Tracker, ds: ReferenceDataset, chunk: list[int], *, seed: int, randomize, config, nthread,
-               bar) -> TensorDictBase:
-    """One deterministic rollout of ``tracker`` over ``chunk`` (world w tracks chunk[w]), as evaluate runs it."""
-    env = TrackingEnv(ds, num_worlds=len(chunk), split=None, references=chunk, draw="cycle", config=config,
-                      randomize=randomize, seed=seed, nthread=nthread)
-    try:
-        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            td = env.reset()
-            td = env.rollout(config.window - 1, tracker.actor, tensordict=td, auto_reset=False,
-                             break_when_any_done=False, callback=lambda *_: bar.update(len(chunk)))
-    finally:
-        env.close()
-    return td
 
 
 def _new_buffer(storage: LazyMemmapStorage) -> TensorDictReplayBuffer:

@@ -1,5 +1,5 @@
-"""TorchRL transforms for the three modulation channels — reference (R), object latent (O),
-action (T) — the tracker-in-the-loop transform that turns a TrackingEnv into the modulator's env, the
+"""TorchRL transforms for the modulation channels — reference (R), its compact form (C), the
+object-anchor reach (A), object latent (O), action (T) — the tracker-in-the-loop transform that turns a TrackingEnv into the modulator's env, the
 modulated policy graph, and the object point clouds its encoder reads.
 
 The names below are re-exported here (``from adadex.transforms import modulation, make_policy``) and
@@ -13,7 +13,8 @@ from adadex._exports import lazy_exports
 _EXPORTS = {
     "adadex.transforms.modulation": ("modulation", "channel_transforms", "ReferenceModulation",
                                      "LatentModulation", "ActionModulation",
-                                     "CompactModulation", "ChannelTransform",
+                                     "CompactModulation", "AnchorReach", "move_visible_reference",
+                                     "ChannelTransform",
                                      "TrackerInTheLoop", "FlatModulationAction",
                                      "ModulatorView"),
     "adadex.transforms.policy": ("make_policy", "ModulatedPolicy"),
@@ -24,7 +25,7 @@ __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 if TYPE_CHECKING:      # the same names, for type checkers and IDEs
     from adadex.transforms.modulation import (
         modulation, channel_transforms, ReferenceModulation, LatentModulation, ActionModulation,
-        CompactModulation, ChannelTransform, TrackerInTheLoop, FlatModulationAction, ModulatorView
+        CompactModulation, AnchorReach, move_visible_reference, ChannelTransform, TrackerInTheLoop, FlatModulationAction, ModulatorView
     )
     from adadex.transforms.policy import make_policy, ModulatedPolicy
     from adadex.transforms.object_points import ObjectPoints

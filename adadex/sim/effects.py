@@ -309,8 +309,11 @@ class Effect:
         if v.shape != (len(joints), len(self.params)):
             raise EffectError(f"{self.name}: values must have shape ({len(joints)}, {len(self.params)}) "
                               f"for joints {joints} and params {self.param_names}, got {np.shape(values)}")
-        if not np.isfinite(v).all():
-            raise EffectError(f"{self.name}: non-finite parameter values {v.tolist()}")
+        bad = np.argwhere(~np.isfinite(v))
+        if bad.size:
+            j, p = bad[0]
+            raise EffectError(f"{self.name}: non-finite {self.params[p].name}={v[j, p]:g} {self.params[p].unit} "
+                              f"on {joints[j]}")
         lo, hi = self.bounds(joints, robot)
         bad = np.argwhere((v < lo - 1e-12) | (v > hi + 1e-12))
         if bad.size:
@@ -500,18 +503,29 @@ class KdScale(Effect):
 
 
 class PayloadMass(Effect):
-    """Extra point mass (kg) at the centre of mass of the link the joint moves: the combined centre of
-    mass of the joint's body and the bodies welded to it (:func:`link_bodies`; on the built-in arm_j6,
-    link6 and the palm), so the link's centre of mass stays where it was.
+    """Extra point mass (kg) at the combined centre of mass of the link the joint moves: the joint's
+    body and the bodies welded to it (:func:`link_bodies`; on the built-in arm_j6, link6 and the palm),
+    so the link's centre of mass stays where it was.
+
+    Where it hangs is :func:`payload_point` at offset 0: the link's combined centre of mass c (the
+    snapshot's masses). :func:`payload_point` also places a point ``offset`` metres along the link's
+    distal axis (from the joint's axis point through c; negative towards the joint: on arm_j6 −4.33 cm is
+    the flange, +1.17 cm the palm's own centre of mass), which this effect does not declare as a
+    parameter yet: a patch, ``adadex sysid fit`` and the diagnosis handle one parameter per effect
+    (docs/workbench.md says what fitting the offset as well takes, and finds).
 
     The mass is attached to the joint's own body: its mass grows by m, its centre of mass
     (``body_ipos``) moves to the mass-weighted mean of the old one and the point, and its inertia
     tensor about the new centre of mass gains the parallel-axis terms of both, re-diagonalized into
-    ``body_inertia`` and ``body_iquat`` (a proper rotation). Everything is computed from the snapshot,
-    so a patch applies it once whatever the model held; at 0 the body is the snapshot's, bit for bit.
+    ``body_inertia`` and ``body_iquat`` (a proper rotation). Everything is computed from the snapshot
+    with numpy and MuJoCo's own quaternion functions (no torch), so a patch applies it once whatever the
+    model held; at 0 the body is the snapshot's, bit for bit.
 
     Residual signature: error growing with acceleration on that joint and its parents, and a
-    static sag under gravity on the joints that carry it (pose dependent).
+    static sag under gravity on the joints that carry it (pose dependent). A joint feels the load's
+    mass times its lever arm to the point in the sag and times its square in the inertia, so a load a
+    few centimetres from the point shows as another mass, or a payload on another link: a mass hung at
+    the flange, 4.3 cm short of the point, was fitted as 0.752 kg on arm_j5's link for 0.6 kg.
     """
 
     name, stage = "payload_mass", "model"
@@ -528,39 +542,69 @@ class PayloadMass(Effect):
             m.body_iquat[body] = base.body_iquat[body]
             m.body_inertia[body] = base.body_inertia[body]
             if mass != 0.0:
-                _add_point_mass(m, base, body, float(mass), _link_com(m, base, body, bodies))
+                _add_point_mass(m, base, body, float(mass), payload_point(m, base, int(j), bodies))
         set_const(m)
+
+
+def payload_point(m: mujoco.MjModel, base: ModelBase, jnt: int, bodies: np.ndarray,
+                  offset: float = 0.0) -> np.ndarray:
+    """A point on the link of joint ``jnt`` (model joint id), in the frame of the joint's body: the combined
+    centre of mass c of the link's ``bodies`` (:func:`link_bodies`, ``base``'s masses) moved ``offset``
+    metres along the link's distal axis, the unit vector from the joint's axis point (``jnt_pos``) to c
+    (the joint's axis when c is on that point). Offset 0 is c itself, exactly: where :class:`PayloadMass`
+    hangs its mass. :class:`EffectError` naming the offset if it is not finite."""
+    if not np.isfinite(offset):
+        name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, jnt)
+        raise EffectError(f"payload_mass: offset={offset:g} m on joint {name!r} is not finite")
+    c = _link_com(m, base, int(m.jnt_bodyid[jnt]), bodies)
+    if offset == 0.0:
+        return c
+    d = c - m.jnt_pos[jnt]
+    n = float(np.linalg.norm(d))
+    u = d / n if n > 1e-9 else m.jnt_axis[jnt] / np.linalg.norm(m.jnt_axis[jnt])
+    return c + offset * u
 
 
 def _link_com(m: mujoco.MjModel, base: ModelBase, body: int, bodies: np.ndarray) -> np.ndarray:
     """The combined centre of mass of ``bodies`` (``body`` and bodies welded below it, parents first)
     with ``base``'s masses, in ``body``'s frame; ``body``'s own when the link has no mass."""
-    from adadex.geometry import compose   # imports torch: only when a payload is applied
-
-    pose = {int(body): np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])}   # each body's pose in body's frame
+    pose = {int(body): (np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))}   # each body's pose in body's frame
     weighted, total = np.zeros(3), 0.0
     for b in bodies:
         b = int(b)
         if b not in pose:
-            pose[b] = compose(pose[int(m.body_parentid[b])], np.concatenate([m.body_pos[b], m.body_quat[b]]))
-        com = compose(pose[b], np.concatenate([base.body_ipos[b], [1.0, 0.0, 0.0, 0.0]]))[:3]
-        weighted += base.body_mass[b] * com
+            pos, quat = pose[int(m.body_parentid[b])]
+            pose[b] = (pos + _rotate(quat, m.body_pos[b]), _mul_quat(quat, m.body_quat[b]))
+        pos, quat = pose[b]
+        weighted += base.body_mass[b] * (pos + _rotate(quat, base.body_ipos[b]))
         total += base.body_mass[b]
     return weighted / total if total > 0 else base.body_ipos[body].copy()
+
+
+def _rotate(quat: np.ndarray, vec: np.ndarray) -> np.ndarray:
+    out = np.empty(3)
+    mujoco.mju_rotVecQuat(out, np.asarray(vec, dtype=np.float64), np.asarray(quat, dtype=np.float64))
+    return out
+
+
+def _mul_quat(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    out = np.empty(4)
+    mujoco.mju_mulQuat(out, np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64))
+    return out
 
 
 def _add_point_mass(m: mujoco.MjModel, base: ModelBase, body: int, mass: float, point: np.ndarray) -> None:
     """Set ``body`` to ``base``'s body plus a point ``mass`` at ``point`` (body frame): mass, centre of
     mass, and the inertia tensor about the new centre of mass (parallel axis), re-diagonalized."""
-    from adadex.geometry import Rotation, quat, rotation   # imports torch: only when a payload is applied
-
     m0, c0 = float(base.body_mass[body]), base.body_ipos[body]
     total = m0 + mass
     if not (np.isfinite(mass) and total > 0):
         name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, body)
         raise EffectError(f"payload_mass: mass={mass:g} kg on body {name!r} leaves it a mass of {total:g} kg; "
                           f"a payload must leave a positive, finite mass")
-    axes = rotation(base.body_iquat[body]).as_matrix()          # principal axes, as columns in the body frame
+    axes = np.empty(9)
+    mujoco.mju_quat2Mat(axes, np.asarray(base.body_iquat[body], dtype=np.float64))
+    axes = axes.reshape(3, 3)                                   # principal axes, as columns in the body frame
     com = (m0 * c0 + mass * point) / total
 
     def shift(r):                                               # inertia of a unit point mass at r about 0
@@ -571,9 +615,11 @@ def _add_point_mass(m: mujoco.MjModel, base: ModelBase, body: int, mass: float, 
     moments, vecs = moments[::-1], vecs[:, ::-1]                 # largest first, as MuJoCo's compiler
     if np.linalg.det(vecs) < 0:
         vecs = vecs * np.array([1.0, 1.0, -1.0])                 # a proper rotation (det +1)
+    quat = np.empty(4)
+    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(vecs).ravel())
     m.body_mass[body] = total
     m.body_ipos[body] = com
-    m.body_iquat[body] = quat(Rotation.from_matrix(vecs))
+    m.body_iquat[body] = -quat if quat[0] < 0 else quat          # canonical, w >= 0
     m.body_inertia[body] = np.maximum(moments, 0.0)
 
 

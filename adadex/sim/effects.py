@@ -294,7 +294,11 @@ class Effect:
         return bool(np.all(np.asarray(values) == self.absent_values()))
 
     def validate(self, joints, values, robot=None) -> np.ndarray:
-        """Check joint names and values (shape, finite, in bounds on ``robot``); return values as (J, P)."""
+        """Check joint names and values (shape, finite, in bounds on ``robot``); return values as (J, P).
+
+        Values may give the leading parameters only, the others are then at their absent values: a
+        scalar, or one value per joint, is the first parameter (``payload_mass`` 0.6 is 0.6 kg at offset 0),
+        a (J, k) array the first k."""
         joints = list(joints)
         if not joints:
             raise EffectError(f"{self.name}: no joints given")
@@ -302,10 +306,15 @@ class Effect:
         if len(set(joints)) != len(joints):
             raise EffectError(f"{self.name}: duplicate joints in {joints}")
         v = np.asarray(values, dtype=float)
-        if v.ndim == 0 or (v.ndim == 1 and len(self.params) == 1 and v.shape[0] == len(joints)):
-            v = np.broadcast_to(v.reshape(-1, 1) if v.ndim == 1 else v, (len(joints), len(self.params)))
-        elif v.ndim == 1 and v.shape[0] == len(self.params):
-            v = np.broadcast_to(v, (len(joints), len(self.params)))
+        J, P = len(joints), len(self.params)
+        if v.ndim == 0:
+            v = np.broadcast_to(v, (J, 1))
+        elif v.ndim == 1 and v.shape[0] == P:
+            v = np.broadcast_to(v, (J, P))
+        elif v.ndim == 1 and v.shape[0] == J:
+            v = v.reshape(-1, 1)
+        if v.ndim == 2 and v.shape[0] == J and 1 <= v.shape[1] < P:
+            v = np.concatenate([v, np.broadcast_to(self.absent_values()[v.shape[1]:], (J, P - v.shape[1]))], axis=1)
         if v.shape != (len(joints), len(self.params)):
             raise EffectError(f"{self.name}: values must have shape ({len(joints)}, {len(self.params)}) "
                               f"for joints {joints} and params {self.param_names}, got {np.shape(values)}")
@@ -503,46 +512,50 @@ class KdScale(Effect):
 
 
 class PayloadMass(Effect):
-    """Extra point mass (kg) at the combined centre of mass of the link the joint moves: the joint's
-    body and the bodies welded to it (:func:`link_bodies`; on the built-in arm_j6, link6 and the palm),
-    so the link's centre of mass stays where it was.
+    """Extra point mass (kg) on the link the joint moves, ``offset`` (m) from the link's combined centre
+    of mass along the link's distal axis: one load where it hangs, found in mass and place.
 
-    Where it hangs is :func:`payload_point` at offset 0: the link's combined centre of mass c (the
-    snapshot's masses). :func:`payload_point` also places a point ``offset`` metres along the link's
-    distal axis (from the joint's axis point through c; negative towards the joint: on arm_j6 −4.33 cm is
-    the flange, +1.17 cm the palm's own centre of mass), which this effect does not declare as a
-    parameter yet: a patch, ``adadex sysid fit`` and the diagnosis handle one parameter per effect
-    (docs/workbench.md says what fitting the offset as well takes, and finds).
+    The link is the joint's body and the bodies welded to it (:func:`link_bodies`; on the built-in
+    arm_j6, link6 and the palm); its combined centre of mass c (the snapshot's masses) is the reference
+    and the distal axis the unit vector from the joint's axis point (``jnt_pos``) through c
+    (:func:`payload_point`). Offset 0 is c (the link's centre of mass does not move); negative is towards
+    the joint: on arm_j6 −4.33 cm is the flange, +1.17 cm the palm's own centre of mass, −5.28 cm link6's
+    (where payload_mass hung its mass before 2026-11-27). Why a position: a joint feels the load's mass
+    times its lever arm to the load in the sag and times its square in the inertia, so one mass at a
+    fixed point cannot fit a load a few centimetres from it (a mass at the flange, fitted at c, came out
+    as 0.752 kg on arm_j5's link for 0.6 kg). The offset's nominal size is its prior scale in the
+    diagnosis (5 cm, 3 cm, 5 mm on shoulder, wrist and hand links).
 
     The mass is attached to the joint's own body: its mass grows by m, its centre of mass
     (``body_ipos``) moves to the mass-weighted mean of the old one and the point, and its inertia
     tensor about the new centre of mass gains the parallel-axis terms of both, re-diagonalized into
     ``body_inertia`` and ``body_iquat`` (a proper rotation). Everything is computed from the snapshot
     with numpy and MuJoCo's own quaternion functions (no torch), so a patch applies it once whatever the
-    model held; at 0 the body is the snapshot's, bit for bit.
+    model held; at 0 kg the body is the snapshot's, bit for bit, whatever the offset; offset 0 is the
+    mass alone, bit for bit.
 
-    Residual signature: error growing with acceleration on that joint and its parents, and a
-    static sag under gravity on the joints that carry it (pose dependent). A joint feels the load's
-    mass times its lever arm to the point in the sag and times its square in the inertia, so a load a
-    few centimetres from the point shows as another mass, or a payload on another link: a mass hung at
-    the flange, 4.3 cm short of the point, was fitted as 0.752 kg on arm_j5's link for 0.6 kg.
+    Residual signature: error growing with acceleration on that joint and its parents, and a static sag
+    under gravity on the joints that carry it (pose dependent); the joints near the load (the wrist for a
+    hand load) tell the offset, the far ones (shoulder, elbow) mostly the mass.
     """
 
     name, stage = "payload_mass", "model"
     params = (Param("mass", "kg", 0.0, _per_group(0.5, 0.3, 0.02),
-                    _same(0.0), _per_group(5.0, 3.0, 0.2), "kp"),)
+                    _same(0.0), _per_group(5.0, 3.0, 0.2), "kp"),
+              Param("offset", "m", 0.0, _per_group(0.05, 0.03, 0.005),
+                    _per_group(-0.2, -0.1, -0.02), _per_group(0.2, 0.1, 0.02)))
     lookalikes = ("armature",)
 
     def apply_model(self, m, base, jid, values):
         jnt = robot_ids(m, jid)[0]
-        for bodies, j, mass in zip(_links(m, jnt)[0], jnt, values[:, 0]):
+        for bodies, j, mass, offset in zip(_links(m, jnt)[0], jnt, values[:, 0], values[:, 1]):
             body = m.jnt_bodyid[j]
             m.body_mass[body] = base.body_mass[body]
             m.body_ipos[body] = base.body_ipos[body]
             m.body_iquat[body] = base.body_iquat[body]
             m.body_inertia[body] = base.body_inertia[body]
             if mass != 0.0:
-                _add_point_mass(m, base, body, float(mass), payload_point(m, base, int(j), bodies))
+                _add_point_mass(m, base, body, float(mass), payload_point(m, base, int(j), bodies, float(offset)))
         set_const(m)
 
 
@@ -551,8 +564,8 @@ def payload_point(m: mujoco.MjModel, base: ModelBase, jnt: int, bodies: np.ndarr
     """A point on the link of joint ``jnt`` (model joint id), in the frame of the joint's body: the combined
     centre of mass c of the link's ``bodies`` (:func:`link_bodies`, ``base``'s masses) moved ``offset``
     metres along the link's distal axis, the unit vector from the joint's axis point (``jnt_pos``) to c
-    (the joint's axis when c is on that point). Offset 0 is c itself, exactly: where :class:`PayloadMass`
-    hangs its mass. :class:`EffectError` naming the offset if it is not finite."""
+    (the joint's axis when c is on that point): where :class:`PayloadMass` hangs its mass. Offset 0 is c
+    itself, exactly. :class:`EffectError` naming the offset if it is not finite."""
     if not np.isfinite(offset):
         name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, jnt)
         raise EffectError(f"payload_mass: offset={offset:g} m on joint {name!r} is not finite")

@@ -77,6 +77,10 @@ class EffectInstance:
         if self.ci95 is not None:
             ci = np.asarray(self.ci95, dtype=float)
             shape = (len(self.joints), len(eff.params), 2)
+            if ci.ndim == 3 and ci.shape[0] == shape[0] and ci.shape[2] == 2 and 1 <= ci.shape[1] < shape[1]:
+                # intervals of the leading parameters only: the others are at their absent values (as values)
+                rest = np.repeat(eff.absent_values()[ci.shape[1]:, None], 2, axis=1)
+                ci = np.concatenate([ci, np.broadcast_to(rest, (shape[0], *rest.shape))], axis=1)
             if ci.shape != shape or not np.isfinite(ci).all() or (ci[..., 0] > ci[..., 1]).any():
                 raise PatchError(f"{eff.name}: ci95 must be finite [low, high] pairs of shape {shape}, "
                                  f"got {ci.tolist()}")
@@ -139,10 +143,13 @@ class EffectInstance:
             raise PatchError(f"{eff.name}: one value per joint expected for {joints}: {e}") from None
         ci = d.get("ci95")
         if ci is not None:
-            if not isinstance(ci, dict) or set(ci) != set(eff.param_names):
+            # a parameter the file does not name is at its absent value (a patch written before the effect
+            # gained it: payload_mass's offset), its interval that value
+            if not isinstance(ci, dict) or not set(params) <= set(ci) <= set(eff.param_names):
                 raise PatchError(f"{eff.name}: ci95 must give intervals for {list(eff.param_names)}, got {ci!r}")
             try:
-                ci = np.stack([np.asarray(ci[p], dtype=float).reshape(len(joints), 2) for p in eff.param_names],
+                ci = np.stack([np.asarray(ci[p], dtype=float).reshape(len(joints), 2) if p in ci
+                               else np.full((len(joints), 2), a) for p, a in zip(eff.param_names, eff.absent_values())],
                               axis=1)
             except ValueError as e:
                 raise PatchError(f"{eff.name}: ci95 needs one [low, high] per joint for {joints}: {e}") from None

@@ -1,8 +1,9 @@
 """A payload is one payload where it hangs (issue 43): a mass hung on a link with an MjSpec edit, felt on
 a few recorded joints of its chain and, as knock-ons, on the joints it moves, is one ``payload_mass`` on
-that link with the mass within 10 %. Here a fingertip and the palm at its own centre of mass (the link
-of arm_j6 is link6 and the palm); the palm at its flange and at its link's centre of mass, and the
-forearm, are in ``benchmarks/sysid_diagnosis.py --payloads`` with their figures."""
+that link with the mass within 10 % (5 % and where it hangs at the flange). Here a fingertip, the palm at
+its own centre of mass (the link of arm_j6 is link6 and the palm) and at its flange; the palm at its
+link's centre of mass and the forearm are in ``benchmarks/sysid_diagnosis.py --payloads`` with their
+figures."""
 
 import numpy as np
 import pytest
@@ -54,3 +55,25 @@ def test_a_mass_at_the_palms_centre_of_mass_is_one_payload_on_its_link(palm_load
     np.testing.assert_allclose(d.selected[0]["params"]["mass"], PALM_MASS, rtol=0.1)
     assert min(d.explained_fraction.values()) >= 0.8, d.explained_fraction
     assert d.suggestions == []
+
+
+@pytest.fixture(scope="module")
+def flange_load():
+    model = hidden.edited_model(hidden.hang_mass("palm", PALM_MASS, (0.0, 0.0, 0.0)), "flange_load")
+    rec = hidden.recording(model, ["arm_j2", "arm_j3", "arm_j5", "th_mcp"], seed=0)
+    return diagnose(rec, progress=False)
+
+
+def test_a_mass_at_the_flange_is_found_where_it_hangs(flange_load):
+    """0.6 kg at the palm's frame origin (the flange), 4.33 cm short of the link's centre of mass along its
+    distal axis: one payload on arm_j6's link, mass within 5 % and offset within 1 cm (0.5999 kg at
+    −4.33 cm on 2026-11-27). With the mass alone at the link's centre of mass it was 0.752 kg on arm_j5."""
+    d = flange_load
+    assert d.verdict == "explained", d.findings
+    assert [(h["effect"], h["joints"]) for h in d.selected] == [("payload_mass", ["arm_j6"])], d.selected
+    np.testing.assert_allclose(d.selected[0]["params"]["mass"], PALM_MASS, rtol=0.05)
+    np.testing.assert_allclose(d.selected[0]["params"]["offset"], -0.0433, atol=0.01)
+    assert min(d.explained_fraction.values()) >= 0.8, d.explained_fraction
+    assert d.suggestions == []
+    patch = d.patch()               # the patch carries both, with their intervals
+    assert patch.effects[0].values.shape == (1, 2) and patch.effects[0].ci95.shape == (1, 2, 2)

@@ -48,9 +48,11 @@ def _link_mass_com_inertia(m, joint):
     return mass, com, inertia
 
 
-def _apply(m, base, joints, masses):
+def _apply(m, base, joints, masses, offsets=None):
+    masses = np.asarray(masses, dtype=float)
+    offsets = np.zeros_like(masses) if offsets is None else np.asarray(offsets, dtype=float)
     get_effect("payload_mass").apply_model(m, base, np.array([JOINT_NAMES.index(j) for j in joints]),
-                                           np.asarray(masses, dtype=float).reshape(-1, 1))
+                                           np.stack([masses, offsets], axis=1))
 
 
 @pytest.mark.parametrize("joint", JOINTS)
@@ -273,3 +275,43 @@ def test_applying_a_payload_imports_no_torch():
             "assert 'torch' not in sys.modules, sorted(k for k in sys.modules if k.startswith('torch'))[:3]\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
+
+
+@pytest.mark.parametrize("joint", JOINTS)
+def test_the_offset_parameter_hangs_the_mass_at_its_point(nominal, joint):
+    """payload_mass [[m, offset]]: the loaded link's centre of mass is the mass-weighted mean of the link's
+    and payload_point(offset); offset 0 is the mass alone, bit for bit."""
+    mp = 0.6 if joint.startswith("arm") else 0.05
+    offset = 0.04 if joint.startswith("arm") else -0.01
+    m = ModelPatch().with_effect("payload_mass", [joint], [[mp, offset]]).build_model()
+    mass0, com0, _ = _link_mass_com_inertia(nominal, joint)
+    mass1, com1, _ = _link_mass_com_inertia(m, joint)
+    n = copy.copy(nominal)
+    jnt = _jnt(n, joint)
+    d = mujoco.MjData(n)
+    mujoco.mj_kinematics(n, d)
+    body = n.jnt_bodyid[jnt]
+    point = d.xpos[body] + d.xmat[body].reshape(3, 3) @ payload_point(n, ModelBase.of(n), jnt, _link(n, joint), offset)
+    assert mass1 == pytest.approx(mass0 + mp, rel=1e-12)
+    np.testing.assert_allclose(com1, (mass0 * com0 + mp * point) / (mass0 + mp), atol=1e-12)
+    alone = ModelPatch().with_effect("payload_mass", [joint], mp).build_model()
+    zero = ModelPatch().with_effect("payload_mass", [joint], [[mp, 0.0]]).build_model()
+    for f in FIELDS:
+        assert np.array_equal(getattr(zero, f), getattr(alone, f)), f
+
+
+def test_a_patch_written_with_the_mass_alone_reads_as_offset_zero():
+    """Patch files from before the offset (values and a fit's ci95 of the mass
+    alone) read with the offset at 0 and its interval [0, 0]."""
+    p = ModelPatch.from_dict({"effects": [{"effect": "payload_mass", "joints": ["arm_j5"], "params": {"mass": [0.75]},
+                                           "ci95": {"mass": [[0.74, 0.76]]}}]})
+    e = p.effects[0]
+    assert e.values.tolist() == [[0.75, 0.0]] and e.ci95.tolist() == [[[0.74, 0.76], [0.0, 0.0]]]
+    assert e.to_dict()["params"] == {"mass": [0.75], "offset": [0.0]}
+
+
+def test_bad_offsets_name_their_field():
+    with pytest.raises(EffectError, match=r"payload_mass: non-finite offset=nan m on arm_j6"):
+        ModelPatch().with_effect("payload_mass", ["arm_j6"], [[0.6, float("nan")]])
+    with pytest.raises(EffectError, match=r"payload_mass: offset=0.3 m on arm_j6 is outside \[-0.1, 0.1\]"):
+        ModelPatch().with_effect("payload_mass", ["arm_j6"], [[0.6, 0.3]])

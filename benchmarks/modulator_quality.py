@@ -217,15 +217,6 @@ def main(argv=None) -> dict:
                  **{k: float(np.mean([s[k] for s in per_seed])) for k in METRICS}, "vs_tracker": diffs,
                  "vs_untrained": learned}
         result["rows"][row["name"]] = entry
-        if "reach" in per_seed[0]:
-            cells = []
-            for i, b in enumerate(per_seed[0]["reach"]["by_offset"]):
-                lo, hi = b["offset_cm"]
-                means = [s["reach"]["by_offset"][i]["mean_reach"] for s in per_seed]
-                cells.append(f"{lo:.0f}–{'' if hi is None else f'{hi:.0f}'} cm "
-                             + "/".join("—" if v is None else f"{v:.2f}" for v in means))
-            print(f"{'':24s} channel A's reach per seed (untrained: {per_seed[0]['untrained_reach']['mean_reach']:.2f}) "
-                  f"by the object's start offset: " + ", ".join(cells), flush=True)
         c, o = diffs["completion_pct"], diffs["object_completion_pct"]
         print(f"{row['name']:24s} completion {entry['completion_pct']:5.1f} % ({c['diff']:+.1f} [{c['ci95'][0]:+.1f}, "
               f"{c['ci95'][1]:+.1f}])  object {entry['object_completion_pct']:5.1f} % ({o['diff']:+.1f} "
@@ -237,6 +228,15 @@ def main(argv=None) -> dict:
               + " / ".join(f"{s['untrained']['completion_pct']:.1f}" for s in per_seed)
               + f"): completion {u['diff']:+.1f} [{u['ci95'][0]:+.1f}, {u['ci95'][1]:+.1f}], object "
               f"{uo['diff']:+.1f} [{uo['ci95'][0]:+.1f}, {uo['ci95'][1]:+.1f}]", flush=True)
+        if "reach" in per_seed[0]:
+            cells = []
+            for i, b in enumerate(per_seed[0]["reach"]["by_offset"]):
+                lo, hi = b["offset_cm"]
+                means = [s["reach"]["by_offset"][i]["mean_reach"] for s in per_seed]
+                cells.append(f"{lo:.0f}–{'' if hi is None else f'{hi:.0f}'} cm "
+                             + "/".join("—" if v is None else f"{v:.2f}" for v in means))
+            print(f"{'':24s} channel A's reach per seed (untrained: {per_seed[0]['untrained_reach']['mean_reach']:.2f}) "
+                  f"by the object's start offset: " + ", ".join(cells), flush=True)
     result["wall_s"] = time.perf_counter() - t_start
     b = result["tracker_alone"]
     print(f"{'tracker alone':24s} completion {b['completion_pct']:5.1f} %  object {b['object_completion_pct']:5.1f} %  "

@@ -127,24 +127,35 @@ class Randomization:
     its entries on the same effect and joint), and each world's draw then composes with the result
     (:meth:`world_patch`: relative ranges on top of the patched values, absolute ones replacing them).
 
-    Args:
-        robot_mass: scale of every robot link's mass, U[low, high], one draw per world (``mass_scale``).
-        robot_friction: scale of the robot's friction (``friction_scale``).
-        robot_stiffness: scale of the servos' stiffness kp (``kp_scale``).
-        robot_damping: scale of joint damping and the servos' kv (``damping_scale``).
-        object_mass: scale of the object's mass.
-        object_friction: scale of the object's friction.
-        object_restitution: restitution added to the object's contacts, U[low, high].
-        object_scale: scale of the object's size, quantized to ``object_scale_levels`` values.
-        object_scale_levels: how many sizes ``object_scale`` is quantized to (each compiles once).
-        object_xy_std: std of the object's initial x, y offset, m.
-        object_yaw_std: std of the object's initial yaw offset, rad.
-        proprio_noise: std of the noise on the observed joint positions (rad) and link positions (m).
-        action_noise_correlated: std of a per-episode action offset, in units of the action bound.
-        action_noise_uncorrelated: std of the per-step action noise, in units of the action bound.
+    Ranges are (low, high) of a uniform draw; the defaults are Table 3's. Scales are factors on the
+    nominal value (1: unchanged).
+
+    Attributes:
+        robot_mass: scale of every robot link's mass, U[low, high], one draw per world
+            (``mass_scale``; default (0.9, 1.1)).
+        robot_friction: scale of the robot's friction (``friction_scale``; default (0.9, 1.1)).
+        robot_stiffness: scale of the servos' stiffness kp (``kp_scale``; default (0.9, 1.1)).
+        robot_damping: scale of joint damping and the servos' kv (``damping_scale``; default (0.9, 1.1)).
+        object_mass: scale of the object's mass (default (0.7, 1.3)).
+        object_friction: scale of the object's friction (default (0.7, 1.3)).
+        object_restitution: restitution added to the object's contacts, U[low, high], below 1
+            (default (0, 0.4)).
+        object_scale: scale of the object's size, quantized to ``object_scale_levels`` values
+            (default (0.95, 1.05)).
+        object_scale_levels: how many sizes ``object_scale`` is quantized to, each compiled once
+            (default 5).
+        object_xy_std: std of the object's initial x, y offset, m (default 0.05).
+        object_yaw_std: std of the object's initial yaw offset, rad (default 0.5).
+        proprio_noise: std of the noise on the observed joint positions (rad) and link positions (m)
+            (default 0.002).
+        action_noise_correlated: std of a per-episode action offset, in units of the action bound
+            (``TrackingConfig.max_action``; default 0.02).
+        action_noise_uncorrelated: std of the per-step action noise, in units of the action bound
+            (default 0.05).
         effects: further per-joint ranges (:class:`EffectRange`); on an (effect, joint) they replace
-            the Table 3 range.
-        patch: effects every world carries (:meth:`from_patch` puts a fit there); ``None``: none.
+            the Table 3 range (default none).
+        patch: effects every world carries (:meth:`from_patch` puts a fit there); ``None`` (default):
+            none.
 
     Example:
         >>> Randomization.off().object_xy_std
@@ -163,8 +174,8 @@ class Randomization:
     object_xy_std: float = 0.05
     object_yaw_std: float = 0.5
     proprio_noise: float = 0.002
-    action_noise_correlated: float = 0.02     # per episode, in units of the action bound
-    action_noise_uncorrelated: float = 0.05   # per step, likewise
+    action_noise_correlated: float = 0.02
+    action_noise_uncorrelated: float = 0.05
     effects: tuple[EffectRange, ...] = ()
     patch: ModelPatch | None = field(default=None, compare=False)
 

@@ -58,7 +58,61 @@ TERM_NAMES = ("tracking", "proximity", "goal", "bonus", "success", "object_succe
 
 @dataclass(frozen=True)
 class RewardConfig:
-    """Weights and thresholds of the tracking reward (lengths in m, angles in rad)."""
+    """Weights and thresholds of the tracking reward (lengths in m, angles in rad).
+
+    Every number of :func:`tracking_reward` is a field here, so a run changes the reward by settings
+    (``TrainConfig.reward``, ``+reward.w_prox=1.0`` in the recipes) rather than by code; the terms are
+    those of the module docstring. Setting the shaping weights (``w_alive`` … ``w_termination``) and
+    ``object_frame`` to 0 leaves the paper's Eq. 1.
+
+    Attributes:
+        w_track: weight of the whole hand-tracking error (default 1).
+        w_palm_pos: weight of the palm position error, per m (default 1).
+        w_palm_rot: weight of the palm rotation error, per rad (default 0.1).
+        w_joint: weight of the mean absolute joint error, per rad (default 0.1).
+        w_tip: weight of the mean fingertip position error, per m (default 1).
+        w_prox: weight of the proximity term, which pulls the palm and fingertips to the object in the
+            reference's approach and contact phases (default 0.5).
+        palm_clip: the palm's distance to the object counts up to this, m (default 0.2).
+        tip_clip: the fingertips' mean distance to the object counts up to this, m (default 0.1).
+        palm_gate: the fingertip proximity term is on only once the palm is this close to the object,
+            m (default 0.08).
+        contact_distance: proximity, and the object-frame hand errors, apply only while the reference
+            hand is this close to the reference object, m (default 0.12).
+        w_goal: weight of d_goal, the object's pose error (default 1).
+        goal_rot_weight: d_goal = object position error + this · object rotation error, m per rad
+            (default 0.1).
+        w_bonus: weight of the bonus paid when palm, fingertips and object are all within their
+            thresholds (default 1).
+        tau_palm: the bonus's palm position threshold, m (default 0.05).
+        tau_tip: the bonus's mean fingertip threshold, m (default 0.05).
+        tau_goal: the bonus's d_goal threshold (default 0.05).
+        w_alive: paid per step while the episode runs (shaping; default 0.5).
+        w_hand_exp: weight of exp(−(palm + mean fingertip position error) / ``sigma_hand``)
+            (shaping; default 0.5).
+        sigma_hand: that kernel's length scale, m (default 0.05).
+        w_object_exp: weight of exp(−d_goal / ``sigma_object``) (shaping; default 1).
+        sigma_object: that kernel's length scale (default 0.05).
+        w_joint_exp: weight of exp(−mean |joint error| / ``sigma_joint``) (shaping; default 0.25).
+        sigma_joint: that kernel's scale, rad (default 0.1).
+        w_termination: charged once when an episode terminates, not at truncation (default 10): it
+            removes the incentive to end an episode early.
+        w_success: paid per step on which the frame meets the paper's success thresholds — the frames
+            completion counts (:func:`adadex.envs.frame_errors.frame_success`, world frame; default 0).
+        w_object_success: paid per step on which the frame meets them with the object within 5 cm of
+            its reference — the frames object completion counts
+            (:func:`adadex.envs.frame_errors.object_success`; default 0). With 0 the return ranks
+            episodes poorly against object completion; a few units make the two agree far better
+            (docs/modulation.md, "The reward against the metric").
+        object_frame: 0: palm and fingertip errors in the world frame; up to 1 (default 1): in
+            contact phases, blended towards their errors relative to the object, so grasping a
+            displaced object where it lies costs no hand tracking (see the module docstring).
+
+    Example:
+        >>> cfg = RewardConfig(w_object_success=3.0)
+        >>> cfg.w_object_success, cfg.w_success, cfg.object_frame
+        (3.0, 0.0, 1.0)
+    """
 
     w_track: float = 1.0
     w_palm_pos: float = 1.0
@@ -77,27 +131,16 @@ class RewardConfig:
     tau_tip: float = 0.05
     tau_goal: float = 0.05
     # RL shaping (see the module docstring)
-    w_alive: float = 0.5             # per step while the episode runs
-    w_hand_exp: float = 0.5          # exp(−(palm + mean fingertip position error) / sigma_hand)
+    w_alive: float = 0.5
+    w_hand_exp: float = 0.5
     sigma_hand: float = 0.05
-    w_object_exp: float = 1.0        # exp(−d_goal / sigma_object)
+    w_object_exp: float = 1.0
     sigma_object: float = 0.05
-    w_joint_exp: float = 0.25        # exp(−mean |joint error| / sigma_joint)
+    w_joint_exp: float = 0.25
     sigma_joint: float = 0.1
-    w_termination: float = 10.0      # charged once when an episode terminates (not at truncation)
-    #: per step on which the frame meets the paper's success thresholds (the frames completion success
-    #: counts; :func:`adadex.envs.frame_errors.frame_success`, world frame)
+    w_termination: float = 10.0
     w_success: float = 0.0
-    #: per step on which the frame meets them with the object within 5 cm of its reference (the frames
-    #: object completion counts; :func:`adadex.envs.frame_errors.object_success`). With the default 0 the
-    #: return ranks episodes against the object-centric metric poorly: around kinematic replay under
-    #: Table 3 (188 paired episodes), the object-anchored feed-forward carried the object in 17 points more
-    #: episodes (object completion +11) yet returned 66 less, and the per-episode Spearman ρ of return and
-    #: object completion was 0.29; with 3 it is 0.79 (completion 0.65 → 0.61) and the anchor returns 34
-    #: more (docs/modulation.md)
     w_object_success: float = 0.0
-    #: 0: palm and fingertip errors in the world frame; up to 1: in contact phases, blended towards
-    #: their errors relative to the object (see the module docstring)
     object_frame: float = 1.0
 
     def __post_init__(self):

@@ -88,14 +88,39 @@ _STEP_STREAM = 1
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    """Episode, action and termination settings (lengths in m, angles in rad)."""
+    """Episode, action and termination settings of a :class:`TrackingEnv` (lengths in m, angles in rad).
 
-    window: int = WINDOW_FRAMES          # frames tracked per episode
-    max_action: float = 0.1              # largest joint-target change per step, rad
-    terminate_object_error: float = 0.25  # end the episode when the object is this far off (0: never)
-    terminate_palm_error: float = 0.25    # … or the palm (0: never)
-    object_lift: float = 0.002           # start the object this much above its reference pose (no overlap)
-    max_object_speed: float = MAX_OBJECT_SPEED  # m/s; faster means the contact solver blew up: unstable
+    One frozen value the env reads at construction, so an env's episodes are fully described by it;
+    :meth:`adadex.train.config.TrainConfig.env_config` builds one with a run's reward settings.
+
+    Attributes:
+        window: frames tracked per episode (default 300, the paper's); the episode is truncated at its
+            end. References with fewer frames from their window start are never drawn. At least 14
+            (the farthest reference frame observed, t + 12, plus 2).
+        max_action: largest change of a joint target per control step, rad (default 0.1): the action
+            is clipped to ±``max_action``, and the randomization's action noise is in units of it.
+        terminate_object_error: end the episode when the object's position error T_o exceeds this, m
+            (default 0.25; 0: never).
+        terminate_palm_error: end the episode when the palm's position error T_h exceeds this, m
+            (default 0.25; 0: never).
+        object_lift: how far above its reference pose the object starts each episode, m (default
+            0.002: so that it does not start overlapping the table).
+        max_object_speed: object speed above which a world's physics counts as unstable, m/s (default
+            :data:`~adadex.sim.readout.MAX_OBJECT_SPEED`, 4: no tabletop motion is that fast, so the
+            contact solver blew up); such a world is terminated and put back to its reference start.
+        reward: the reward's weights and thresholds (default: :class:`RewardConfig`'s defaults).
+
+    Example:
+        >>> TrackingConfig(max_action=0.05).window
+        300
+    """
+
+    window: int = WINDOW_FRAMES
+    max_action: float = 0.1
+    terminate_object_error: float = 0.25
+    terminate_palm_error: float = 0.25
+    object_lift: float = 0.002
+    max_object_speed: float = MAX_OBJECT_SPEED
     reward: RewardConfig = field(default_factory=RewardConfig)
 
     def __post_init__(self):
@@ -147,32 +172,56 @@ def scene_pack(dataset, references, *, randomize: Randomization | None = None, p
 
 
 class TrackingEnv(EnvBase):
-    """See the module docstring.
+    """B worlds tracking hand–object references as one batched TorchRL env (the tracker's and, under
+    :func:`~adadex.transforms.modulation.modulation`, the modulator's training env).
+
+    All worlds step together through one physics call per 12 Hz control step, so PPO collects B
+    episodes at the cost of one batched rollout; each world resets on its own, drawing a new
+    reference (and, with ``randomize``, new physics). Actions, observations, rewards, the
+    ``"privileged"`` ground truth and the termination rules are described in the module docstring.
 
     Args:
         dataset: a reference dataset (folder or :class:`ReferenceDataset`).
-        num_worlds: B, worlds stepped together.
-        split: ``(split name, part)`` to draw references from, or ``None`` for all references.
-        references: dataset indices to draw from instead of a split (e.g. one evaluation chunk).
-        config: episode, action, termination and reward settings.
-        latent_fn: object name → (64,) latent.
-        randomize: per-world domain randomization (:class:`Randomization`), or ``None``; e.g.
+        num_worlds: B, worlds stepped together (default 8).
+        split: ``(split name, part)`` to draw references from (default the unseen-trajectory training
+            part), or ``None`` for all references; ignored when ``references`` is given.
+        config: episode, action, termination and reward settings (default: :class:`TrackingConfig`'s
+            defaults).
+        latent_fn: object name → (64,) latent (default: the shipped point-cloud encoder's latent,
+            :func:`~adadex.envs.latent.encoder_latent`).
+        randomize: per-world domain randomization (:class:`Randomization`), or ``None`` (default: the
+            nominal physics, no noise); e.g. ``Randomization()`` for Table 3, or
             ``Randomization.from_patch(ModelPatch.load("patch.json"))`` around a fitted patch.
         patch: a model patch (file or :class:`ModelPatch`) applied to every world (its entries
             replace ``randomize.patch``'s on the same effect and joint); under randomization each
             world's draw composes with it (see the module docstring: scales multiply, offsets add;
-            ``from_patch``'s ranges draw the value itself).
-        effects: effects applied to every world, as ``EffectInstance`` or ``(effect, joints, values)``.
-        nthread: rollout threads.
-        seed: seeds the reference draws.
+            ``from_patch``'s ranges draw the value itself). ``None`` (default): no patch.
+        effects: effects applied to every world, as ``EffectInstance`` or ``(effect, joints, values)``,
+            added to ``patch`` (default none).
+        nthread: threads of the physics rollout pool (default 2; 0 steps physics on the env's own
+            thread).
+        seed: seeds the reference draws, the randomization's draws and the noise (default 0); two
+            envs with the same seed meet the same noise in every episode they share.
+        draw: ``"random"`` (default: each reset draws a reference at random) or ``"cycle"`` (world
+            ``w`` takes the split's references ``w, w + B, w + 2B, …`` in turn: every reference once,
+            for evaluation).
+        references: dataset indices to draw from instead of a split (e.g. one evaluation chunk);
+            each needs a ``config.window``-frame episode window.
+        device: must be ``"cpu"`` (the default): the env hands out CPU tensors; a policy on a GPU
+            gets its inputs through the collector (``policy_device``).
         scenes: compiled scenes to use instead of compiling them (:func:`scene_pack`; a collector's
-            workers get them from the main process, so they start without compiling).
-        draw: ``"random"`` (each reset draws a reference at random) or ``"cycle"`` (world ``w`` takes
-            the split's references ``w, w + B, w + 2B, …`` in turn: every reference once, for evaluation).
-        backend: the physics of :class:`~adadex.sim.batched.BatchedSim`: ``"rollout"`` (MuJoCo on the
-            CPU cores) or ``"warp"`` (MuJoCo Warp on its default device, a GPU when there is one;
-            ``pip install "adadex[warp]"``). The env itself stays on the CPU either way for now and
-            hands out CPU tensors.
+            workers get them from the main process, so they start without compiling). ``None``
+            (default): compile them here.
+        backend: the physics of :class:`~adadex.sim.batched.BatchedSim`: ``"rollout"`` (default,
+            MuJoCo on the CPU cores) or ``"warp"`` (MuJoCo Warp on its default device, a GPU when there
+            is one; ``pip install "adadex[warp]"``). The env itself stays on the CPU either way for now
+            and hands out CPU tensors.
+
+    Example:
+        >>> env = TrackingEnv(tiny_dataset, num_worlds=2, split=None, draw="cycle")
+        >>> env.reset()["observation"].shape
+        torch.Size([2, 273])
+        >>> env.close()
     """
 
     batch_locked = True

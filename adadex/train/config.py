@@ -26,11 +26,58 @@ OBS_NORMS = ("running", "first_batch")
 
 @dataclass
 class PPOConfig:
-    """PPO on TorchRL parts (GAE + ClipPPOLoss); frames count env steps of all worlds."""
+    """PPO on TorchRL parts (GAE + ClipPPOLoss); frames count env steps of all worlds.
+
+    The learner's settings of a :class:`TrainConfig` (the recipes' ``ppo:`` block). Each iteration
+    collects ``frames_per_batch`` frames with the exploring policy, computes advantages with GAE and
+    runs ``epochs`` passes of clipped-PPO minibatch updates (Adam) over them.
+
+    Attributes:
+        total_frames: length of the run, in frames (env steps of all worlds together); rounded up to
+            whole batches (default 1 M).
+        frames_per_batch: frames collected per iteration, all workers together (default 4096); a
+            multiple of worlds × workers.
+        epochs: passes over each batch (default 4).
+        minibatch_size: frames per minibatch update (default 1024).
+        lr: Adam's learning rate (default 3e-4): the constant rate, the start of ``anneal_lr``'s
+            schedule, or the start of ``desired_kl``'s adaptation.
+        gamma: discount per control step, 12 Hz (default 0.99).
+        lmbda: GAE's λ (default 0.95).
+        clip_epsilon: PPO's clip range of the probability ratio (default 0.2).
+        entropy_coef: weight of the entropy bonus (default 1e-3).
+        critic_coef: weight of the critic's loss (default 0.5).
+        max_grad_norm: each minibatch's gradient is clipped to this norm (default 1).
+        imitation_coef: weight of the DexTrack-style imitation term, which needs a teacher table
+            (default 0: plain PPO).
+        update_threads: torch threads for the minibatch updates (default 0: all cores); collection
+            always runs torch on one.
+        desired_kl: > 0 adapts the learning rate to keep each minibatch's approximate KL near this
+            value — ÷1.5 above 2×, ×1.5 below ½×, within [``lr_min``, ``lr_max``], the schedule of
+            large-batch dexterous PPO; 0: a constant ``lr``. The default, 0.016, because anchored
+            specialists trained with it completed more than with the constant 3e-4 on each of three
+            seeds (docs/training-log.md, "Learning-rate schedules"; docs/training.md).
+        lr_min: lower bound of the adapted or annealed learning rate (default 1e-6).
+        lr_max: upper bound of the adapted learning rate (default 1e-2).
+        anneal_lr: decay the learning rate linearly from ``lr`` at the first frame to ``lr_min`` at
+            ``total_frames`` (each iteration's rate follows the frame counter, so a resumed run
+            continues on the schedule; :meth:`annealed_lr`). Excludes ``desired_kl`` (default off).
+        obs_norm: observation normalization: ``"first_batch"`` (default) — fitted once, on the first
+            batch; ``"running"`` — every normalizer holds the mean and standard deviation of all
+            observations collected so far, merged after each iteration's update
+            (:class:`~adadex.modules.nets.ObservationMoments`). The first batch holds only the
+            episodes' first steps, so it leaves a lifted object's height and the reference's future
+            object positions clipped; it stays the default because specialists trained with running
+            statistics completed less (docs/training-log.md, "Running observation statistics").
+        device: where the policy, the critic, GAE and the minibatch updates run: ``"cpu"`` (default)
+            or a CUDA device (``"cuda"``, ``"cuda:1"``). The env stays where its backend puts it; the
+            collector moves each step's observation to the policy's device and the batch back to the
+            host, and the update moves the batch to this device. A CUDA device needs the local
+            collector with one worker.
+    """
 
     total_frames: int = 1_000_000
-    frames_per_batch: int = 4096          # per iteration, all workers together
-    epochs: int = 4                       # passes over each batch
+    frames_per_batch: int = 4096
+    epochs: int = 4
     minibatch_size: int = 1024
     lr: float = 3e-4
     gamma: float = 0.99
@@ -39,33 +86,13 @@ class PPOConfig:
     entropy_coef: float = 1e-3
     critic_coef: float = 0.5
     max_grad_norm: float = 1.0
-    #: weight of the DexTrack-style imitation term (needs a teacher table; 0: plain PPO)
     imitation_coef: float = 0.0
-    #: torch threads for the minibatch updates (0: all cores); collection always runs torch on one
     update_threads: int = 0
-    #: > 0: adapt the learning rate to keep each minibatch's approximate KL near this value (÷1.5
-    #: above 2×, ×1.5 below ½×, within [lr_min, lr_max]), the schedule of large-batch dexterous PPO;
-    #: 0: a constant ``lr``. The default since 2026-11-26: anchored specialists trained with it beat
-    #: the constant 3e-4 on each of 3 seeds (completion 90.6–91.2 against 89.8–90.3 %, T_o 0.38–0.40
-    #: against 0.45–0.46 × replay's; docs/training-log.md), the rate settling near 1e-5
     desired_kl: float = 0.016
     lr_min: float = 1e-6
     lr_max: float = 1e-2
-    #: decay the learning rate linearly from ``lr`` at the first frame to ``lr_min`` at ``total_frames``
-    #: (each iteration's rate follows the frame counter, so a resumed run continues on the schedule);
-    #: excludes ``desired_kl``
     anneal_lr: bool = False
-    #: observation normalization: ``"first_batch"`` — fitted once, on the first batch; ``"running"`` —
-    #: every normalizer holds the mean and standard deviation of all observations collected so far,
-    #: merged after each iteration's update (:class:`~adadex.modules.nets.ObservationMoments`). The
-    #: first batch holds only the episodes' first steps, so it leaves a lifted object's height and the
-    #: reference's future object positions clipped; yet specialists trained with running statistics
-    #: completed less (89.4 / 90.1 % against 90.9 / 91.2 %, seeds 0 / 1; docs/training-log.md)
     obs_norm: str = "first_batch"
-    #: where the policy, the critic, GAE and the minibatch updates run: ``"cpu"`` or a CUDA device
-    #: (``"cuda"``, ``"cuda:1"``). The env stays where its backend puts it; the collector moves each
-    #: step's observation to the policy's device and the batch back to the host, and the update moves
-    #: the batch to this device. A CUDA device needs the local collector with one worker.
     device: str = "cpu"
 
     def __post_init__(self):
@@ -105,20 +132,32 @@ START_METHODS = ("forkserver", "spawn")
 
 @dataclass
 class CollectorConfig:
-    """Where the env steps run. ``local``: ``workers`` = 1 steps the envs in this process (TorchRL
-    ``Collector``), more starts that many processes (``MultiSyncCollector``); ``ray``: ``workers``
-    remote collectors on a Ray cluster (``RayCollector``; a local cluster unless ``ray_address``)."""
+    """Where the env steps run: in this process, in worker processes, or on a Ray cluster.
+
+    ``local``: ``workers`` = 1 steps the envs in this process (TorchRL ``Collector``), more starts
+    that many processes (``MultiSyncCollector``); ``ray``: ``workers`` remote collectors on a Ray
+    cluster (``RayCollector``; a local cluster unless ``ray_address``). Splitting the worlds over
+    workers lets collection use more cores than one process's policy and physics threads.
+
+    Attributes:
+        workers: collector processes (default 1: collect in this process).
+        backend: ``"local"`` (default) or ``"ray"``.
+        worlds: B, worlds of each worker's env (default 64).
+        env_threads: MuJoCo rollout threads per env (default 2); 0 steps physics on the env's own
+            thread, with no hand-off to a pool thread — faster for the 1-thread workers of a split
+            (``workers=2 worlds=32``; docs/training-log.md, "Speed").
+        ray_address: the Ray cluster to join (default ``None``: start a local one).
+        start_method: how local worker processes start (``multiprocessing``): ``"forkserver"``
+            (default) forks each from a server process that imported torch, TorchRL and MuJoCo once,
+            so only the first pays the imports; ``"spawn"`` (TorchRL's default) starts each as a new
+            interpreter that imports them again.
+    """
 
     workers: int = 1
     backend: str = "local"
-    worlds: int = 64                      # B, worlds per worker's env
-    #: MuJoCo rollout threads per env; 0 steps physics on the env's own thread, no hand-off to a pool
-    #: thread: 1-thread workers of a split (``workers=2 worlds=32``) collect 1–9 % faster with it
+    worlds: int = 64
     env_threads: int = 2
     ray_address: str | None = None
-    #: how local worker processes start (``multiprocessing``): ``forkserver`` forks each from a server
-    #: process that imported torch, TorchRL and MuJoCo once, so only the first pays the imports;
-    #: ``spawn`` (TorchRL's default) starts each as a new interpreter that imports them again
     start_method: str = "forkserver"
 
     def __post_init__(self):
@@ -133,10 +172,13 @@ class CollectorConfig:
 
 @dataclass
 class SimConfig:
-    """The envs' physics (recipes: ``sim.backend=warp``): ``backend`` ``"rollout"`` — MuJoCo's
-    ``mujoco.rollout`` thread pool on the CPU cores — or ``"warp"`` — MuJoCo Warp on its default
-    device, a GPU when there is one (``pip install "adadex[warp]"``; see
-    :mod:`adadex.sim.warp_backend`)."""
+    """The envs' physics (recipes: ``sim.backend=warp``): which simulator steps the worlds.
+
+    Attributes:
+        backend: ``"rollout"`` (default) — MuJoCo's ``mujoco.rollout`` thread pool on the CPU cores —
+            or ``"warp"`` — MuJoCo Warp on its default device, a GPU when there is one
+            (``pip install "adadex[warp]"``; see :mod:`adadex.sim.warp_backend`).
+    """
 
     backend: str = "rollout"
 
@@ -150,37 +192,47 @@ class SimConfig:
 
 @dataclass
 class PolicyConfig:
-    """The tracker trained (:class:`adadex.modules.tracker.Tracker` arguments)."""
+    """The tracker trained (:class:`adadex.modules.tracker.Tracker` arguments).
+
+    Built by :meth:`tracker`, the one place a tracker is made from settings, so every trainer and
+    benchmark trains the same network (``policy.*`` in the recipes).
+
+    Attributes:
+        hidden: widths of the actor's and the critic's hidden layers (default (256, 256, 128)).
+        residual: > 0 (default 0.25 rad): the action is kinematic replay plus a learned correction
+            within ±``residual`` rad (see Tracker); the target is then q̂_{t+1} + correction, so this
+            bounds how far the policy may leave the reference. 0: a plain policy. 0.25 because a bound
+            of 0.05 could not reach an object Table 3 displaced (docs/training-log.md,
+            ``benchmarks/specialist_quality.py --residual``).
+        init_scale: initial pre-tanh exploration scale of the correction (default 0.05, ±0.0125 rad
+            at residual 0.25): chosen with the object anchor, because sampled wider the palm shakes a
+            grasped object loose and PPO learns to leave it; without the anchor a wider scale (0.5)
+            trained better (docs/training-log.md).
+        loc_bound: bound of the pre-tanh mean, ``b·tanh(loc/b)`` (TorchRL's tanh_loc; default 5; 0:
+            none). Unbounded, a specialist's mean grew until PPO's ratio overflowed and NaN reached
+            the weights (docs/training.md, "Numerical safety").
+        anchor: > 0 (default 0.05 m): the feed-forward is replay of the reference shifted onto the
+            object where it started the episode, fading out over this many metres of the reference
+            object's travel (Tracker ``anchor``, :class:`~adadex.modules.anchor.ObjectAnchor`); 0:
+            plain replay. On by default because with it specialists keep a displaced object far
+            closer to its reference than replay does, and without it they do not
+            (docs/training-log.md).
+        anchor_reach: > 0: objects displaced this far (m) or farther from the reference's start are
+            left unanchored (Tracker ``anchor_reach``): holding them, every frame fails the paper's
+            10 cm position threshold (:class:`~adadex.modules.anchor.ObjectAnchor`); 0 (default): no
+            limit. Needs ``anchor`` > 0.
+        anchor_iterations: Gauss–Newton steps placing the anchored palm (Tracker
+            ``anchor_iterations``; default 3): one, the linearization alone, leaves the palm about a
+            centimetre off at an 8 cm shift (docs/training-log.md, "The anchored palm placed
+            exactly").
+    """
 
     hidden: tuple[int, ...] = (256, 256, 128)
-    #: > 0: kinematic replay + a learned correction within ±residual rad (see Tracker). The target is
-    #: then q̂_{t+1} + correction, so this bounds how far the policy may leave the reference: 0.25 rad
-    #: reaches an object Table 3 moved by ~5 cm (0.05 could not: 54.9 vs 58.5 %
-    #: completion at 200k frames, replay 55.5 %; benchmarks/specialist_quality.py --residual)
     residual: float = 0.25
-    #: pre-tanh exploration scale of the correction. 0.05 (±0.0125 rad at residual 0.25) with the
-    #: object anchor: sampled at 0.5 (±0.12 rad) the palm shakes a grasped object loose (an anchored
-    #: tracker lifts a mug in 22 % of the episodes sampled at 0.5, 70 % at 0.05) and PPO learns to leave
-    #: it (docs/training-log.md). Without the anchor, 0.5 trained better specialists than 0.15 (completion
-    #: 67.0 / 68.9 % vs 60.4 / 62.6 %, seeds 0 / 1, replay 57.2 %, action noise then in radians)
     init_scale: float = 0.05
-    #: bound of the pre-tanh mean (TorchRL's tanh_loc; 0: none). Unbounded, a specialist's mean ran
-    #: to 7.8 with scale 0.04 after 3.6 M frames, and one action's log-probability moved from -104
-    #: (collection) to 7 (update): the PPO ratio overflowed and NaN reached the weights
     loc_bound: float = 5.0
-    #: > 0: the feed-forward is replay of the reference shifted onto the object where it started the
-    #: episode, fading out over this many metres of the reference object's travel (Tracker ``anchor``,
-    #: :class:`adadex.modules.anchor.ObjectAnchor`); 0: plain replay. With it a specialist's T_o is
-    #: 0.48–0.51 × replay's under Table 3 (3 runs of 1 M frames; without it 0.92–1.10 ×)
     anchor: float = 0.05
-    #: > 0: objects displaced this far (m) or farther from the reference's start are left unanchored
-    #: (Tracker ``anchor_reach``): holding them, every frame fails the paper's 10 cm position threshold
-    #: (:class:`adadex.modules.anchor.ObjectAnchor`); 0: no limit
     anchor_reach: float = 0.0
-    #: Gauss–Newton steps placing the anchored palm (Tracker ``anchor_iterations``). One, the
-    #: linearization alone, misses by 1.1 cm at an 8 cm shift and 1.7 cm at 10; three by under 0.1 cm
-    #: on average, and the untrained anchored feed-forward completes 87.4 instead of 82.5 % of the
-    #: specialist benchmark's frames (docs/training-log.md)
     anchor_iterations: int = 3
 
     def __post_init__(self):
@@ -207,32 +259,50 @@ class PolicyConfig:
 class ModulatorSettings:
     """Modulator RL (paper Sec. 3.2): PPO on ``TransformedEnv(TrackingEnv, modulation(channels, tracker))``
     with the generalist ``tracker`` (a checkpoint) frozen inside the env; the policy trained is a
-    :class:`~adadex.modules.modulator.Modulator` for ``channels``. ``modulation`` overrides
-    :class:`~adadex.modules.channels.ModulationConfig` fields (λ's, bounds, persistence)."""
+    :class:`~adadex.modules.modulator.Modulator` for ``channels``.
+
+    Set as :attr:`TrainConfig.modulator` (``modulator.*`` in the recipes), it turns a tracker run into
+    a modulator run; the tracker checkpoint is loaded here, before any work, so a bad one fails at once.
+
+    Attributes:
+        tracker: path of the frozen tracker's checkpoint (required; it must load).
+        channels: the modulation channels, ``"R+O+T"`` (default), ``"C+T"``, … (see
+            :class:`~adadex.modules.channels.ModulationLayout`).
+        hidden: widths of the modulator's trunk and critic hidden layers (default (256, 256, 128)).
+        init_scale: initial exploration scale (pre-tanh): ``None`` (default) — each channel's own,
+            sized so that sampling an untrained modulator leaves the tracker's success intact
+            (``CHANNELS[c].init_scale``); a number for all channels (a wide one, such as the former
+            default 0.5, costs the tracker completion as soon as it is sampled: docs/modulation.md,
+            "Exploration sized per channel"); or ``{channel: scale}``.
+        loc_bound: bound of the pre-tanh mean, as :attr:`PolicyConfig.loc_bound` (default 5).
+        modulation: :class:`~adadex.modules.channels.ModulationConfig` fields to override (λ's,
+            bounds, persistence; default none).
+        inputs: what the modulator reads: ``"view"`` (default: the tracker's observation plus the
+            original reference, its edit, servo lag, last action, phase and ``history`` previous
+            frames) or ``"observation"``.
+        history: previous frames in the view (default 3).
+        prior: ``"anchor"``: channel C's palm action is an offset around the object anchor's palm
+            shift (the untrained modulator *is* the anchored feed-forward); ``None`` (default): around
+            zero. See :class:`~adadex.modules.modulator.Modulator`; not the default because with it PPO
+            kept the anchored feed-forward's trade of completion for object completion and learned
+            nothing on top (docs/modulation.md).
+        hold_steps: > 0: while sampling, the ``hold_scale`` entries are shifted by noise redrawn every
+            ``hold_steps`` steps and held in between (exploration that lasts long enough to reach;
+            PPO's ratios stay exact); 0 (default): no held noise.
+        hold_scale: the held noise's scale per channel (``{"C": 0.1}``) or entry (``{"palm": 0.2}``),
+            or one number; required when ``hold_steps`` > 0 (default ``None``).
+    """
 
     tracker: str
     channels: str = "R+O+T"
     hidden: tuple[int, ...] = (256, 256, 128)
-    #: initial exploration scale (pre-tanh): ``None`` — each channel's own, sized so that sampling an
-    #: untrained modulator leaves the tracker's success intact (``CHANNELS[c].init_scale``); a number
-    #: for all channels (0.5 until 2026-11-27: sampling then cost the tracker 11–20 completion points);
-    #: or ``{channel: scale}``
     init_scale: float | dict | None = None
-    loc_bound: float = 5.0          # bound of the pre-tanh mean, as PolicyConfig.loc_bound
+    loc_bound: float = 5.0
     modulation: dict = field(default_factory=dict)
-    #: what the modulator reads: ``"view"`` (the tracker's observation plus the original reference, its
-    #: edit, servo lag, last action, phase and ``history`` previous frames) or ``"observation"``
     inputs: str = "view"
     history: int = 3
-    #: ``"anchor"``: channel C's palm action is an offset around the object anchor's palm shift (the
-    #: untrained modulator *is* the anchored feed-forward); ``None``: around zero. See
-    #: :class:`~adadex.modules.modulator.Modulator` and docs/modulation.md (prior: object completion
-    #: +12.5 but completion −9.1 against replay, and PPO learned nothing on top in 250 k frames)
     prior: str | None = None
-    #: > 0: while sampling, the ``hold_scale`` entries are shifted by noise redrawn every ``hold_steps``
-    #: steps and held in between (exploration that lasts long enough to reach; PPO's ratios stay exact)
     hold_steps: int = 0
-    #: the held noise's scale per channel (``{"C": 0.1}``) or entry (``{"palm": 0.2}``), or one number
     hold_scale: float | dict | None = None
 
     def __post_init__(self):
@@ -290,9 +360,47 @@ def randomization_with(changes: dict, where: str):
 class TrainConfig:
     """A PPO tracker run: which references, which env, which learner, where results go.
 
+    One dataclass tree that the Hydra recipes fill (``recipes/train_ppo.py key=value``) and
+    :func:`~adadex.train.ppo.train` reads; it is saved with every checkpoint, so a resumed run can be
+    checked against the settings it started with.
+
     The references trained on: ``references`` (dataset indices) if given; else the references of
     ``split`` (``[name, part]``; the vanilla-PPO baseline: all training references), narrowed to the
     semantic group ``group`` (a group id: a specialist, paper A.3.1) when one is given.
+
+    Attributes:
+        dataset: the reference dataset's folder (required).
+        out: the run's folder: checkpoint, logs, the trained policy (required).
+        seed: seeds torch, numpy and the envs (default 0).
+        resume: continue the run in ``out`` from its checkpoint (default off: a run already in
+            ``out`` is refused); settings that would change the result must match the checkpoint's.
+        split: ``(name, part)`` of the references trained on (default the unseen-trajectory training
+            part); ``None``: every reference. Ignored when ``references`` is given.
+        group: a semantic group id: train a specialist on that group of ``split`` (default ``None``:
+            every group).
+        references: dataset indices to train on instead of a split (default ``None``).
+        randomize: Table 3 domain randomization, in training and its evaluations (default on).
+        ppo: the learner (:class:`PPOConfig`).
+        collector: where the env steps run (:class:`CollectorConfig`).
+        sim: the envs' physics (:class:`SimConfig`).
+        policy: the tracker trained (:class:`PolicyConfig`).
+        modulator: set: train a modulator around this frozen tracker instead of a tracker
+            (:class:`ModulatorSettings`; default ``None``).
+        reward: :class:`~adadex.envs.reward.RewardConfig` fields to change for this run
+            (``{"w_prox": 1.0}``); the rest keep their defaults (or those of the ``env_config`` the
+            trainer is given). Checked here.
+        randomization: :class:`~adadex.envs.randomization.Randomization` fields to change when
+            ``randomize`` is on (``{"object_xy_std": 0.02, "object_mass": [0.9, 1.1]}``), for
+            training and its evaluations; the rest keep Table 3's values. Per-joint effect ranges
+            and patches are set in code. Checked here.
+        checkpoint_every: iterations between checkpoints (default 5).
+        eval_every: iterations between evaluations during training (default 0: only at the end).
+        eval_split: ``(name, part)`` of the references evaluated (default ``None``: the training
+            references themselves).
+        eval_max_references: at most this many references evaluated (default 64; 0: no evaluation,
+            periodic or final).
+        wandb: log to Weights & Biases, offline unless ``WANDB_MODE`` says otherwise (default on).
+        progress: show a progress bar (default on).
     """
 
     dataset: str
@@ -302,25 +410,19 @@ class TrainConfig:
     split: tuple[str, str] | None = ("unseen_trajectory", "train")
     group: int | None = None
     references: tuple[int, ...] | None = None
-    randomize: bool = True                # Table 3 domain randomization
+    randomize: bool = True
     ppo: PPOConfig = field(default_factory=PPOConfig)
     collector: CollectorConfig = field(default_factory=CollectorConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
-    #: set: train a modulator around this frozen tracker instead of a tracker
     modulator: ModulatorSettings | None = None
-    #: :class:`~adadex.envs.reward.RewardConfig` fields to change for this run (``{"w_prox": 1.0}``);
-    #: the rest keep their defaults (or those of the ``env_config`` the trainer is given)
     reward: dict = field(default_factory=dict)
-    #: :class:`~adadex.envs.randomization.Randomization` fields to change when ``randomize`` is on
-    #: (``{"object_xy_std": 0.02, "object_mass": [0.9, 1.1]}``), for training and its evaluations;
-    #: the rest keep Table 3's values. Per-joint effect ranges and patches are set in code.
     randomization: dict = field(default_factory=dict)
-    checkpoint_every: int = 5             # iterations
-    eval_every: int = 0                   # iterations (0: only at the end)
-    eval_split: tuple[str, str] | None = None   # default: the training references themselves
-    eval_max_references: int = 64         # 0: no evaluation (periodic or final)
-    wandb: bool = True                    # offline unless WANDB_MODE says otherwise
+    checkpoint_every: int = 5
+    eval_every: int = 0
+    eval_split: tuple[str, str] | None = None
+    eval_max_references: int = 64
+    wandb: bool = True
     progress: bool = True
 
     def __post_init__(self):

@@ -258,6 +258,24 @@ class ActorCritic(nn.Module):
         """The actor as collectors call it: :class:`SamplingPolicy` (same distribution, one call)."""
         return SamplingPolicy(self.actor)
 
+    def zero_mean(self):
+        """The actor's heads at zero (weights and biases), so its pre-tanh mean is 0 whatever it reads:
+        a tracker's deterministic action is then its feed-forward (replay for a residual tracker), a
+        modulator's its prior (no edit without one). Returns ``self``.
+
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from adadex.modules.modulator import Modulator
+        >>> mod = Modulator("T", hidden=(8,), inputs="observation").zero_mean()
+        >>> float(mod.actor(TensorDict({"observation": torch.rand(2, 273)}, [2]))["modulator", "loc"].abs().max())
+        0.0
+        """
+        with torch.no_grad():
+            for head in self.actor._sampling_parts[0].heads:
+                head.weight.zero_()
+                head.bias.zero_()
+        return self
+
     def freeze(self):
         """No gradients, eval mode (e.g. the tracker as the modulator's frozen generalist)."""
         self.requires_grad_(False)

@@ -144,13 +144,7 @@ class Tracker(ActorCritic):
         >>> float((Tracker.replay()(obs)["action"] - obs["observation"][:, NEXT_REF_JOINTS]).abs().max()) < 1e-6
         True
         """
-        tracker = cls(hidden=hidden, max_action=max_action, residual=residual)
-        heads = next(m for m in tracker.actor.modules() if hasattr(m, "heads"))
-        with torch.no_grad():
-            for h in heads.heads:
-                h.weight.zero_()
-                h.bias.zero_()
-        return tracker.freeze()
+        return cls(hidden=hidden, max_action=max_action, residual=residual).zero_mean().freeze()
 
     @classmethod
     def upgrade_config(cls, config: dict) -> dict:

@@ -120,7 +120,7 @@ def test_untrained_anchored_tracker_is_shifted_replay_and_round_trips(tiny_datas
     td = TensorDict({"observation": obs, ("proprio", "joint_target"): obs[:, NEXT_REF] - 0.01,
                      OBJECT_START: start, REF_OBJECT_START: ref_start}, batch_size=[len(obs)])
     tracker = Tracker(hidden=(16,), residual=0.25, anchor=0.05)
-    _zero_correction(tracker)
+    tracker.zero_mean()
     with torch.no_grad():
         with set_exploration_type(ExplorationType.DETERMINISTIC):
             action = tracker.actor(td.clone())["action"]
@@ -148,15 +148,6 @@ def test_untrained_anchored_tracker_is_shifted_replay_and_round_trips(tiny_datas
     pickle.loads(pickle.dumps(copy.deepcopy(loaded.sampling_policy())))    # what a collector worker gets
 
 
-def _zero_correction(tracker):
-    """The correction's mean at 0: the deterministic action is the feed-forward."""
-    with torch.no_grad():
-        for head in tracker.actor._sampling_parts[0].heads:
-            head.weight.zero_()
-            head.bias.zero_()
-    return tracker
-
-
 def replay_like(td):
     return td["observation"][:, NEXT_REF] - td["proprio", "joint_target"]
 
@@ -177,7 +168,7 @@ def test_anchored_tracker_meets_a_displaced_object_where_replay_misses_it(tiny_d
     """Before the reference moves the object, the hand should sit where the reference hand sits
     *relative to the object*; replay keeps it where it is relative to the world."""
     rnd = dataclasses.replace(Randomization.off(), object_xy_std=0.05)
-    tracker = _zero_correction(Tracker(hidden=(16,), residual=0.25, anchor=0.05))
+    tracker = Tracker(hidden=(16,), residual=0.25, anchor=0.05).zero_mean()
 
     def relative_error(policy):
         env = TrackingEnv(tiny_dataset, num_worlds=6, split=None, seed=3, randomize=rnd)

@@ -24,14 +24,6 @@ from adadex.transforms.policy import make_policy
 DISPLACED = dataclasses.replace(Randomization.off(), object_xy_std=0.05)
 
 
-def _zero_heads(net):
-    with torch.no_grad():
-        for head in net.actor._sampling_parts[0].heads:
-            head.weight.zero_()
-            head.bias.zero_()
-    return net
-
-
 def _rollout(dataset, policy, primer=None, steps=20, mode=ExplorationType.DETERMINISTIC, seed=3):
     env = TrackingEnv(dataset, num_worlds=6, split=None, seed=seed, randomize=DISPLACED)
     if primer is not None:
@@ -43,8 +35,8 @@ def _rollout(dataset, policy, primer=None, steps=20, mode=ExplorationType.DETERM
 
 
 def test_untrained_anchor_prior_around_replay_is_the_anchored_feed_forward(tiny_dataset, tmp_path):
-    anchored = _zero_heads(Tracker(hidden=(16,), residual=0.25, anchor=0.05))
-    mod = _zero_heads(Modulator("C+T", hidden=(16, 16), prior="anchor"))
+    anchored = Tracker(hidden=(16,), residual=0.25, anchor=0.05).zero_mean()
+    mod = Modulator("C+T", hidden=(16, 16), prior="anchor").zero_mean()
     policy = make_policy(Tracker.replay(), mod)
     a = _rollout(tiny_dataset, anchored.actor)
     b = _rollout(tiny_dataset, policy, policy.primer())
@@ -69,9 +61,9 @@ def test_anchor_prior_follows_objects_past_lambda_palm_and_its_own_lambda(tiny_d
     takes ±2) and the joints stay the anchored feed-forward's."""
     from adadex.modules.channels import ModulationConfig
 
-    anchored = _zero_heads(Tracker(hidden=(16,), residual=0.25, anchor=0.05))
+    anchored = Tracker(hidden=(16,), residual=0.25, anchor=0.05).zero_mean()
     a = _rollout(tiny_dataset, anchored.actor, steps=6)
-    mod = _zero_heads(Modulator("C", hidden=(16, 16), prior="anchor", lambda_palm=0.05))
+    mod = Modulator("C", hidden=(16, 16), prior="anchor", lambda_palm=0.05).zero_mean()
     policy = make_policy(Tracker.replay(), mod, config=ModulationConfig(lambda_palm=0.05))
     b = _rollout(tiny_dataset, policy, policy.primer(), steps=6)
     assert b["modulation", "sample"][..., :3].abs().max() > 1.0

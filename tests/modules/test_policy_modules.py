@@ -116,11 +116,7 @@ def test_a_residual_tracker_with_a_zero_mean_is_replay_whatever_its_bound(loc_bo
     """With the network's mean at 0 the action is the feed-forward, bounded mean or not. (TorchRL's own
     ``tanh_loc`` adds the bounds' centre — here the feed-forward — to the pre-tanh mean, which made
     this correction ``residual·tanh(feed-forward)``: up to 0.2 rad on these inputs.)"""
-    tracker = Tracker(hidden=(16,), residual=0.25, init_scale=0.05, loc_bound=loc_bound)
-    head = tracker.actor._sampling_parts[0].heads[0]
-    with torch.no_grad():
-        head.weight.zero_()
-        head.bias.zero_()
+    tracker = Tracker(hidden=(16,), residual=0.25, init_scale=0.05, loc_bound=loc_bound).zero_mean()
     assert _deterministic_correction(tracker, _residual_inputs()).abs().max() < 1e-6
 
 

@@ -504,9 +504,11 @@ class PPOTrainer:
                     stats.update(frames=self.frames, fps=n / (now - t_iter), collect_fps=n / (t_collected - t_iter))
                     if self.cfg.eval_every and self.iteration % self.cfg.eval_every == 0:
                         stats.update(self.evaluate())
+                    # the row before the checkpoint: a run killed between the two resumes from the earlier
+                    # checkpoint and drops the row (keep_until), where the other order left a gap
+                    log.log(self.iteration, stats)
                     if self.iteration % self.cfg.checkpoint_every == 0:
                         self._checkpoint()
-                    log.log(self.iteration, stats)
                     bar.update(n)
                     bar.set_postfix(ret=f"{stats['reward']:.3f}", succ=f"{stats['frame_success_pct']:.0f}%")
                     t_iter = time.perf_counter()

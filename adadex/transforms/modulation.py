@@ -347,10 +347,11 @@ class AnchorReach(ChannelTransform, channel="A"):
 
     def __init__(self, config: ModulationConfig = ModulationConfig()):
         super().__init__(config, (REF_JOINT_POS, OBSERVATION))
-        from adadex.modules.anchor import ObjectAnchor
+        from adadex.modules.anchor import ObjectAnchor, PalmShift
         from adadex.modules.modulator import PRIOR_ANCHOR
 
         self._anchor = ObjectAnchor(**PRIOR_ANCHOR)
+        self._shift = PalmShift(self._anchor.damping, self._anchor.iterations)
 
     def state_shapes(self) -> dict:
         """The latched reach, ``("modulation", "reach_state")``; none with ``reach_latched=False``."""
@@ -382,7 +383,7 @@ class AnchorReach(ChannelTransform, channel="A"):
         start, ref_start = td.get(OBJECT_START), td.get(REF_OBJECT_START)
         travel = torch.linalg.vector_norm(td.get(REF_OBJECT_POSE)[..., 1, :3] - ref_start[..., :3], dim=-1)
         palm = self._anchor.palm_shift(start[..., :2] - ref_start[..., :2], travel) * w[..., None]
-        return move_visible_reference(td, self._anchor._shift, palm)
+        return move_visible_reference(td, self._shift, palm)
 
 
 class LatentModulation(ChannelTransform, channel="O"):

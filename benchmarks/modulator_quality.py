@@ -77,24 +77,16 @@ def reach_by_offset(policy, ds, episodes, config, seed: int = 20_000, max_worlds
     """Channel A's deterministic reach per evaluation episode — the weight it latched at the first
     step — by the object's horizontal start offset: what the gate learned, on the evaluation's own
     draws (the same references, chunks and env seeds as ``evaluate``)."""
-    from torchrl.envs import TransformedEnv
-    from torchrl.envs.utils import ExplorationType, set_exploration_type
-
+    from adadex.envs.chunked import chunked_rollouts
     from adadex.envs.observation import OBJECT_START, REF_OBJECT_START
     from adadex.envs.randomization import Randomization
-    from adadex.envs.tracking import TrackingEnv
-    from adadex.eval.evaluate import chunk_seed
     from adadex.modules.channels import REACH_STATE
 
     reach, offset = [], []
-    for k in range(0, len(episodes), max_worlds):
-        chunk = episodes[k:k + max_worlds]
-        env = TransformedEnv(TrackingEnv(ds, num_worlds=len(chunk), split=None, references=chunk, draw="cycle",
-                                         config=config, seed=chunk_seed(seed, k // max_worlds),
-                                         randomize=Randomization(), nthread=2), policy.primer())
-        with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
-            td = env.rollout(1, policy, break_when_any_done=False)
-        env.close()
+    for part in chunked_rollouts(policy, ds, episodes, max_worlds=max_worlds, seed=seed, config=config,
+                                 env_transform=policy.primer, steps=1, progress=False,
+                                 randomize=Randomization(), nthread=2):
+        td = part.rollout
         reach.append(td["next", REACH_STATE][:, 0, 0])
         offset.append(torch.linalg.vector_norm(td[OBJECT_START][:, 0, :2] - td[REF_OBJECT_START][:, 0, :2], dim=-1))
     reach, offset = torch.cat(reach).numpy(), torch.cat(offset).numpy()

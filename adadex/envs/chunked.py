@@ -72,7 +72,8 @@ def chunked_rollouts(policy, dataset, references: Sequence[int], *, max_worlds: 
                      derive_seed: Callable[[int | None, int], int | None] = chunk_seed,
                      config: TrackingConfig = TrackingConfig(), env_transform: Callable | None = None,
                      exploration: ExplorationType = ExplorationType.DETERMINISTIC, progress: bool = True,
-                     desc: str = "rollouts", bar=None, **env_kwargs) -> Iterator[RolloutChunk]:
+                     desc: str = "rollouts", bar=None, steps: int | None = None,
+                     **env_kwargs) -> Iterator[RolloutChunk]:
     """Roll ``policy`` out once on each of ``references``, ``max_worlds`` worlds at a time; yield each
     chunk as it is done (see the module docstring).
 
@@ -101,6 +102,8 @@ def chunked_rollouts(policy, dataset, references: Sequence[int], *, max_worlds: 
         desc: that progress bar's label.
         bar: a progress bar (anything with ``update(n)``) to advance instead of making one, for a
             caller whose bar spans several calls; it is not closed here.
+        steps: steps per episode; ``None`` (default): the whole episode, ``config.window - 1``. Fewer
+            roll out the same draws' first steps (e.g. what a policy chooses at an episode's start).
         env_kwargs: passed to every :class:`~adadex.envs.tracking.TrackingEnv` (``randomize``,
             ``patch``, ``latent_fn``, ``nthread`` …), except what the loop sets per chunk
             (``num_worlds``, ``split``, ``references``, ``draw``, ``seed``).
@@ -109,6 +112,7 @@ def chunked_rollouts(policy, dataset, references: Sequence[int], *, max_worlds: 
         an iterator of :class:`RolloutChunk`, one per chunk, in order.
     """
     max_worlds = int(check_number("max_worlds", max_worlds, low=1, integer=True))
+    steps = config.window - 1 if steps is None else int(check_number("steps", steps, low=1, integer=True))
     refs = [int(r) for r in references]
     if not refs:
         raise ConfigError("references must be a non-empty list of dataset indices, got none")
@@ -118,12 +122,11 @@ def chunked_rollouts(policy, dataset, references: Sequence[int], *, max_worlds: 
                           f"(each chunk's worlds, references and seed follow from references, max_worlds and seed)")
     ds = dataset if isinstance(dataset, ReferenceDataset) else ReferenceDataset(dataset)
     return _chunks(policy, ds, refs, max_worlds, seed, derive_seed, config, env_transform, exploration,
-                   progress, desc, bar, env_kwargs)
+                   progress, desc, bar, steps, env_kwargs)
 
 
 def _chunks(policy, ds, refs, max_worlds, seed, derive_seed, config, env_transform, exploration, progress, desc,
-            bar, env_kwargs) -> Iterator[RolloutChunk]:
-    steps = config.window - 1
+            bar, steps, env_kwargs) -> Iterator[RolloutChunk]:
     own_bar = bar is None
     if own_bar:
         bar = tqdm(total=len(refs) * steps, unit="frame", desc=desc, disable=not progress)

@@ -107,3 +107,15 @@ def test_bad_arguments_name_the_setting(tiny_dataset):
         chunked_rollouts(replay_policy(), tiny_dataset, [])
     with pytest.raises(ConfigError, match="num_worlds"):
         chunked_rollouts(replay_policy(), tiny_dataset, [0], num_worlds=3)
+    with pytest.raises(ConfigError, match="steps"):
+        chunked_rollouts(replay_policy(), tiny_dataset, [0], steps=0)
+
+
+def test_fewer_steps_roll_out_the_same_draws_first_steps(tiny_dataset):
+    refs = episode_references(ReferenceDataset(tiny_dataset), None, CFG.window)[:3]
+    whole = [c.rollout for c in chunked_rollouts(replay_policy(), tiny_dataset, refs, seed=5, config=CFG,
+                                                 progress=False, randomize=Randomization())]
+    first = [c.rollout for c in chunked_rollouts(replay_policy(), tiny_dataset, refs, seed=5, config=CFG, steps=2,
+                                                 progress=False, randomize=Randomization())]
+    assert whole[0].shape[-1] == CFG.window - 1 and first[0].shape[-1] == 2
+    assert _equal(first[0], whole[0][:, :2])

@@ -75,7 +75,11 @@ class GaussianHeads(nn.Module):
                  loc_bound: float = 0.0, latched: tuple[int, slice] | None = None):
         super().__init__()
         self.loc_bound = float(loc_bound)
-        self.latched = latched
+        self.latched = None if latched is None else int(latched[0])
+        if latched is not None:           # not persistent: the state dict is the same with or without it
+            mask = torch.zeros(sum(head_sizes), dtype=torch.bool)
+            mask[latched[1]] = True
+            self.register_buffer("latched_entries", mask, persistent=False)
         self.norm = Normalizer(obs_dim)
         self.trunk = MLP(in_features=obs_dim, out_features=hidden[-1], num_cells=list(hidden[:-1]),
                          activation_class=activation, activate_last_layer=True)
@@ -98,10 +102,7 @@ class GaussianHeads(nn.Module):
             loc = self.loc_bound * torch.tanh(loc / self.loc_bound)
         scale = torch.cat(scales, -1)
         if self.latched is not None:
-            index, entries = self.latched
-            fixed = torch.zeros(loc.shape[-1], dtype=torch.bool, device=loc.device)
-            fixed[entries] = True
-            fixed = fixed & (obs[..., index:index + 1] > 0)
+            fixed = self.latched_entries & (obs[..., self.latched:self.latched + 1] > 0)
             loc = torch.where(fixed, torch.zeros_like(loc), loc)
             scale = torch.where(fixed, torch.ones_like(scale), scale)
         return loc, scale

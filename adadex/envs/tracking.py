@@ -430,7 +430,9 @@ class TrackingEnv(EnvBase):
         qpos = np.zeros((len(worlds), self.sim.models[0].nq))
         qpos[:, :NUM_JOINTS] = q
         qpos[:, OBJECT_QPOS] = obj
-        self.sim.reset(qpos=qpos, worlds=worlds)       # one call: on the warp backend, one device write
+        # one call (on the warp backend, one device write); the servos have been holding q: a delayed or
+        # lagged servo starts from it
+        self.sim.reset(qpos=qpos, worlds=worlds, ctrl=q)
         self._q_target[worlds] = q
         self._servo_cmd[worlds] = q
 

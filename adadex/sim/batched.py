@@ -171,16 +171,19 @@ class BatchedSim(RolloutPool):
     # ---------------------------------------------------------------- state
 
     def reset(self, qpos: np.ndarray | None = None, qvel: np.ndarray | None = None,
-              worlds: np.ndarray | Sequence[int] | None = None) -> SimReadout:
+              worlds: np.ndarray | Sequence[int] | None = None, ctrl: np.ndarray | None = None) -> SimReadout:
         """Reset some worlds (all by default) to ``qpos``/``qvel`` (broadcast over the reset worlds).
 
         Positions default to each model's ``qpos0``, velocities to zero. Sensors are recomputed
         with ``mj_forward`` for the reset worlds only (a reset is not the hot path).
+        ``ctrl`` (optional, broadcast over the reset worlds): the command the worlds have been holding,
+        written into the activations and history buffers of lagged and delayed actuators too
+        (:func:`~adadex.sim.readout.hold_command`), so that their servos start from it, not from 0.
         """
         idx = np.arange(self.batch_size) if worlds is None else np.asarray(worlds, dtype=np.int64).reshape(-1)
         if idx.size and (idx.min() < 0 or idx.max() >= self.batch_size):
             raise IndexError(f"world indices {idx.tolist()} out of range for batch_size={self.batch_size}")
-        states, sens = reset_states(self._models, self._datas[0], idx, qpos, qvel, self.nstate)
+        states, sens = reset_states(self._models, self._datas[0], idx, qpos, qvel, self.nstate, ctrl)
         self.state[idx] = states
         self._last_sens[idx] = sens
         return self.readout()

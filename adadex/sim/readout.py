@@ -56,16 +56,38 @@ class SimReadout:
     unstable: np.ndarray      # (B,) bool
 
 
-def reset_states(models, data: mujoco.MjData, worlds: np.ndarray, qpos=None, qvel=None, nstate: int = 0
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def hold_command(m: mujoco.MjModel, d: mujoco.MjData, actuators: np.ndarray, command: np.ndarray) -> None:
+    """Write ``command`` (one value per actuator in ``actuators``) into ``d`` as a command that has been
+    held for a while: ``ctrl``, a filter actuator's activation (the lagged target it has reached) and a
+    delayed actuator's whole history buffer (the commands it has yet to apply). A robot at rest holding
+    its pose has these; a zero activation or history would instead pull a lagged or delayed servo
+    towards 0 rad for its lag or delay after the reset — a jolt no real robot makes."""
+    actuators = np.asarray(actuators, dtype=np.int64).reshape(-1)
+    command = np.asarray(command, dtype=float).reshape(-1)
+    d.ctrl[actuators] = command
+    dyn = m.actuator_dyntype[actuators]
+    lag = np.flatnonzero((dyn == int(mujoco.mjtDyn.mjDYN_FILTEREXACT)) | (dyn == int(mujoco.mjtDyn.mjDYN_FILTER)))
+    if lag.size:
+        a = actuators[lag]
+        d.act[m.actuator_actadr[a] + m.actuator_actnum[a] - 1] = command[lag]
+    for c in np.flatnonzero(m.actuator_history[actuators, 0] > 0):
+        n = int(m.actuator_history[actuators[c], 0])
+        mujoco.mj_initCtrlHistory(m, d, int(actuators[c]), None, np.full((n, 1), command[c]))
+
+
+def reset_states(models, data: mujoco.MjData, worlds: np.ndarray, qpos=None, qvel=None, nstate: int = 0,
+                 ctrl=None) -> tuple[np.ndarray, np.ndarray]:
     """The full-physics states (``(len(worlds), nstate)``, ``mj_getState``'s layout) and sensor values of
     ``worlds`` reset to ``qpos``/``qvel`` (broadcast over them; default each model's ``qpos0`` and zero
     velocity), computed with C MuJoCo's ``mj_forward`` on ``data`` (sized for every model): what every
-    backend's ``reset`` writes into its worlds."""
+    backend's ``reset`` writes into its worlds. ``ctrl`` (broadcast to ``(len(worlds), nu)``; optional):
+    the command the worlds have been holding (:func:`hold_command`), so that an actuator with a lag or
+    a delay starts from it rather than from 0."""
     m0 = models[0]
     n = len(worlds)
     qpos_b = None if qpos is None else np.broadcast_to(np.asarray(qpos, float), (n, m0.nq))
     qvel_b = None if qvel is None else np.broadcast_to(np.asarray(qvel, float), (n, m0.nv))
+    ctrl_b = None if ctrl is None else np.broadcast_to(np.asarray(ctrl, float), (n, m0.nu))
     states = np.empty((n, nstate or mujoco.mj_stateSize(m0, FULLPHYSICS)))
     sens = np.empty((n, m0.nsensordata))
     for j, w in enumerate(worlds):
@@ -75,6 +97,8 @@ def reset_states(models, data: mujoco.MjData, worlds: np.ndarray, qpos=None, qve
             data.qpos[:] = qpos_b[j]
         if qvel_b is not None:
             data.qvel[:] = qvel_b[j]
+        if ctrl_b is not None:
+            hold_command(m, data, np.arange(m.nu), ctrl_b[j])
         mujoco.mj_forward(m, data)
         mujoco.mj_getState(m, data, states[j], FULLPHYSICS)
         sens[j] = data.sensordata

@@ -557,15 +557,18 @@ class WarpSim:
         return idx
 
     def reset(self, qpos: np.ndarray | None = None, qvel: np.ndarray | None = None,
-              worlds: np.ndarray | Sequence[int] | None = None) -> SimReadout:
+              worlds: np.ndarray | Sequence[int] | None = None, ctrl: np.ndarray | None = None) -> SimReadout:
         """Reset some worlds (all by default) to ``qpos``/``qvel`` (broadcast over the reset worlds).
 
         As BatchedSim: positions default to each model's ``qpos0``, velocities to zero; the state and
         sensors of the reset worlds come from C MuJoCo's ``mj_forward`` on the host (a reset is not
         the hot path) and are written to the device.
+        ``ctrl`` (optional, broadcast over the reset worlds): the command the worlds have been holding,
+        written into the activations and history buffers of lagged and delayed actuators too
+        (:func:`~adadex.sim.readout.hold_command`), so that their servos start from it, not from 0.
         """
         idx = self._worlds(worlds)
-        states, sens = reset_states(self._models, self._host_data, idx, qpos, qvel, self.nstate)
+        states, sens = reset_states(self._models, self._host_data, idx, qpos, qvel, self.nstate, ctrl)
         if idx.size:
             self._write_state(idx, states)
             self._sens[torch.as_tensor(idx, device=self.torch_device)] = torch.from_numpy(sens).to(

@@ -36,14 +36,13 @@ from adadex.sim.batched import RolloutPool
 from adadex.sim.effects import ModelBase, robot_ids
 from adadex.sim.model_source import ModelSource, same_model
 from adadex.sim.patch import ModelPatch, patched_scene
+from adadex.sim.readout import CTRL_SPEC, FULLPHYSICS, hold_command
 from adadex.sim.scene import PHYSICS_TIMESTEP, PhysicsOptions
 
-FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
 #: Before t = 0 the robot holds the first command for this long, as a real robot does before a
 #: recording starts: every sequence then starts at rest at the model's own equilibrium (a weaker
 #: servo or a payload sags before the first sample, not during it).
 PREROLL_S = 0.5
-CTRL_SPEC = int(mujoco.mjtState.mjSTATE_CTRL)
 
 
 def substeps_for(dt: float, max_step: float = PHYSICS_TIMESTEP) -> int:
@@ -120,18 +119,11 @@ class Replayer(RolloutPool):
         d = mujoco.MjData(model)
         jnt, _, act = robot_ids(model, np.arange(self.robot.num_joints))
         qadr = model.jnt_qposadr[jnt]
-        lag = np.flatnonzero(model.actuator_dyntype[act] == int(mujoco.mjtDyn.mjDYN_FILTEREXACT))
-        hist = np.flatnonzero(model.actuator_history[act, 0] > 0)
         q0 = np.asarray(self.rec.initial_qpos)[seq_idx]
         for s in range(S):
             mujoco.mj_resetData(model, d)
             d.qpos[qadr] = q0[s]
-            d.ctrl[act] = command0[s]
-            if lag.size:
-                d.act[model.actuator_actadr[act[lag]]] = command0[s, lag]
-            for c in hist:
-                n = int(model.actuator_history[act[c], 0])
-                mujoco.mj_initCtrlHistory(model, d, int(act[c]), None, np.full((n, 1), command0[s, c]))
+            hold_command(model, d, act, command0[s])
             mujoco.mj_forward(model, d)
             mujoco.mj_getState(model, d, out[s], FULLPHYSICS)
         return out

@@ -190,3 +190,22 @@ def test_replay_with_a_kp_patch_differs_under_randomization(tiny_dataset):
     assert patched["T_h"] > 2 * nominal["T_h"], (patched, nominal)
     assert patched["completion_pct"] != nominal["completion_pct"]
     assert patched["T_h"] == pytest.approx(unrandomized["T_h"], rel=0.25)
+
+
+@pytest.mark.parametrize("effect, params", [("actuator_delay", {"delay": 0.08}), ("actuator_lag", {"tau": 0.1})])
+def test_a_delayed_or_lagged_robot_starts_an_episode_holding_its_pose(tiny_dataset, effect, params):
+    """The episode's first targets are the pose the robot holds at reset: a delayed or lagged servo
+    has been receiving them (its history and activation hold them), so replay's first step moves the
+    joints by the reference's own step, not towards 0 rad (the jolt that knocked objects over)."""
+    patch = ModelPatch.from_dict({"version": 1, "model": "builtin", "effects": [
+        {"effect": effect, "joints": ARM, "params": params}]})
+    out = {}
+    for name, p in (("nominal", None), ("patched", patch)):
+        env = TrackingEnv(tiny_dataset, num_worlds=4, split=None, randomize=Randomization.off(), patch=p, seed=3,
+                          nthread=0)
+        td = env.reset()
+        with torch.no_grad():
+            td = env.step(replay_policy()(td))
+        out[name] = (td["next", "proprio", "joint_pos"] - td["proprio", "joint_pos"]).abs()[:, :6].max()
+        env.close()
+    assert out["patched"] < out["nominal"] + 0.02, out

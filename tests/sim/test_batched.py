@@ -202,3 +202,23 @@ def test_every_object_has_the_same_uniform_structure():
     keys = {(m.signature, m.nC, m.ngeom, m.nmesh)
             for m in (build_scene_model(n, uniform_layout=True) for n in objects.OBJECT_NAMES)}
     assert len(keys) == 1, keys
+
+
+@pytest.mark.parametrize("effect, params", [("actuator_delay", {"delay": 0.08}), ("actuator_lag", {"tau": 0.06})])
+def test_a_delayed_or_lagged_servo_reset_with_its_command_holds_its_pose(effect, params):
+    """A reset with ``ctrl`` fills the delay's history buffer and the lag's activation with that command,
+    as on a robot that has been holding its pose; without it they start at 0 rad and the joints jolt."""
+    from adadex.sim.patch import ModelPatch, patched_scene
+
+    patch = ModelPatch.from_dict({"version": 1, "model": "builtin", "effects": [
+        {"effect": effect, "joints": ["arm_j2", "arm_j3", "if_pip"], "params": params}]})
+    model = patched_scene(objects.OBJECT_NAMES[0], patch)
+    qpos, home = home_state(model)
+    moved = {}
+    for held in (True, False):
+        sim = BatchedSim(model, 2, nthread=0)
+        sim.reset(qpos=qpos, ctrl=home if held else None)
+        q0 = sim.readout().joint_pos.copy()
+        moved[held] = np.abs(sim.step(np.tile(home, (2, 1))).joint_pos - q0).max()
+        sim.close()
+    assert moved[True] < 0.01 < moved[False], moved

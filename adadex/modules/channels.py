@@ -11,6 +11,7 @@ chan.  entry                           shape           meaning (after scaling by
 =====  ==============================  ==============  =====================================================
 R      ``("modulation", "ref_hand")``    (…, 4, 22)    joint residual of the reference at t+1, t+2, t+4, t+12
 R      ``("modulation", "ref_object")``  (…, 4, 6)     object residual there: position (3) + rotation vector (3)
+L      ``("modulation", "lead")``        (…, 2)        how far ahead in time the visible reference is read (arm, hand)
 C      ``("modulation", "palm")``        (…, 3)        palm position offset of the whole visible reference (compact R)
 C      ``("modulation", "grip")``        (…, 4)        closure of each finger's flexion joints there (compact R)
 A      ``("modulation", "reach")``       (…, 1)        how far the visible reference's palm moves onto the object where it lies
@@ -34,7 +35,7 @@ loop over it; none of them names a channel.
 **Adding a channel touches one place**: one more :class:`Channel` record in :data:`CHANNELS` below
 (its position is its place in the order). Its behaviour is then its transform class — a
 :class:`adadex.transforms.modulation.ChannelTransform` subclass declared with ``channel="X"``
-(beside R, C, A, O and T in :mod:`adadex.transforms.modulation`), which binds itself to the record.
+(beside R, L, C, A, O and T in :mod:`adadex.transforms.modulation`), which binds itself to the record.
 
 Channels are chosen by a string — ``"R+O+T"``, ``"R+T"``, ``"O"``, ``"none"`` … — so that an
 ablation is a config value, never an edit of code.
@@ -82,6 +83,10 @@ GRIP = (MOD, "grip")
 #: and the reach it latched at the episode's first step (weight, latched flag)
 REACH = (MOD, "reach")
 REACH_STATE = (MOD, "reach_state")
+#: The lead channel L: how far ahead the visible reference is read, arm and hand apart, and the lead it
+#: latched at the episode's first step (arm, hand, latched flag)
+LEAD = (MOD, "lead")
+LEAD_STATE = (MOD, "lead_state")
 #: per finger of GRIP, the flexion joints it closes
 GRIP_JOINTS = (("if_mcp", "if_pip", "if_dip"), ("mf_mcp", "mf_pip", "mf_dip"), ("rf_mcp", "rf_pip", "rf_dip"),
                ("th_mcp", "th_ipl"))
@@ -176,6 +181,18 @@ CHANNELS: Mapping[str, Channel] = _registry(
                                               "(AdaDexTrack's reference modulation: ŝ_{t+k} ← ŝ_{t+k} + λ·a every "
                                               "step); ``False`` edits the reference for the current step only")),
             edits="observation", init_scale=0.05),
+    Channel("L", "reference lead: the visible reference read ahead in time, the arm's and the hand's joints apart "
+                 "(the feed-forward that takes back a servo's delay or lag)",
+            entries=((LEAD, (2,)),),
+            state=((LEAD_STATE, (3,)),),
+            fields=(Field("max_lead", 2.0, "the visible reference is read up to this many control steps ahead "
+                                           "(at 12 Hz one step is 83 ms): lead = max_lead · clip(a, 0, 1), the arm's "
+                                           "joints (and the object's reference) by the first entry, the hand's by "
+                                           "the second"),
+                    Field("lead_latched", True, "the lead chosen at an episode's first step holds for the whole "
+                                                "episode (a servo's delay is the robot's, not the moment's); "
+                                                "``False`` chooses it anew every step")),
+            edits="observation", init_scale=1.0),
     Channel("C", "compact reference edit: palm position offset (through the arm Jacobian) and grip",
             entries=((PALM, (3,)), (GRIP, (len(GRIP_JOINTS),))),
             fields=(Field("lambda_palm", 0.10, "λ_palm: the palm of the whole visible reference moves by up to "
@@ -223,7 +240,7 @@ def bind_transform(channel: str, cls: type) -> Channel:
 
 
 def parse_channels(channels: str | tuple | list) -> tuple[str, ...]:
-    """``"R+O+T"`` / ``"T+R"`` / ``"none"`` / ``""`` / ``("R", "T")`` → channels in canonical order (R, C, A, O, T)."""
+    """``"R+O+T"`` / ``"T+R"`` / ``"none"`` / ``""`` / ``("R", "T")`` → channels in canonical order (R, L, C, A, O, T)."""
     if isinstance(channels, str):
         text = channels.strip()
         parts = [] if text.lower() in ("", "none") else [p.strip().upper() for p in text.replace(",", "+").split("+")]

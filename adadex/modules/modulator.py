@@ -79,7 +79,7 @@ from torch import nn
 from adadex.envs.observation import OBS_DIM, OBSERVATION, REF_OBJECT_START, REF_OFFSETS
 from adadex.errors import ConfigError, check_number
 from adadex.modules.anchor import ObjectAnchor
-from adadex.modules.channels import CHANNELS, PALM, REACH, ModulationLayout
+from adadex.modules.channels import CHANNELS, LEAD, PALM, REACH, ModulationLayout
 from adadex.modules.modulator_view import VIEW, ViewLayout
 from adadex.modules.nets import ActorCritic, make_actor, make_critic
 from adadex.sim.robot import NUM_JOINTS
@@ -195,6 +195,7 @@ class Modulator(ActorCritic):
         reach_latched: with channel A (and the view): its reach entry is a fixed N(0, 1) after the
             episode's first step, where the env's ``ModulationConfig.reach_latched`` (the default)
             ignores it — the two must agree. Only the first step's reach is then scored by PPO.
+        lead_latched: the same for channel L's lead (the env's ``ModulationConfig.lead_latched``).
     """
 
     kind = "modulator"
@@ -202,7 +203,7 @@ class Modulator(ActorCritic):
     def __init__(self, channels="R+O+T", hidden: Sequence[int] = (512, 256, 128), init_scale=None,
                  loc_bound: float = 0.0, inputs: str = "view", history: int = 3, prior: str | None = None,
                  lambda_palm: float = _DEFAULT_LAMBDA_PALM, hold_steps: int = 0, hold_scale=None,
-                 reach_latched: bool = True):
+                 reach_latched: bool = True, lead_latched: bool = True):
         super().__init__()
         self.layout = ModulationLayout(channels)
         if not self.layout.dim:
@@ -219,12 +220,15 @@ class Modulator(ActorCritic):
         if shift is not None:         # only then: checkpoints without these settings keep their config
             self.config.update(prior=prior, lambda_palm=float(lambda_palm), hold_steps=int(hold_steps),
                                hold_scale=held)
-        latched = None
-        if "A" in self.layout:           # only then: checkpoints without channel A keep their config
-            self.config["reach_latched"] = bool(reach_latched)
-            if reach_latched and self.view is not None:
-                reach = next(sl for key, sl, _ in self.layout.segments if key == REACH)
-                latched = (self.view.slices()["phase"].start, reach)
+        fixed = []                       # entries the env ignores after the episode's first step
+        for channel, key, switch, name in (("L", LEAD, lead_latched, "lead_latched"),
+                                           ("A", REACH, reach_latched, "reach_latched")):
+            if channel in self.layout:   # only then: checkpoints without the channel keep their config
+                self.config[name] = bool(switch)
+                if switch and self.view is not None:
+                    sl = next(sl for k, sl, _ in self.layout.segments if k == key)
+                    fixed += range(sl.start, sl.stop)
+        latched = (self.view.slices()["phase"].start, fixed) if fixed else None
         self.actor = make_actor(self.obs_key, obs_dim, self.layout.channel_sizes, -1.0, 1.0, hidden,
                                 namespace="modulator", init_scale=[scales[c] for c in self.layout.channels],
                                 loc_bound=loc_bound, bounds=shift, latched=latched)

@@ -14,6 +14,8 @@ reference, nor the state of the servos, nor where in the episode it is. The view
                                        object poses (4×7)
 ``edit``               140 (R only)    the accumulated reference edit at t, t+1, t+2, t+4, t+12: joints
                                        (5×22), object position + rotation vector (5×6)
+``lead``               2 (L only)      the lead channel L latched for the episode, control steps (arm,
+                                       hand; 0 until it does)
 ``reach``              1 (A only)      the reach channel A latched for the episode (0 until it does)
 ``start_offset``       3               where the object started the episode minus where the reference
                                        had it (Table 3 moves it by N(0, 5 cm) per axis)
@@ -47,7 +49,7 @@ from tensordict import TensorDictBase
 from adadex.envs.observation import (JOINT_POS, JOINT_TARGET, OBJECT_POSE, OBJECT_START, OBS_DIM, OBSERVATION,
                                      REF_JOINT_POS, REF_OBJECT_POSE, REF_OBJECT_START, REF_OFFSETS)
 from adadex.errors import UnknownKeyError, check_number
-from adadex.modules.channels import HAND_EDIT, MOD, OBJECT_EDIT, REACH_STATE, ModulationLayout
+from adadex.modules.channels import HAND_EDIT, LEAD_STATE, MOD, OBJECT_EDIT, REACH_STATE, ModulationLayout
 from adadex.quat import quat_conj, quat_diff, quat_from_rotvec, quat_mul
 from adadex.sim.robot import NUM_JOINTS
 
@@ -73,6 +75,8 @@ class ViewLayout:
                  ("original_future", _FUTURE * (NUM_JOINTS + 7))]
         if "R" in self.channels:
             parts.append(("edit", len(REF_OFFSETS) * (NUM_JOINTS + 6)))
+        if "L" in self.channels:
+            parts.append(("lead", 2))
         if "A" in self.channels:
             parts.append(("reach", 1))
         parts += [("start_offset", 3), ("servo_lag", NUM_JOINTS), ("last_action", self.action_dim), ("phase", 1),
@@ -146,6 +150,9 @@ def view_features(td: TensorDictBase, layout: ViewLayout) -> torch.Tensor:
     if "R" in layout.channels:
         hand, ob = edits
         parts["edit"] = torch.cat([hand.reshape(*lead, -1), ob.reshape(*lead, -1)], -1)
+    if "L" in layout.channels:
+        ahead = td.get(LEAD_STATE, None)
+        parts["lead"] = joint_pos.new_zeros(*lead, 2) if ahead is None else ahead[..., :2]
     if "A" in layout.channels:
         reach = td.get(REACH_STATE, None)
         parts["reach"] = joint_pos.new_zeros(*lead, 1) if reach is None else reach[..., :1]

@@ -64,21 +64,21 @@ class GaussianHeads(nn.Module):
     ``init_scale`` is the initial exploration scale, one for all heads or one per head (the
     modulator sizes each channel's own).
 
-    ``latched = (i, entries)`` (optional): where ``obs[..., i] > 0`` the ``entries`` (a slice of the
-    output) are a fixed N(0, 1) that no parameter moves — entries the environment ignores there (a
+    ``latched = (i, entries)`` (optional): where ``obs[..., i] > 0`` the ``entries`` (a slice or a
+    list of indices of the output) are a fixed N(0, 1) that no parameter moves — entries the environment ignores there (a
     choice it latched earlier, e.g. channel A's reach after the episode's first step). Their samples
     then carry no parameter's log-probability, so PPO's ratio and gradient come only from the entries
     that act, instead of from noise the environment throws away."""
 
     def __init__(self, obs_dim: int, head_sizes: Sequence[int], hidden: Sequence[int], *,
                  init_gain: float = 0.01, init_scale: float | Sequence[float] = 1.0, activation=nn.ELU,
-                 loc_bound: float = 0.0, latched: tuple[int, slice] | None = None):
+                 loc_bound: float = 0.0, latched: tuple[int, slice | Sequence[int]] | None = None):
         super().__init__()
         self.loc_bound = float(loc_bound)
         self.latched = None if latched is None else int(latched[0])
         if latched is not None:           # not persistent: the state dict is the same with or without it
             mask = torch.zeros(sum(head_sizes), dtype=torch.bool)
-            mask[latched[1]] = True
+            mask[latched[1] if isinstance(latched[1], slice) else list(latched[1])] = True
             self.register_buffer("latched_entries", mask, persistent=False)
         self.norm = Normalizer(obs_dim)
         self.trunk = MLP(in_features=obs_dim, out_features=hidden[-1], num_cells=list(hidden[:-1]),
@@ -111,7 +111,7 @@ class GaussianHeads(nn.Module):
 def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, high: float, hidden: Sequence[int], *,
                namespace: str, action_key="action", init_scale: float | Sequence[float] = 1.0,
                bounds: TensorDictModule | None = None, loc_bound: float = 0.0,
-               torchrl_tanh_loc: bool = False, latched: tuple[int, slice] | None = None) -> ProbabilisticActor:
+               torchrl_tanh_loc: bool = False, latched: tuple[int, slice | Sequence[int]] | None = None) -> ProbabilisticActor:
     """A TanhNormal actor reading ``obs_key`` (flat), writing ``action_key`` and its log-prob, with
     the distribution parameters under ``(namespace, "loc")`` / ``(namespace, "scale")``.
 

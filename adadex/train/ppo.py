@@ -166,7 +166,8 @@ class PPOTrainer:
                                     inputs=m.inputs, history=m.history, prior=m.prior, hold_steps=m.hold_steps,
                                     hold_scale=m.hold_scale,
                                     lambda_palm=ModulationConfig(**m.modulation).lambda_palm,
-                                    reach_latched=ModulationConfig(**m.modulation).reach_latched)
+                                    reach_latched=ModulationConfig(**m.modulation).reach_latched,
+                                    lead_latched=ModulationConfig(**m.modulation).lead_latched)
         self.ppo = cfg.ppo
         self.device = self._check_device(torch.device(self.ppo.device))
         self.policy.to(self.device)                # before the loss takes its parameters

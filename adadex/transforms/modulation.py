@@ -13,6 +13,8 @@ input to the env's action spec (entries under ``"modulation"``, in [−1, 1]) an
   for frames t … t+12, shifted by one frame per step and zero after a reset; the observation
   leaving the env shows the edited reference (structured entries and the 273-D vector), the
   reward still scores the original one. ``persistent=False`` edits the current step only.
+* :class:`ReferenceLead` (L): the visible reference read ahead in time, up to ``max_lead`` control
+  steps, the arm's and the hand's joints apart (latched for the episode by default).
 * :class:`CompactModulation` (C): R in 7 numbers — the visible reference's palm moved by an offset
   (through the arm Jacobian) and each finger's flexion closed or opened; absolute, not carried.
 * :class:`LatentModulation` (O): the object latent becomes f̃ = clip(f + λ · a, −1, 1).
@@ -46,8 +48,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adadex.envs.observation import OBJECT_LATENT, OBJECT_START, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, \
     REF_OBJECT_START, REF_OFFSETS, flat_from_tensordict
-from adadex.modules.channels import GRIP_JOINTS, HAND_EDIT, MOD, OBJECT_EDIT, PALM, REACH_STATE, Channel, \
-    ModulationConfig, ModulationLayout, bind_transform
+from adadex.modules.channels import GRIP_JOINTS, HAND_EDIT, LEAD_STATE, MOD, OBJECT_EDIT, PALM, REACH_STATE, \
+    Channel, ModulationConfig, ModulationLayout, bind_transform
 from adadex.modules.modulator_view import VIEW, ViewLayout, next_view_state, view_features
 from adadex.quat import quat_from_rotvec, quat_mul, rotvec_from_quat
 from adadex.sim.robot import JOINT_NAMES, NUM_JOINTS
@@ -259,6 +261,97 @@ class ReferenceModulation(ChannelTransform, channel="R"):
         return self._move_reference(next_td, hand[..., _OBS_ROWS, :], obj[..., _OBS_ROWS, :])
 
 
+def latch(td: TensorDictBase, key, value: torch.Tensor) -> torch.Tensor:
+    """The value an episode latched at its first step: ``value`` (…, n) where the carried state ``key``
+    (…, n + 1: the latched value and a flag, zero at reset) has not latched yet, the state's value
+    where it has; writes the state. Channels A and L decide once per episode this way."""
+    state = td.get(key, None)
+    if state is None:
+        state = value.new_zeros(*value.shape[:-1], value.shape[-1] + 1)
+    out = torch.where(state[..., -1:] > 0.5, state[..., :-1], value)
+    td.set(key, torch.cat([out, torch.ones_like(out[..., :1])], -1))
+    return out
+
+
+_VISIBLE = torch.tensor(REF_OFFSETS, dtype=torch.float32)
+
+
+def read_ahead(frames: torch.Tensor, lead: torch.Tensor) -> torch.Tensor:
+    """The visible reference frames (…, 5, D) at offsets :data:`REF_OFFSETS` read ``lead`` (…, D)
+    control steps later (≥ 0): each frame at offset o becomes the reference at o + lead, linear between
+    the visible frames (exact where o + lead ≤ 2, where kinematic replay and a servo's delay read) and
+    held at the last visible frame (t+12) beyond it."""
+    grid = _VISIBLE.to(frames)
+    at = (grid[:, None] + lead[..., None, :]).clamp(max=float(grid[-1]))             # (…, 5, D)
+    i = (torch.searchsorted(grid, at.contiguous(), right=True) - 1).clamp(0, len(grid) - 2)
+    lo, hi = grid[i], grid[i + 1]
+    w = (at - lo) / (hi - lo)
+    return torch.gather(frames, -2, i) * (1 - w) + torch.gather(frames, -2, i + 1) * w
+
+
+class ReferenceLead(ChannelTransform, channel="L"):
+    """Channel L, the reference lead: the visible reference (joints at every visible offset, and the
+    object's reference) is read ``lead = max_lead · clip(a, 0, 1)`` control steps ahead — the arm's
+    joints and the object by the first entry, the hand's joints by the second (:func:`read_ahead`).
+    Untrained (a = 0) it is the tracker alone.
+
+    Why a channel: a robot whose servos answer late (a transport delay on the arm, a first-order lag on
+    the fingers) follows a reference late by that much, and kinematic replay loses the frames it lags
+    (an 80 ms arm delay costs replay 23 completion points, docs/sim2real.md). Commanding the reference
+    that far ahead is the classic feed-forward for it; how far is the robot's, which is what
+    identification measures and what a modulator trained on the identified model can learn. R could
+    express it only as 112 numbers per step. With ``lead_latched`` (default) the lead chosen at an
+    episode's first step holds for the episode (carried state ``("modulation", "lead_state")``: arm,
+    hand, latched flag), as channel A's reach: a delay is the robot's, not the moment's. The reward
+    scores the original reference.
+
+    >>> import torch
+    >>> frames = torch.arange(5.0)[:, None] * torch.ones(5, 22)      # joint value = the visible frame's index
+    >>> read_ahead(frames, torch.full((22,), 0.5))[:3, 0]            # offsets 0, 1, 2 → 0.5, 1.5, 2.25
+    tensor([0.5000, 1.5000, 2.2500])
+    """
+
+    def __init__(self, config: ModulationConfig = ModulationConfig()):
+        super().__init__(config, (REF_JOINT_POS, REF_OBJECT_POSE, OBSERVATION))
+        self._arm = torch.arange(NUM_JOINTS) < 6
+
+    def state_shapes(self) -> dict:
+        """The latched lead, ``("modulation", "lead_state")``; none with ``lead_latched=False``."""
+        return dict(self.channel.state) if self.config.lead_latched else {}
+
+    def next_state(self, td: TensorDictBase) -> dict:
+        return {LEAD_STATE: td.get(LEAD_STATE)} if self.config.lead_latched else {}
+
+    def lead(self, td: TensorDictBase) -> torch.Tensor | None:
+        """(…, 2) control steps the arm's and the hand's reference are read ahead this step (latching
+        them at the episode's first step)."""
+        a = self._inputs(td)
+        if a is None:
+            return None
+        lead = self.config.max_lead * a[0].clamp(0.0, 1.0)
+        return latch(td, LEAD_STATE, lead) if self.config.lead_latched else lead
+
+    def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
+        lead = self.lead(td)
+        if lead is None:
+            return td
+        arm = self._arm.to(lead.device)
+        per_joint = torch.where(arm, lead[..., :1], lead[..., 1:2])                # (…, 22)
+        td.set(REF_JOINT_POS, read_ahead(td.get(REF_JOINT_POS), per_joint))
+        obj = td.get(REF_OBJECT_POSE)
+        q = obj[..., 3:].clone()
+        for k in range(1, q.shape[-2]):          # quaternions interpolated linearly: each on its predecessor's side
+            flip = (q[..., k, :] * q[..., k - 1, :]).sum(-1, keepdim=True) < 0
+            q[..., k, :] = torch.where(flip, -q[..., k, :], q[..., k, :])
+        moved = read_ahead(torch.cat([obj[..., :3], q], -1), lead[..., :1].expand(*obj.shape[:-2], 7))
+        moved = torch.cat([moved[..., :3], moved[..., 3:] / moved[..., 3:].norm(dim=-1, keepdim=True).clamp_min(1e-9)],
+                          -1)
+        td.set(REF_OBJECT_POSE, torch.where(lead[..., None, :1] > 0, moved, obj))
+        if OBSERVATION in td.keys():
+            td.set(OBSERVATION, flat_from_tensordict(td))
+        return td
+
+
 def shift_edit(edit: torch.Tensor) -> torch.Tensor:
     """Edits for frames t … t+12 → for frames t+1 … t+13 (the new last frame unedited)."""
     return torch.cat([edit[..., 1:, :], torch.zeros_like(edit[..., :1, :])], dim=-2)
@@ -367,14 +460,8 @@ class AnchorReach(ChannelTransform, channel="A"):
         a = self._inputs(td)
         if a is None:
             return None
-        w = (0.5 + a[0][..., 0]).clamp(0.0, 1.0)
-        if self.config.reach_latched:
-            state = td.get(REACH_STATE, None)
-            if state is None:
-                state = w.new_zeros(*w.shape, 2)
-            w = torch.where(state[..., 1] > 0.5, state[..., 0], w)
-            td.set(REACH_STATE, torch.stack([w, torch.ones_like(w)], -1))
-        return w
+        w = (0.5 + a[0]).clamp(0.0, 1.0)
+        return (latch(td, REACH_STATE, w) if self.config.reach_latched else w)[..., 0]
 
     def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
         w = self.weight(td)
@@ -513,7 +600,7 @@ class ModulatorView(CarriedState, Transform):
 
 def channel_transforms(channels, config: ModulationConfig = ModulationConfig()) -> list[ChannelTransform]:
     """The channel transforms for ``channels``, in inverse-path order: the channels that edit the
-    tracker's observation, then those that edit its action, each group in registry order (R, C, A, O then T)."""
+    tracker's observation, then those that edit its action, each group in registry order (R, L, C, A, O then T)."""
     records = ModulationLayout(channels).records
     return [c.transform(config) for edits in ("observation", "action") for c in records if c.edits == edits]
 
@@ -523,7 +610,7 @@ def modulation(channels="R+O+T", tracker=None, config: ModulationConfig = Modula
     """The modulator's env as one transform: ``TransformedEnv(TrackingEnv(…), modulation(channels, tracker))``.
 
     Inverse path (what the modulator's action goes through): split the flat action → the channels
-    that edit the tracker's observation (R → C → A → O) → frozen tracker → those that edit its action (T)
+    that edit the tracker's observation (R → L → C → A → O) → frozen tracker → those that edit its action (T)
     → env. Every subset of channels works, ``"none"`` included (the outer action is then empty and
     the env runs the tracker alone). ``view`` (a modulator's :attr:`~adadex.modules.modulator.Modulator.view`)
     adds :class:`ModulatorView`, which writes what that modulator reads.

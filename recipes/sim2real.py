@@ -73,7 +73,8 @@ def main(argv: list[str] | None = None) -> dict:
         result = run_sim2real(str(cfg.real), str(cfg.out), tracker=str(cfg.tracker), preset_name=str(cfg.preset),
                               seed=int(cfg.seed), dataset=cfg.dataset, oracle=bool(cfg.oracle), force=bool(cfg.force),
                               progress=bool(cfg.progress), threads=int(cfg.threads), channels=cfg.channels,
-                              frames=cfg.frames, eval_repeats=cfg.eval_repeats)
+                              frames=cfg.frames, eval_repeats=cfg.eval_repeats,
+                              frames_per_batch=cfg.frames_per_batch, gamma=cfg.gamma, lmbda=cfg.lmbda)
     print()
     print(format_table(result))
     print(f"minutes per stage: {result['stage_minutes']}")

@@ -17,6 +17,7 @@ C      ``("modulation", "grip")``        (…, 4)        closure of each finger'
 A      ``("modulation", "reach")``       (…, 1)        how far the visible reference's palm moves onto the object where it lies
 O      ``("modulation", "latent")``      (…, 64)       residual of the object latent (f̃ = f + λ·a)
 T      ``("modulation", "action")``      (…, 22)       residual added to the tracker's action
+K      ``("modulation", "gain")``        (…, 2)        feedback gain on the joints' tracking error (arm, hand)
 =====  ==============================  ==============  =====================================================
 
 The registry
@@ -35,7 +36,7 @@ loop over it; none of them names a channel.
 **Adding a channel touches one place**: one more :class:`Channel` record in :data:`CHANNELS` below
 (its position is its place in the order). Its behaviour is then its transform class — a
 :class:`adadex.transforms.modulation.ChannelTransform` subclass declared with ``channel="X"``
-(beside R, L, C, A, O and T in :mod:`adadex.transforms.modulation`), which binds itself to the record.
+(beside R, L, C, A, O, T and K in :mod:`adadex.transforms.modulation`), which binds itself to the record.
 
 Channels are chosen by a string — ``"R+O+T"``, ``"R+T"``, ``"O"``, ``"none"`` … — so that an
 ablation is a config value, never an edit of code.
@@ -87,6 +88,10 @@ REACH_STATE = (MOD, "reach_state")
 #: latched at the episode's first step (arm, hand, latched flag)
 LEAD = (MOD, "lead")
 LEAD_STATE = (MOD, "lead_state")
+#: The gain channel K: a feedback gain on the joints' tracking error, arm and hand apart, and the gains it
+#: latched at the episode's first step (arm, hand, latched flag)
+GAIN = (MOD, "gain")
+GAIN_STATE = (MOD, "gain_state")
 #: per finger of GRIP, the flexion joints it closes
 GRIP_JOINTS = (("if_mcp", "if_pip", "if_dip"), ("mf_mcp", "mf_pip", "mf_dip"), ("rf_mcp", "rf_pip", "rf_dip"),
                ("th_mcp", "th_ipl"))
@@ -222,6 +227,17 @@ CHANNELS: Mapping[str, Channel] = _registry(
             fields=(Field("action_bound", 0.05, "the T residual added to the tracker's action is in "
                                                 "[−bound, bound] (rad)"),),
             edits="action", init_scale=0.2),
+    Channel("K", "feedback gain: the tracker's action corrected by a gain times each joint's tracking error, the "
+                 "arm's and the hand's joints apart (the stiffness a soft or loaded servo lacks)",
+            entries=((GAIN, (2,)),),
+            state=((GAIN_STATE, (3,)),),
+            fields=(Field("max_gain", 2.0, "the gain is g = max_gain · clip(a, 0, 1): the action gains "
+                                           "clip(g · (reference − joint position), ±gain_bound) at the current frame"),
+                    Field("gain_bound", 0.1, "the gain's correction of each joint's target is within ±this (rad)"),
+                    Field("gain_latched", True, "the gains chosen at an episode's first step hold for the whole "
+                                                "episode (a servo's softness is the robot's, not the moment's); "
+                                                "``False`` chooses them anew every step")),
+            edits="action", init_scale=1.0),
 )
 
 _TRANSFORMS: dict[str, type] = {}      # channel name → transform class, filled by bind_transform
@@ -240,7 +256,7 @@ def bind_transform(channel: str, cls: type) -> Channel:
 
 
 def parse_channels(channels: str | tuple | list) -> tuple[str, ...]:
-    """``"R+O+T"`` / ``"T+R"`` / ``"none"`` / ``""`` / ``("R", "T")`` → channels in canonical order (R, L, C, A, O, T)."""
+    """``"R+O+T"`` / ``"T+R"`` / ``"none"`` / ``""`` / ``("R", "T")`` → channels in canonical order (R, L, C, A, O, T, K)."""
     if isinstance(channels, str):
         text = channels.strip()
         parts = [] if text.lower() in ("", "none") else [p.strip().upper() for p in text.replace(",", "+").split("+")]

@@ -79,7 +79,7 @@ from torch import nn
 from adadex.envs.observation import OBS_DIM, OBSERVATION, REF_OBJECT_START, REF_OFFSETS
 from adadex.errors import ConfigError, check_number
 from adadex.modules.anchor import ObjectAnchor
-from adadex.modules.channels import CHANNELS, LEAD, PALM, REACH, ModulationLayout
+from adadex.modules.channels import CHANNELS, GAIN, LEAD, PALM, REACH, ModulationLayout
 from adadex.modules.modulator_view import VIEW, ViewLayout
 from adadex.modules.nets import ActorCritic, make_actor, make_critic
 from adadex.sim.robot import NUM_JOINTS
@@ -196,6 +196,7 @@ class Modulator(ActorCritic):
             episode's first step, where the env's ``ModulationConfig.reach_latched`` (the default)
             ignores it — the two must agree. Only the first step's reach is then scored by PPO.
         lead_latched: the same for channel L's lead (the env's ``ModulationConfig.lead_latched``).
+        gain_latched: the same for channel K's gains (the env's ``ModulationConfig.gain_latched``).
     """
 
     kind = "modulator"
@@ -203,7 +204,7 @@ class Modulator(ActorCritic):
     def __init__(self, channels="R+O+T", hidden: Sequence[int] = (512, 256, 128), init_scale=None,
                  loc_bound: float = 0.0, inputs: str = "view", history: int = 3, prior: str | None = None,
                  lambda_palm: float = _DEFAULT_LAMBDA_PALM, hold_steps: int = 0, hold_scale=None,
-                 reach_latched: bool = True, lead_latched: bool = True):
+                 reach_latched: bool = True, lead_latched: bool = True, gain_latched: bool = True):
         super().__init__()
         self.layout = ModulationLayout(channels)
         if not self.layout.dim:
@@ -222,7 +223,8 @@ class Modulator(ActorCritic):
                                hold_scale=held)
         fixed = []                       # entries the env ignores after the episode's first step
         for channel, key, switch, name in (("L", LEAD, lead_latched, "lead_latched"),
-                                           ("A", REACH, reach_latched, "reach_latched")):
+                                           ("A", REACH, reach_latched, "reach_latched"),
+                                           ("K", GAIN, gain_latched, "gain_latched")):
             if channel in self.layout:   # only then: checkpoints without the channel keep their config
                 self.config[name] = bool(switch)
                 if switch and self.view is not None:

@@ -17,6 +17,8 @@ reference, nor the state of the servos, nor where in the episode it is. The view
 ``lead``               2 (L only)      the lead channel L latched for the episode, control steps (arm,
                                        hand; 0 until it does)
 ``reach``              1 (A only)      the reach channel A latched for the episode (0 until it does)
+``gain``               2 (K only)      the gains channel K latched for the episode (arm, hand; 0 until
+                                       it does)
 ``start_offset``       3               where the object started the episode minus where the reference
                                        had it (Table 3 moves it by N(0, 5 cm) per axis)
 ``servo_lag``          22              joint targets minus joint positions
@@ -49,7 +51,7 @@ from tensordict import TensorDictBase
 from adadex.envs.observation import (JOINT_POS, JOINT_TARGET, OBJECT_POSE, OBJECT_START, OBS_DIM, OBSERVATION,
                                      REF_JOINT_POS, REF_OBJECT_POSE, REF_OBJECT_START, REF_OFFSETS)
 from adadex.errors import UnknownKeyError, check_number
-from adadex.modules.channels import HAND_EDIT, LEAD_STATE, MOD, OBJECT_EDIT, REACH_STATE, ModulationLayout
+from adadex.modules.channels import GAIN_STATE, HAND_EDIT, LEAD_STATE, MOD, OBJECT_EDIT, REACH_STATE, ModulationLayout
 from adadex.quat import quat_conj, quat_diff, quat_from_rotvec, quat_mul
 from adadex.sim.robot import NUM_JOINTS
 
@@ -79,6 +81,8 @@ class ViewLayout:
             parts.append(("lead", 2))
         if "A" in self.channels:
             parts.append(("reach", 1))
+        if "K" in self.channels:
+            parts.append(("gain", 2))
         parts += [("start_offset", 3), ("servo_lag", NUM_JOINTS), ("last_action", self.action_dim), ("phase", 1),
                   ("history", self.history * FRAME_DIM)]
         self.parts = tuple(parts)
@@ -156,6 +160,9 @@ def view_features(td: TensorDictBase, layout: ViewLayout) -> torch.Tensor:
     if "A" in layout.channels:
         reach = td.get(REACH_STATE, None)
         parts["reach"] = joint_pos.new_zeros(*lead, 1) if reach is None else reach[..., :1]
+    if "K" in layout.channels:
+        gain = td.get(GAIN_STATE, None)
+        parts["gain"] = joint_pos.new_zeros(*lead, 2) if gain is None else gain[..., :2]
     return torch.cat([parts[name] for name, _ in layout.parts], -1)
 
 

@@ -167,7 +167,8 @@ class PPOTrainer:
                                     hold_scale=m.hold_scale,
                                     lambda_palm=ModulationConfig(**m.modulation).lambda_palm,
                                     reach_latched=ModulationConfig(**m.modulation).reach_latched,
-                                    lead_latched=ModulationConfig(**m.modulation).lead_latched)
+                                    lead_latched=ModulationConfig(**m.modulation).lead_latched,
+                                    gain_latched=ModulationConfig(**m.modulation).gain_latched)
         self.ppo = cfg.ppo
         self.device = self._check_device(torch.device(self.ppo.device))
         self.policy.to(self.device)                # before the loss takes its parameters

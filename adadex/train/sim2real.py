@@ -79,6 +79,8 @@ class Sim2RealPreset:
     epochs: int
     hidden: tuple[int, ...]         # the modulator's layers
     channels: str = "C+T"           # docs/modulation.md: the setting that learned around replay
+    gamma: float = 0.99             # PPO's discount and GAE λ (a channel latched per episode, L/A/K, learns
+    lmbda: float = 0.95             # with batches spanning whole episodes, γ 0.998 and λ 1: docs/modulation.md)
     reward: dict = field(default_factory=lambda: {"w_object_success": 3.0})
     split: str = "unseen_trajectory"
     #: ``adadex sysid excite`` settings (every joint is excited)
@@ -247,8 +249,12 @@ def train_modulator(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomi
     folder = Path(folder)
     m = ModulatorSettings(tracker=str(tracker), channels=p.channels, hidden=p.hidden)
     ppo = PPOConfig(total_frames=p.frames, frames_per_batch=p.frames_per_batch, minibatch_size=p.minibatch_size,
-                    epochs=p.epochs, desired_kl=0.0, update_threads=1)    # as the pipeline trains modulators
-    inputs = {"randomization": randomization.as_dict(), "window": p.window}
+                    epochs=p.epochs, desired_kl=0.0, update_threads=1,    # as the pipeline trains modulators
+                    gamma=p.gamma, lmbda=p.lmbda)
+    inputs = {"randomization": randomization.as_dict(), "window": p.window, "seed": seed, "channels": p.channels,
+              "reward": dict(p.reward), "hidden": list(p.hidden),
+              "ppo": {k: getattr(ppo, k) for k in ("total_frames", "frames_per_batch", "minibatch_size", "epochs",
+                                                   "gamma", "lmbda")}}
     stamp = folder.with_name(f"{folder.name}.inputs.json")      # beside the run: the trainer guards its folder
     same = stamp.is_file() and json.loads(stamp.read_text(encoding="utf-8")) == json.loads(json.dumps(inputs))
     if folder.exists() and not same:

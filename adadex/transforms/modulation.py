@@ -19,6 +19,8 @@ input to the env's action spec (entries under ``"modulation"``, in [−1, 1]) an
   (through the arm Jacobian) and each finger's flexion closed or opened; absolute, not carried.
 * :class:`LatentModulation` (O): the object latent becomes f̃ = clip(f + λ · a, −1, 1).
 * :class:`ActionModulation` (T): action ← action + bound · clip(Δa, −1, 1).
+* :class:`GainModulation` (K): action ← action + clip(g · (reference − joint position), ±bound), a
+  feedback gain per joint group on the tracking error at the current frame (latched for the episode).
 * :class:`TrackerInTheLoop`: runs a frozen tracker (deterministic, no gradient) on the modulated
   observation and writes its action; the env's own 22-D action leaves the outer action spec.
 * :class:`FlatModulationAction`: the outer action becomes one flat vector in [−1, 1]^D, split into
@@ -46,9 +48,9 @@ from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs import Compose, Transform
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from adadex.envs.observation import OBJECT_LATENT, OBJECT_START, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, \
+from adadex.envs.observation import JOINT_POS, OBJECT_LATENT, OBJECT_START, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, \
     REF_OBJECT_START, REF_OFFSETS, flat_from_tensordict
-from adadex.modules.channels import GRIP_JOINTS, HAND_EDIT, LEAD_STATE, MOD, OBJECT_EDIT, PALM, REACH_STATE, \
+from adadex.modules.channels import GAIN_STATE, GRIP_JOINTS, HAND_EDIT, LEAD_STATE, MOD, OBJECT_EDIT, PALM, REACH_STATE, \
     Channel, ModulationConfig, ModulationLayout, bind_transform
 from adadex.modules.modulator_view import VIEW, ViewLayout, next_view_state, view_features
 from adadex.quat import quat_from_rotvec, quat_mul, rotvec_from_quat
@@ -504,6 +506,53 @@ class ActionModulation(ChannelTransform, channel="T"):
         return td
 
 
+class GainModulation(ChannelTransform, channel="K"):
+    """Channel K, a feedback gain: the tracker's action gains ``clip(g · (q_ref,t − q_t), ±gain_bound)``,
+    the joints' tracking error at the current frame (against the reference the tracker reads) times a
+    gain ``g = max_gain · clip(a, 0, 1)`` — the first entry for the arm's six joints, the second for the
+    hand's. Untrained (a = 0) it is the tracker alone.
+
+    Why a channel: a servo softer than the model's, or one carrying a load, sags below its target by
+    a steady error that kinematic replay never corrects (a 2 kg payload with arm kp × 0.3 costs replay
+    about 10 completion points, docs/sim2real.md); adding the error to the target is the integral
+    action such a servo lacks, and how much of it a robot needs is the robot's — what a modulator
+    trained on an identified model can learn. T could express it only as a per-step function of the
+    view learned from scratch. With ``gain_latched`` (default) the gains chosen at an episode's first
+    step hold for the episode (carried state ``("modulation", "gain_state")``: arm, hand, latched
+    flag), as channel L's lead.
+    """
+
+    def __init__(self, config: ModulationConfig = ModulationConfig(), action_key="action"):
+        super().__init__(config, (action_key,))
+        self.action_key = action_key
+        self._arm = torch.arange(NUM_JOINTS) < 6
+
+    def state_shapes(self) -> dict:
+        """The latched gains, ``("modulation", "gain_state")``; none with ``gain_latched=False``."""
+        return dict(self.channel.state) if self.config.gain_latched else {}
+
+    def next_state(self, td: TensorDictBase) -> dict:
+        return {GAIN_STATE: td.get(GAIN_STATE)} if self.config.gain_latched else {}
+
+    def gain(self, td: TensorDictBase) -> torch.Tensor | None:
+        """(…, 2) the arm's and the hand's gain this step (latching them at the episode's first step)."""
+        a = self._inputs(td)
+        if a is None:
+            return None
+        g = self.config.max_gain * a[0].clamp(0.0, 1.0)
+        return latch(td, GAIN_STATE, g) if self.config.gain_latched else g
+
+    def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
+        g = self.gain(td)
+        if g is None:
+            return td
+        per_joint = torch.where(self._arm.to(g.device), g[..., :1], g[..., 1:2])
+        error = td.get(REF_JOINT_POS)[..., 0, :] - td.get(JOINT_POS)
+        bound = self.config.gain_bound
+        td.set(self.action_key, td.get(self.action_key) + (per_joint * error).clamp(-bound, bound))
+        return td
+
+
 class TrackerInTheLoop(Transform):
     """Runs a frozen tracker on the (modulated) observation and writes the env's action.
 
@@ -600,7 +649,7 @@ class ModulatorView(CarriedState, Transform):
 
 def channel_transforms(channels, config: ModulationConfig = ModulationConfig()) -> list[ChannelTransform]:
     """The channel transforms for ``channels``, in inverse-path order: the channels that edit the
-    tracker's observation, then those that edit its action, each group in registry order (R, L, C, A, O then T)."""
+    tracker's observation, then those that edit its action, each group in registry order (R, L, C, A, O then T, K)."""
     records = ModulationLayout(channels).records
     return [c.transform(config) for edits in ("observation", "action") for c in records if c.edits == edits]
 

@@ -23,14 +23,14 @@ def tracker():
 
 
 def test_records_are_bound_and_drive_config_and_chain():
-    assert list(CHANNELS) == ["R", "L", "C", "A", "O", "T"]
+    assert list(CHANNELS) == ["R", "L", "C", "A", "O", "T", "K"]
     for name, record in CHANNELS.items():
         t = record.transform()
         assert isinstance(t, ChannelTransform) and t.channel is record
         assert t.out_keys_inv == list(record.keys)           # TorchRL way: what it reads on the inverse path
     fields = [f.name for c in CHANNELS.values() for f in c.fields]
     assert list(ModulationConfig.__dataclass_fields__) == fields
-    assert [c.size for c in CHANNELS.values()] == [112, 2, 7, 1, 64, 22]
+    assert [c.size for c in CHANNELS.values()] == [112, 2, 7, 1, 64, 22, 2]
     assert [t.channel.name for t in channel_transforms("T+O+R")] == ["R", "O", "T"]
 
 

@@ -69,33 +69,42 @@ def parse_row(text: str) -> dict:
     return row
 
 
-#: the object's horizontal start offset |Δ| (m): bins of the reach report (channel A)
+#: the object's horizontal start offset |Δ| (m): bins of the latched-choice report (channels A, L and K)
 OFFSET_BINS = (0.0, 0.02, 0.04, 0.06, 0.08, 0.10, float("inf"))
 
 
-def reach_by_offset(policy, ds, episodes, config, seed: int = 20_000, max_worlds: int = 64) -> dict:
-    """Channel A's deterministic reach per evaluation episode — the weight it latched at the first
-    step — by the object's horizontal start offset: what the gate learned, on the evaluation's own
-    draws (the same references, chunks and env seeds as ``evaluate``)."""
+def latched_by_offset(policy, ds, episodes, config, seed: int = 20_000, max_worlds: int = 64) -> dict:
+    """What a modulator latched at each evaluation episode's first step, deterministic — channel A's
+    reach (``"reach"``), channel L's lead in control steps (``"lead_arm"``, ``"lead_hand"``) and channel
+    K's gains (``"gain_arm"``, ``"gain_hand"``), those of its channels — overall and by the object's horizontal start offset: what it learned to choose,
+    on the evaluation's own draws (the same references, chunks and env seeds as ``evaluate``)."""
     from adadex.envs.chunked import chunked_rollouts
     from adadex.envs.observation import OBJECT_START, REF_OBJECT_START
     from adadex.envs.randomization import Randomization
-    from adadex.modules.channels import REACH_STATE
+    from adadex.modules.channels import GAIN_STATE, LEAD_STATE, REACH_STATE
 
-    reach, offset = [], []
+    picks = {"reach": (REACH_STATE, 0), "lead_arm": (LEAD_STATE, 0), "lead_hand": (LEAD_STATE, 1),
+             "gain_arm": (GAIN_STATE, 0), "gain_hand": (GAIN_STATE, 1)}
+    values, offset = {}, []
     for part in chunked_rollouts(policy, ds, episodes, max_worlds=max_worlds, seed=seed, config=config,
                                  env_transform=policy.primer, steps=1, progress=False,
                                  randomize=Randomization(), nthread=2):
         td = part.rollout
-        reach.append(td["next", REACH_STATE][:, 0, 0])
+        for name, (key, i) in picks.items():
+            if key in td["next"].keys(True):
+                values.setdefault(name, []).append(td["next", key][:, 0, i])
         offset.append(torch.linalg.vector_norm(td[OBJECT_START][:, 0, :2] - td[REF_OBJECT_START][:, 0, :2], dim=-1))
-    reach, offset = torch.cat(reach).numpy(), torch.cat(offset).numpy()
-    bins = []
-    for lo, hi in zip(OFFSET_BINS[:-1], OFFSET_BINS[1:]):
-        m = (offset >= lo) & (offset < hi)
-        bins.append({"offset_cm": [100 * lo, None if hi == float("inf") else 100 * hi], "episodes": int(m.sum()),
-                     "mean_reach": float(reach[m].mean()) if m.any() else None})
-    return {"mean_reach": float(reach.mean()), "by_offset": bins}
+    offset = torch.cat(offset).numpy()
+    out = {}
+    for name, parts in values.items():
+        v = torch.cat(parts).numpy()
+        bins = []
+        for lo, hi in zip(OFFSET_BINS[:-1], OFFSET_BINS[1:]):
+            m = (offset >= lo) & (offset < hi)
+            bins.append({"offset_cm": [100 * lo, None if hi == float("inf") else 100 * hi], "episodes": int(m.sum()),
+                         "mean": float(v[m].mean()) if m.any() else None})
+        out[name] = {"mean": float(v.mean()), "by_offset": bins}
+    return out
 
 
 def main(argv=None) -> dict:
@@ -187,10 +196,10 @@ def main(argv=None) -> dict:
             fresh = Modulator(row["channels"], hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
                               inputs=m.inputs, history=m.history, **row["modulator"])
             ctl = evaluated(folder / "untrained", make_policy(tracker, fresh))
-            reach = {} if "A" not in mod.channels else \
-                {"reach": reach_by_offset(make_policy(tracker, mod), ds, episodes, config),
-                 "untrained_reach": reach_by_offset(make_policy(tracker, fresh), ds, episodes, config)}
-            per_seed.append({"seed": seed, "train_s": train_s, **{k: ev["summary"][k] for k in METRICS}, **reach,
+            latched = {} if not {"A", "L", "K"} & set(mod.layout.channels) else \
+                {"latched": latched_by_offset(make_policy(tracker, mod), ds, episodes, config),
+                 "untrained_latched": latched_by_offset(make_policy(tracker, fresh), ds, episodes, config)}
+            per_seed.append({"seed": seed, "train_s": train_s, **{k: ev["summary"][k] for k in METRICS}, **latched,
                              "untrained": {k: ctl["summary"][k] for k in METRICS},
                              "per_episode": ev["per_episode"], "untrained_episodes": ctl["per_episode"]})
         refs = np.concatenate([s["per_episode"]["reference"] for s in per_seed])
@@ -220,15 +229,17 @@ def main(argv=None) -> dict:
               + " / ".join(f"{s['untrained']['completion_pct']:.1f}" for s in per_seed)
               + f"): completion {u['diff']:+.1f} [{u['ci95'][0]:+.1f}, {u['ci95'][1]:+.1f}], object "
               f"{uo['diff']:+.1f} [{uo['ci95'][0]:+.1f}, {uo['ci95'][1]:+.1f}]", flush=True)
-        if "reach" in per_seed[0]:
+        for name in per_seed[0].get("latched", {}):
             cells = []
-            for i, b in enumerate(per_seed[0]["reach"]["by_offset"]):
+            for i, b in enumerate(per_seed[0]["latched"][name]["by_offset"]):
                 lo, hi = b["offset_cm"]
-                means = [s["reach"]["by_offset"][i]["mean_reach"] for s in per_seed]
+                means = [s["latched"][name]["by_offset"][i]["mean"] for s in per_seed]
                 cells.append(f"{lo:.0f}–{'' if hi is None else f'{hi:.0f}'} cm "
                              + "/".join("—" if v is None else f"{v:.2f}" for v in means))
-            print(f"{'':24s} channel A's reach per seed (untrained: {per_seed[0]['untrained_reach']['mean_reach']:.2f}) "
-                  f"by the object's start offset: " + ", ".join(cells), flush=True)
+            print(f"{'':24s} latched {name} per seed: "
+                  + " / ".join(f"{s['latched'][name]['mean']:.2f}" for s in per_seed)
+                  + f" (untrained {per_seed[0]['untrained_latched'][name]['mean']:.2f}); by the object's start "
+                  "offset: " + ", ".join(cells), flush=True)
     result["wall_s"] = time.perf_counter() - t_start
     b = result["tracker_alone"]
     print(f"{'tracker alone':24s} completion {b['completion_pct']:5.1f} %  object {b['object_completion_pct']:5.1f} %  "

@@ -78,9 +78,10 @@ class Sim2RealPreset:
     minibatch_size: int
     epochs: int
     hidden: tuple[int, ...]         # the modulator's layers
-    channels: str = "C+T"           # docs/modulation.md: the setting that learned around replay
-    gamma: float = 0.99             # PPO's discount and GAE λ (a channel latched per episode, L/A/K, learns
-    lmbda: float = 0.95             # with batches spanning whole episodes, γ 0.998 and λ 1: docs/modulation.md)
+    #: channel K, a feedback gain latched per episode: the edit that recovers a sagging arm (docs/sim2real.md)
+    channels: str = "K"
+    gamma: float = 0.998            # PPO's discount and GAE λ: a choice latched at an episode's first step is
+    lmbda: float = 1.0              # credited with the episode's return (docs/modulation.md, channel A)
     reward: dict = field(default_factory=lambda: {"w_object_success": 3.0})
     split: str = "unseen_trajectory"
     #: ``adadex sysid excite`` settings (every joint is excited)
@@ -102,9 +103,9 @@ PRESETS = {
                            # a short list, for speed (small screens every effect the workbench knows)
                            candidates=("actuator_delay", "kp_scale", "torque_limit", "coulomb_friction")),
     # the modulation measurements' sizes (docs/modulation.md): data/small_pg, 25 s episodes, 4 draws per
-    # test reference, 250 k frames per modulator
+    # test reference, 250 k frames per modulator in batches spanning whole episodes (64 × 300 steps)
     "small": Sim2RealPreset(dataset="data/small_pg", build="small", build_seed=0, planned_grasp=True, window=300,
-                            eval_repeats=4, worlds=64, frames=250_000, frames_per_batch=4096, minibatch_size=1024,
+                            eval_repeats=4, worlds=64, frames=250_000, frames_per_batch=19_200, minibatch_size=1024,
                             epochs=4, hidden=(256, 256, 128)),
 }
 

@@ -16,8 +16,8 @@ A row is ``CHANNELS[:inputs[:init_scale]]``: ``C+T`` (the defaults: the view, ea
 scale), ``R+O+T:observation:0.5`` (the modulator as it was before 2026-11-27), ``C+T:prior=anchor``
 (channel C's palm around the object anchor's shift), ``C+T:hold=10:hold_C=0.5`` (C's exploration
 noise held for 10 steps at scale 0.5; :class:`~adadex.modules.modulator.Modulator`), ``A`` (channel A,
-the object-anchor reach chosen once per episode; its rows also report the reach the trained and the
-untrained modulator choose, by the object's start offset). Every run is kept
+the object-anchor reach chosen once per episode; rows with A, L or K also report what the trained and
+the untrained modulator latch at the first step — reach, lead, gains — by the object's start offset). Every run is kept
 under ``--runs`` and resumes (training from its checkpoint, evaluations from their JSON), so a
 killed benchmark continues where it stopped::
 
@@ -76,8 +76,9 @@ OFFSET_BINS = (0.0, 0.02, 0.04, 0.06, 0.08, 0.10, float("inf"))
 def latched_by_offset(policy, ds, episodes, config, seed: int = 20_000, max_worlds: int = 64) -> dict:
     """What a modulator latched at each evaluation episode's first step, deterministic — channel A's
     reach (``"reach"``), channel L's lead in control steps (``"lead_arm"``, ``"lead_hand"``) and channel
-    K's gains (``"gain_arm"``, ``"gain_hand"``), those of its channels — overall and by the object's horizontal start offset: what it learned to choose,
-    on the evaluation's own draws (the same references, chunks and env seeds as ``evaluate``)."""
+    K's gains (``"gain_arm"``, ``"gain_hand"``), those of its channels — overall and by the object's
+    horizontal start offset: what it learned to choose, on the evaluation's own draws (the same
+    references, chunks and env seeds as ``evaluate``)."""
     from adadex.envs.chunked import chunked_rollouts
     from adadex.envs.observation import OBJECT_START, REF_OBJECT_START
     from adadex.envs.randomization import Randomization

@@ -50,8 +50,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adadex.envs.observation import JOINT_POS, OBJECT_LATENT, OBJECT_START, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, \
     REF_OBJECT_START, REF_OFFSETS, flat_from_tensordict
-from adadex.modules.channels import GAIN_STATE, GRIP_JOINTS, HAND_EDIT, LEAD_STATE, MOD, OBJECT_EDIT, PALM, REACH_STATE, \
-    Channel, ModulationConfig, ModulationLayout, bind_transform
+from adadex.modules.channels import GRIP_JOINTS, HAND_EDIT, MOD, OBJECT_EDIT, PALM, Channel, ModulationConfig, \
+    ModulationLayout, bind_transform
 from adadex.modules.modulator_view import VIEW, ViewLayout, next_view_state, view_features
 from adadex.quat import quat_from_rotvec, quat_mul, rotvec_from_quat
 from adadex.sim.robot import JOINT_NAMES, NUM_JOINTS
@@ -275,7 +275,40 @@ def latch(td: TensorDictBase, key, value: torch.Tensor) -> torch.Tensor:
     return out
 
 
+class LatchedChoice:
+    """What channels A, L and K share: their action is a choice held for the episode (the record's
+    one state entry, carried with :func:`latch`) while the config's switch ``latch_field`` is on, or
+    taken anew every step (no state) when it is off."""
+
+    latch_field: str = ""
+
+    @property
+    def latched(self) -> bool:
+        return bool(getattr(self.config, self.latch_field))
+
+    def state_shapes(self) -> dict:
+        """The latched choice and its flag (the record's state); none when the choice is not latched."""
+        return dict(self.channel.state) if self.latched else {}
+
+    def next_state(self, td: TensorDictBase) -> dict:
+        return {key: td.get(key) for key, _ in self.channel.state} if self.latched else {}
+
+    def choose(self, td: TensorDictBase, value: torch.Tensor) -> torch.Tensor:
+        """``value`` (…, n), this step's choice: latched at the episode's first step when the switch is on."""
+        return latch(td, self.channel.state[0][0], value) if self.latched else value
+
+    def arm_and_hand(self, td: TensorDictBase, scale: float) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Channels L and K: this step's choice ``scale · clip(a, 0, 1)`` for the arm and for the hand,
+        (…, 2), and per joint, (…, 22); None where the channel's entries are absent."""
+        a = self._inputs(td)
+        if a is None:
+            return None
+        value = self.choose(td, scale * a[0].clamp(0.0, 1.0))
+        return value, torch.where(_ARM.to(value.device), value[..., :1], value[..., 1:2])
+
+
 _VISIBLE = torch.tensor(REF_OFFSETS, dtype=torch.float32)
+_ARM = torch.arange(NUM_JOINTS) < 6                  # the arm's six joints come first
 
 
 def read_ahead(frames: torch.Tensor, lead: torch.Tensor) -> torch.Tensor:
@@ -291,7 +324,7 @@ def read_ahead(frames: torch.Tensor, lead: torch.Tensor) -> torch.Tensor:
     return torch.gather(frames, -2, i) * (1 - w) + torch.gather(frames, -2, i + 1) * w
 
 
-class ReferenceLead(ChannelTransform, channel="L"):
+class ReferenceLead(LatchedChoice, ChannelTransform, channel="L"):
     """Channel L, the reference lead: the visible reference (joints at every visible offset, and the
     object's reference) is read ``lead = max_lead · clip(a, 0, 1)`` control steps ahead — the arm's
     joints and the object by the first entry, the hand's joints by the second (:func:`read_ahead`).
@@ -313,32 +346,16 @@ class ReferenceLead(ChannelTransform, channel="L"):
     tensor([0.5000, 1.5000, 2.2500])
     """
 
+    latch_field = "lead_latched"
+
     def __init__(self, config: ModulationConfig = ModulationConfig()):
         super().__init__(config, (REF_JOINT_POS, REF_OBJECT_POSE, OBSERVATION))
-        self._arm = torch.arange(NUM_JOINTS) < 6
-
-    def state_shapes(self) -> dict:
-        """The latched lead, ``("modulation", "lead_state")``; none with ``lead_latched=False``."""
-        return dict(self.channel.state) if self.config.lead_latched else {}
-
-    def next_state(self, td: TensorDictBase) -> dict:
-        return {LEAD_STATE: td.get(LEAD_STATE)} if self.config.lead_latched else {}
-
-    def lead(self, td: TensorDictBase) -> torch.Tensor | None:
-        """(…, 2) control steps the arm's and the hand's reference are read ahead this step (latching
-        them at the episode's first step)."""
-        a = self._inputs(td)
-        if a is None:
-            return None
-        lead = self.config.max_lead * a[0].clamp(0.0, 1.0)
-        return latch(td, LEAD_STATE, lead) if self.config.lead_latched else lead
 
     def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
-        lead = self.lead(td)
-        if lead is None:
+        chosen = self.arm_and_hand(td, self.config.max_lead)     # control steps ahead (latched)
+        if chosen is None:
             return td
-        arm = self._arm.to(lead.device)
-        per_joint = torch.where(arm, lead[..., :1], lead[..., 1:2])                # (…, 22)
+        lead, per_joint = chosen
         td.set(REF_JOINT_POS, read_ahead(td.get(REF_JOINT_POS), per_joint))
         obj = td.get(REF_OBJECT_POSE)
         q = obj[..., 3:].clone()
@@ -421,7 +438,7 @@ def move_visible_reference(td: TensorDictBase, palm_shift, palm: torch.Tensor,
     return td
 
 
-class AnchorReach(ChannelTransform, channel="A"):
+class AnchorReach(LatchedChoice, ChannelTransform, channel="A"):
     """Channel A, the object-anchor reach: one number, how far the visible reference's palm moves onto
     the object where it lies. The object anchor (:class:`adadex.modules.anchor.ObjectAnchor`, with the
     anchored feed-forward's settings, :data:`adadex.modules.modulator.PRIOR_ANCHOR`) gives the palm
@@ -440,6 +457,8 @@ class AnchorReach(ChannelTransform, channel="A"):
     the decision (and the modulator's view shows the latched w).
     """
 
+    latch_field = "reach_latched"
+
     def __init__(self, config: ModulationConfig = ModulationConfig()):
         super().__init__(config, (REF_JOINT_POS, OBSERVATION))
         from adadex.modules.anchor import ObjectAnchor, PalmShift
@@ -448,22 +467,12 @@ class AnchorReach(ChannelTransform, channel="A"):
         self._anchor = ObjectAnchor(**PRIOR_ANCHOR)
         self._shift = PalmShift(self._anchor.damping, self._anchor.iterations)
 
-    def state_shapes(self) -> dict:
-        """The latched reach, ``("modulation", "reach_state")``; none with ``reach_latched=False``."""
-        return dict(self.channel.state) if self.config.reach_latched else {}
-
-    def next_state(self, td: TensorDictBase) -> dict:
-        if not self.config.reach_latched:
-            return {}
-        return {REACH_STATE: td.get(REACH_STATE)}
-
     def weight(self, td: TensorDictBase) -> torch.Tensor | None:
         """(…,) the fraction of the anchor's shift this step (latching it at the episode's first step)."""
         a = self._inputs(td)
         if a is None:
             return None
-        w = (0.5 + a[0]).clamp(0.0, 1.0)
-        return (latch(td, REACH_STATE, w) if self.config.reach_latched else w)[..., 0]
+        return self.choose(td, (0.5 + a[0]).clamp(0.0, 1.0))[..., 0]
 
     def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
         w = self.weight(td)
@@ -506,7 +515,7 @@ class ActionModulation(ChannelTransform, channel="T"):
         return td
 
 
-class GainModulation(ChannelTransform, channel="K"):
+class GainModulation(LatchedChoice, ChannelTransform, channel="K"):
     """Channel K, a feedback gain: the tracker's action gains ``clip(g · (q_ref,t − q_t), ±gain_bound)``,
     the joints' tracking error at the current frame (against the reference the tracker reads) times a
     gain ``g = max_gain · clip(a, 0, 1)`` — the first entry for the arm's six joints, the second for the
@@ -522,31 +531,17 @@ class GainModulation(ChannelTransform, channel="K"):
     flag), as channel L's lead.
     """
 
+    latch_field = "gain_latched"
+
     def __init__(self, config: ModulationConfig = ModulationConfig(), action_key="action"):
         super().__init__(config, (action_key,))
         self.action_key = action_key
-        self._arm = torch.arange(NUM_JOINTS) < 6
-
-    def state_shapes(self) -> dict:
-        """The latched gains, ``("modulation", "gain_state")``; none with ``gain_latched=False``."""
-        return dict(self.channel.state) if self.config.gain_latched else {}
-
-    def next_state(self, td: TensorDictBase) -> dict:
-        return {GAIN_STATE: td.get(GAIN_STATE)} if self.config.gain_latched else {}
-
-    def gain(self, td: TensorDictBase) -> torch.Tensor | None:
-        """(…, 2) the arm's and the hand's gain this step (latching them at the episode's first step)."""
-        a = self._inputs(td)
-        if a is None:
-            return None
-        g = self.config.max_gain * a[0].clamp(0.0, 1.0)
-        return latch(td, GAIN_STATE, g) if self.config.gain_latched else g
 
     def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
-        g = self.gain(td)
-        if g is None:
+        chosen = self.arm_and_hand(td, self.config.max_gain)     # the gains (latched)
+        if chosen is None:
             return td
-        per_joint = torch.where(self._arm.to(g.device), g[..., :1], g[..., 1:2])
+        _, per_joint = chosen
         error = td.get(REF_JOINT_POS)[..., 0, :] - td.get(JOINT_POS)
         bound = self.config.gain_bound
         td.set(self.action_key, td.get(self.action_key) + (per_joint * error).clamp(-bound, bound))

@@ -4,9 +4,8 @@ chosen at an episode's first step hold for the episode, the view shows them, and
 runs as the transformed env."""
 
 import torch
-from tensordict.nn import TensorDictModule
 from torchrl.envs import TransformedEnv
-from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adadex.envs.observation import JOINT_POS, REF_JOINT_POS
 from adadex.envs.randomization import Randomization
@@ -17,19 +16,9 @@ from adadex.modules.tracker import Tracker
 from adadex.sim.robot import joint_limits
 from adadex.transforms.modulation import modulation
 from adadex.transforms.policy import make_policy
+from tests.transforms.scripted import sampled_rollout, scripted_rollout
 
 WIDE = ModulationConfig(gain_bound=10.0)
-
-
-class _Script(torch.nn.Module):
-    def __init__(self, values):
-        super().__init__()
-        self.values, self.t = torch.as_tensor(values, dtype=torch.float32), 0
-
-    def forward(self, observation):
-        a = self.values[min(self.t, len(self.values) - 1)].expand(observation.shape[0], 2).clone()
-        self.t += 1
-        return a
 
 
 def _plain(dataset, worlds=4):
@@ -44,14 +33,7 @@ def _env(dataset, channels="K", config=ModulationConfig(), view=None, worlds=4):
 
 
 def _rollout(dataset, script, config=ModulationConfig(), steps=8):
-    env = _env(dataset, config=config)
-    check_env_specs(env)
-    env.set_seed(3)
-    with torch.no_grad():
-        td = env.rollout(steps, TensorDictModule(_Script(script), in_keys=["observation"], out_keys=["action"]),
-                         break_when_any_done=False)
-    env.close()
-    return td
+    return scripted_rollout(_env(dataset, config=config), script, 2, steps)
 
 
 def test_no_gain_is_replay_and_a_gain_adds_the_tracking_error(tiny_dataset):
@@ -87,14 +69,8 @@ def test_the_first_steps_gains_hold_for_the_episode_and_the_view_shows_them(tiny
     part = mod.view.slices()["gain"]
     policy = make_policy(Tracker.replay().freeze(), mod)
 
-    def run(env, pol):
-        env.set_seed(7)
-        torch.manual_seed(1)
-        with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
-            return env.rollout(5, pol, break_when_any_done=False)
-
-    a = run(TransformedEnv(_plain(tiny_dataset, 2), policy.primer()), policy)
-    b = run(_env(tiny_dataset, "T+K", view=mod.view, worlds=2), mod.actor)
+    a = sampled_rollout(TransformedEnv(_plain(tiny_dataset, 2), policy.primer()), policy, 5)
+    b = sampled_rollout(_env(tiny_dataset, "T+K", view=mod.view, worlds=2), mod.actor, 5)
     assert torch.equal(a["next", "proprio", "joint_pos"], b["next", "proprio", "joint_pos"])
     torch.testing.assert_close(b["next", "modulator", "view"][..., part], b["next", GAIN_STATE][..., :2])
     k = slice(22, 24)                                   # K's entries after T's 22

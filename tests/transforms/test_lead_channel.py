@@ -4,9 +4,8 @@ lead chosen at an episode's first step holds for the episode, the view shows it,
 runs as the transformed env, and after the first step the ignored entries carry no log-probability."""
 
 import torch
-from tensordict.nn import TensorDictModule
 from torchrl.envs import TransformedEnv
-from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adadex.envs.randomization import Randomization
 from adadex.envs.tracking import TrackingConfig, TrackingEnv
@@ -15,21 +14,9 @@ from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
 from adadex.transforms.modulation import modulation, read_ahead
 from adadex.transforms.policy import make_policy
+from tests.transforms.scripted import sampled_rollout, scripted_rollout
 
 TARGET = ("next", "proprio", "joint_target")
-
-
-class _Script(torch.nn.Module):
-    """A modulator stand-in: the lead entries follow a script over the episode's steps."""
-
-    def __init__(self, values):
-        super().__init__()
-        self.values, self.t = torch.as_tensor(values, dtype=torch.float32), 0
-
-    def forward(self, observation):
-        a = self.values[min(self.t, len(self.values) - 1)].expand(observation.shape[0], 2).clone()
-        self.t += 1
-        return a
 
 
 def _plain(dataset, worlds=4, free=False):
@@ -45,14 +32,7 @@ def _env(dataset, channels="L", config=ModulationConfig(), view=None, worlds=4, 
 
 
 def _rollout(dataset, script, steps=10, config=ModulationConfig(), free=False):
-    env = _env(dataset, config=config, free=free)
-    check_env_specs(env)
-    env.set_seed(3)
-    with torch.no_grad():
-        td = env.rollout(steps, TensorDictModule(_Script(script), in_keys=["observation"], out_keys=["action"]),
-                         break_when_any_done=False)
-    env.close()
-    return td
+    return scripted_rollout(_env(dataset, config=config, free=free), script, 2, steps)
 
 
 def test_read_ahead_is_exact_on_the_visible_frames_and_linear_between():
@@ -116,14 +96,8 @@ def test_lead_in_the_policy_graph_runs_as_in_the_env_and_later_steps_carry_no_lo
     mod = Modulator("L+A+T", hidden=(16, 16))
     policy = make_policy(Tracker.replay().freeze(), mod)
 
-    def run(env, pol):
-        env.set_seed(7)
-        torch.manual_seed(1)
-        with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
-            return env.rollout(5, pol, break_when_any_done=False)
-
-    a = run(TransformedEnv(_plain(tiny_dataset, 2), policy.primer()), policy)
-    b = run(_env(tiny_dataset, "L+A+T", view=mod.view, worlds=2), mod.actor)
+    a = sampled_rollout(TransformedEnv(_plain(tiny_dataset, 2), policy.primer()), policy, 5)
+    b = sampled_rollout(_env(tiny_dataset, "L+A+T", view=mod.view, worlds=2), mod.actor, 5)
     assert torch.equal(a["next", "proprio", "joint_pos"], b["next", "proprio", "joint_pos"])
     assert torch.equal(a["next", LEAD_STATE], b["next", LEAD_STATE])
     with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():

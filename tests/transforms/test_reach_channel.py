@@ -6,7 +6,6 @@ runs the same as the transformed env."""
 import dataclasses
 
 import torch
-from tensordict.nn import TensorDictModule
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
 
@@ -17,21 +16,9 @@ from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
 from adadex.transforms.modulation import modulation
 from adadex.transforms.policy import make_policy
+from tests.transforms.scripted import sampled_rollout, scripted
 
 DISPLACED = dataclasses.replace(Randomization.off(), object_xy_std=0.05)
-
-
-class _Script(torch.nn.Module):
-    """A modulator stand-in: the reach entry follows a script over the episode's steps."""
-
-    def __init__(self, values):
-        super().__init__()
-        self.values, self.t = torch.as_tensor(values, dtype=torch.float32), 0
-
-    def forward(self, observation):
-        a = self.values[min(self.t, len(self.values) - 1)].expand(observation.shape[0], 1).clone()
-        self.t += 1
-        return a
 
 
 def _rollout(dataset, channels, policy, steps=12, config=ModulationConfig(), seed=3):
@@ -45,10 +32,6 @@ def _rollout(dataset, channels, policy, steps=12, config=ModulationConfig(), see
     return td
 
 
-def _scripted(values):
-    return TensorDictModule(_Script(values), in_keys=["observation"], out_keys=["action"])
-
-
 def _plain(dataset, policy, steps=12, seed=3):
     env = TrackingEnv(dataset, num_worlds=6, split=None, seed=seed, randomize=DISPLACED)
     env.set_seed(seed)
@@ -60,8 +43,8 @@ def _plain(dataset, policy, steps=12, seed=3):
 
 def test_full_reach_is_the_anchored_feed_forward_and_none_is_replay(tiny_dataset):
     assert ModulationLayout("A").dim == 1 and ModulationLayout("C+A+T").channels == ("C", "A", "T")
-    full = _rollout(tiny_dataset, "A", _scripted([1.0]))
-    none = _rollout(tiny_dataset, "A", _scripted([-1.0]))
+    full = _rollout(tiny_dataset, "A", scripted([1.0], 1))
+    none = _rollout(tiny_dataset, "A", scripted([-1.0], 1))
     anchored = _plain(tiny_dataset, Tracker(hidden=(16,), residual=0.25, anchor=0.05).zero_mean().actor)
     replay = _plain(tiny_dataset, Tracker.replay().actor)
     torch.testing.assert_close(full["next", "proprio", "joint_target"], anchored["next", "proprio", "joint_target"],
@@ -72,11 +55,11 @@ def test_full_reach_is_the_anchored_feed_forward_and_none_is_replay(tiny_dataset
 
 def test_the_first_steps_reach_holds_for_the_episode_unless_unlatched(tiny_dataset):
     script = [0.0, 1.0, -1.0, 1.0, -1.0, 0.7, -0.8, 1.0, -1.0, 0.3, 0.9, -0.9]
-    latched = _rollout(tiny_dataset, "A", _scripted(script))
-    constant = _rollout(tiny_dataset, "A", _scripted([0.0]))
+    latched = _rollout(tiny_dataset, "A", scripted(script, 1))
+    constant = _rollout(tiny_dataset, "A", scripted([0.0], 1))
     assert torch.equal(latched["next", "proprio", "joint_target"], constant["next", "proprio", "joint_target"])
     torch.testing.assert_close(latched["next", REACH_STATE], torch.tensor([0.5, 1.0]).expand(6, 12, 2))
-    free = _rollout(tiny_dataset, "A", _scripted(script), config=ModulationConfig(reach_latched=False))
+    free = _rollout(tiny_dataset, "A", scripted(script, 1), config=ModulationConfig(reach_latched=False))
     assert (free["next", "proprio", "joint_target"] - constant["next", "proprio", "joint_target"]).abs().max() > 1e-3
     assert REACH_STATE not in free["next"].keys(True)
 
@@ -106,16 +89,10 @@ def test_reach_channel_in_the_policy_graph_runs_as_in_the_env(tiny_dataset):
     mod = Modulator("C+A+T", hidden=(16, 16))
     policy = make_policy(Tracker.replay().freeze(), mod)
 
-    def run(env, pol):
-        env.set_seed(7)
-        torch.manual_seed(1)
-        with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
-            return env.rollout(6, pol, break_when_any_done=False)
-
-    a = run(TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None, seed=3, randomize=DISPLACED),
-                           policy.primer()), policy)
-    b = run(TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None, seed=3, randomize=DISPLACED),
-                           modulation("C+A+T", Tracker.replay().freeze(), view=mod.view)), mod.actor)
+    a = sampled_rollout(TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None, seed=3, randomize=DISPLACED),
+                                       policy.primer()), policy, 6)
+    b = sampled_rollout(TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None, seed=3, randomize=DISPLACED),
+                                       modulation("C+A+T", Tracker.replay().freeze(), view=mod.view)), mod.actor, 6)
     assert torch.equal(a["next", "proprio", "joint_pos"], b["next", "proprio", "joint_pos"])
     assert torch.equal(a["next", REACH_STATE], b["next", REACH_STATE])
 

@@ -293,12 +293,16 @@ class Pipeline:
 
         out = root / "rollouts"
         c = self.cfg
+        # chunk k rolls out on env seed env_seed + k: 1,000 apart per pipeline seed, so that two seeds'
+        # teacher rollouts never share Table 3 draws (10_000 + seed made seed 0's chunk 1 seed 1's chunk 0)
+        env_seed = 10_000 + 1_000 * seed
         settings = {"teachers": teachers, "episodes": c.rollout_episodes, "criterion": c.rollout_criterion,
-                    "seed": seed, "worlds": c.worlds, **({"randomization": c.randomization} if c.randomization else {})}
+                    "seed": seed, "env_seed": env_seed, "worlds": c.worlds,
+                    **({"randomization": c.randomization} if c.randomization else {})}
 
         def fit():
             info = teacher_rollouts(teachers, self.ds, out / "data", episodes_per_reference=c.rollout_episodes,
-                                    seed=10_000 + seed, max_worlds=c.worlds, criterion=c.rollout_criterion,
+                                    seed=env_seed, max_worlds=c.worlds, criterion=c.rollout_criterion,
                                     randomize=c.randomization_config(),
                                     config=self.env_config, nthread=c.env_threads, progress=c.progress)
             return {k: info[k] for k in ("episodes_tried", "episodes_kept", "success_pct", "frames")}

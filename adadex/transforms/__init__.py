@@ -1,6 +1,7 @@
-"""TorchRL transforms for the modulation channels — reference (R), its compact form (C), the
-object-anchor reach (A), object latent (O), action (T) — the tracker-in-the-loop transform that turns a TrackingEnv into the modulator's env, the
-modulated policy graph, and the object point clouds its encoder reads.
+"""TorchRL transforms for the modulation channels — reference (R), its lead (L), its compact form (C),
+the object-anchor reach (A), object latent (O), action (T), feedback gain (K) — the tracker-in-the-loop
+transform that turns a TrackingEnv into the modulator's env, the modulated policy graph, and the object
+point clouds its encoder reads.
 
 The names below are re-exported here (``from adadex.transforms import modulation, make_policy``) and
 imported on first use.
@@ -13,8 +14,8 @@ from adadex._exports import lazy_exports
 _EXPORTS = {
     "adadex.transforms.modulation": ("modulation", "channel_transforms", "ReferenceModulation",
                                      "LatentModulation", "ActionModulation",
-                                     "CompactModulation", "AnchorReach", "move_visible_reference",
-                                     "ChannelTransform",
+                                     "CompactModulation", "AnchorReach", "ReferenceLead", "GainModulation",
+                                     "read_ahead", "move_visible_reference", "ChannelTransform",
                                      "TrackerInTheLoop", "FlatModulationAction",
                                      "ModulatorView"),
     "adadex.transforms.policy": ("make_policy", "ModulatedPolicy"),
@@ -25,7 +26,8 @@ __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 if TYPE_CHECKING:      # the same names, for type checkers and IDEs
     from adadex.transforms.modulation import (
         modulation, channel_transforms, ReferenceModulation, LatentModulation, ActionModulation,
-        CompactModulation, AnchorReach, move_visible_reference, ChannelTransform, TrackerInTheLoop, FlatModulationAction, ModulatorView
+        CompactModulation, AnchorReach, ReferenceLead, GainModulation, read_ahead, move_visible_reference,
+        ChannelTransform, TrackerInTheLoop, FlatModulationAction, ModulatorView
     )
     from adadex.transforms.policy import make_policy, ModulatedPolicy
     from adadex.transforms.object_points import ObjectPoints

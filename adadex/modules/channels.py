@@ -121,6 +121,9 @@ class Channel:
     * ``fields`` — its :class:`Field` s of :class:`ModulationConfig`;
     * ``edits`` — ``"observation"`` (what the tracker reads: runs before the tracker on the inverse
       path) or ``"action"`` (the tracker's output: runs after it);
+    * ``latch`` — for a channel whose action is a choice held for the episode (A, L, K): the name of
+      its config switch (one of its ``fields``) that latches the choice at the episode's first step;
+      ``""`` for a per-step channel;
     * ``init_scale`` — the modulator's initial exploration scale (pre-tanh) on this channel's head:
       sampling an untrained modulator must leave the tracker's success intact, so each channel's is
       sized to what its edits cost (``python benchmarks/modulator_usage.py --init-check``: around
@@ -139,10 +142,13 @@ class Channel:
     edits: str
     state: tuple[tuple[tuple[str, str], tuple[int, ...]], ...] = ()
     init_scale: float = 0.5
+    latch: str = ""
 
     def __post_init__(self):
         if self.edits not in EDITS:
             raise ValueError(f"channel {self.name}: edits must be one of {EDITS}, got {self.edits!r}")
+        if self.latch and self.latch not in {f.name for f in self.fields}:
+            raise ValueError(f"channel {self.name}: its latch switch {self.latch!r} is not one of its fields")
 
     @property
     def keys(self) -> tuple[tuple[str, str], ...]:
@@ -197,7 +203,7 @@ CHANNELS: Mapping[str, Channel] = _registry(
                     Field("lead_latched", True, "the lead chosen at an episode's first step holds for the whole "
                                                 "episode (a servo's delay is the robot's, not the moment's); "
                                                 "``False`` chooses it anew every step")),
-            edits="observation", init_scale=1.0),
+            edits="observation", init_scale=1.0, latch="lead_latched"),
     Channel("C", "compact reference edit: palm position offset (through the arm Jacobian) and grip",
             entries=((PALM, (3,)), (GRIP, (len(GRIP_JOINTS),))),
             fields=(Field("lambda_palm", 0.10, "λ_palm: the palm of the whole visible reference moves by up to "
@@ -214,7 +220,7 @@ CHANNELS: Mapping[str, Channel] = _registry(
             fields=(Field("reach_latched", True, "the reach chosen at an episode's first step holds for the whole "
                                                  "episode (an episode-level decision: reach for the displaced object "
                                                  "or not); ``False`` chooses it anew every step"),),
-            edits="observation", init_scale=1.0),
+            edits="observation", init_scale=1.0, latch="reach_latched"),
     Channel("O", "object latent",
             entries=((LATENT, (LATENT_DIM,)),),
             fields=(Field("lambda_latent", 0.25, "λ_latent: f̃ = clip(f + λ·a, −1, 1) (the latent is tanh-bounded). "
@@ -237,7 +243,7 @@ CHANNELS: Mapping[str, Channel] = _registry(
                     Field("gain_latched", True, "the gains chosen at an episode's first step hold for the whole "
                                                 "episode (a servo's softness is the robot's, not the moment's); "
                                                 "``False`` chooses them anew every step")),
-            edits="action", init_scale=1.0),
+            edits="action", init_scale=1.0, latch="gain_latched"),
 )
 
 _TRANSFORMS: dict[str, type] = {}      # channel name → transform class, filled by bind_transform

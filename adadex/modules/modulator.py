@@ -79,7 +79,7 @@ from torch import nn
 from adadex.envs.observation import OBS_DIM, OBSERVATION, REF_OBJECT_START, REF_OFFSETS
 from adadex.errors import ConfigError, check_number
 from adadex.modules.anchor import ObjectAnchor
-from adadex.modules.channels import CHANNELS, GAIN, LEAD, PALM, REACH, ModulationLayout
+from adadex.modules.channels import CHANNELS, PALM, ModulationLayout
 from adadex.modules.modulator_view import VIEW, ViewLayout
 from adadex.modules.nets import ActorCritic, make_actor, make_critic
 from adadex.sim.robot import NUM_JOINTS
@@ -221,15 +221,15 @@ class Modulator(ActorCritic):
         if shift is not None:         # only then: checkpoints without these settings keep their config
             self.config.update(prior=prior, lambda_palm=float(lambda_palm), hold_steps=int(hold_steps),
                                hold_scale=held)
+        switches = {"reach_latched": reach_latched, "lead_latched": lead_latched, "gain_latched": gain_latched}
         fixed = []                       # entries the env ignores after the episode's first step
-        for channel, key, switch, name in (("L", LEAD, lead_latched, "lead_latched"),
-                                           ("A", REACH, reach_latched, "reach_latched"),
-                                           ("K", GAIN, gain_latched, "gain_latched")):
-            if channel in self.layout:   # only then: checkpoints without the channel keep their config
-                self.config[name] = bool(switch)
+        for record in self.layout.records:
+            if record.latch:             # only then: checkpoints without the channel keep their config
+                switch = self.config[record.latch] = bool(switches[record.latch])
                 if switch and self.view is not None:
-                    sl = next(sl for k, sl, _ in self.layout.segments if k == key)
-                    fixed += range(sl.start, sl.stop)
+                    for key, sl, _ in self.layout.segments:
+                        if key in record.keys:
+                            fixed += range(sl.start, sl.stop)
         latched = (self.view.slices()["phase"].start, fixed) if fixed else None
         self.actor = make_actor(self.obs_key, obs_dim, self.layout.channel_sizes, -1.0, 1.0, hidden,
                                 namespace="modulator", init_scale=[scales[c] for c in self.layout.channels],

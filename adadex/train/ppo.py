@@ -59,7 +59,7 @@ from adadex.errors import AdadexError, ConfigError
 from adadex.eval.evaluate import evaluate
 from adadex.eval.metrics import ERROR_NAMES, frame_success
 from adadex.modules.nets import ActorCritic, Normalizer, ObservationMoments, fit_normalizers, stored_bounds_actor
-from adadex.modules.channels import ModulationConfig
+from adadex.modules.channels import CHANNELS, ModulationConfig
 from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
 from adadex.train.checkpoint import TRAINING_RUN, check_run, save_checkpoint, set_rng_state, start_run
@@ -166,9 +166,8 @@ class PPOTrainer:
                                     inputs=m.inputs, history=m.history, prior=m.prior, hold_steps=m.hold_steps,
                                     hold_scale=m.hold_scale,
                                     lambda_palm=ModulationConfig(**m.modulation).lambda_palm,
-                                    reach_latched=ModulationConfig(**m.modulation).reach_latched,
-                                    lead_latched=ModulationConfig(**m.modulation).lead_latched,
-                                    gain_latched=ModulationConfig(**m.modulation).gain_latched)
+                                    **{c.latch: getattr(ModulationConfig(**m.modulation), c.latch)
+                                       for c in CHANNELS.values() if c.latch})
         self.ppo = cfg.ppo
         self.device = self._check_device(torch.device(self.ppo.device))
         self.policy.to(self.device)                # before the loss takes its parameters

@@ -266,7 +266,7 @@ class ReferenceModulation(ChannelTransform, channel="R"):
 def latch(td: TensorDictBase, key, value: torch.Tensor) -> torch.Tensor:
     """The value an episode latched at its first step: ``value`` (…, n) where the carried state ``key``
     (…, n + 1: the latched value and a flag, zero at reset) has not latched yet, the state's value
-    where it has; writes the state. Channels A and L decide once per episode this way."""
+    where it has; writes the state. Channels A, L and K decide once per episode this way."""
     state = td.get(key, None)
     if state is None:
         state = value.new_zeros(*value.shape[:-1], value.shape[-1] + 1)
@@ -277,14 +277,12 @@ def latch(td: TensorDictBase, key, value: torch.Tensor) -> torch.Tensor:
 
 class LatchedChoice:
     """What channels A, L and K share: their action is a choice held for the episode (the record's
-    one state entry, carried with :func:`latch`) while the config's switch ``latch_field`` is on, or
-    taken anew every step (no state) when it is off."""
-
-    latch_field: str = ""
+    one state entry, carried with :func:`latch`) while the config's switch named by the record's
+    ``latch`` is on, or taken anew every step (no state) when it is off."""
 
     @property
     def latched(self) -> bool:
-        return bool(getattr(self.config, self.latch_field))
+        return bool(getattr(self.config, self.channel.latch))
 
     def state_shapes(self) -> dict:
         """The latched choice and its flag (the record's state); none when the choice is not latched."""
@@ -331,10 +329,11 @@ class ReferenceLead(LatchedChoice, ChannelTransform, channel="L"):
     Untrained (a = 0) it is the tracker alone.
 
     Why a channel: a robot whose servos answer late (a transport delay on the arm, a first-order lag on
-    the fingers) follows a reference late by that much, and kinematic replay loses the frames it lags
-    (an 80 ms arm delay costs replay 23 completion points, docs/sim2real.md). Commanding the reference
-    that far ahead is the classic feed-forward for it; how far is the robot's, which is what
-    identification measures and what a modulator trained on the identified model can learn. R could
+    the fingers) follows a reference late by that much; commanding the reference that far ahead is the
+    classic feed-forward for it, and how far is the robot's — what identification measures and a
+    modulator trained on the identified model can learn. (Measured around replay, the lead pays less
+    than one would guess: an 80 ms arm delay costs replay about 1 completion point, and a one-step arm
+    lead on the nominal robot did not raise the return on training episodes; docs/modulation.md.) R could
     express it only as 112 numbers per step. With ``lead_latched`` (default) the lead chosen at an
     episode's first step holds for the episode (carried state ``("modulation", "lead_state")``: arm,
     hand, latched flag), as channel A's reach: a delay is the robot's, not the moment's. The reward
@@ -345,8 +344,6 @@ class ReferenceLead(LatchedChoice, ChannelTransform, channel="L"):
     >>> read_ahead(frames, torch.full((22,), 0.5))[:3, 0]            # offsets 0, 1, 2 → 0.5, 1.5, 2.25
     tensor([0.5000, 1.5000, 2.2500])
     """
-
-    latch_field = "lead_latched"
 
     def __init__(self, config: ModulationConfig = ModulationConfig()):
         super().__init__(config, (REF_JOINT_POS, REF_OBJECT_POSE, OBSERVATION))
@@ -457,8 +454,6 @@ class AnchorReach(LatchedChoice, ChannelTransform, channel="A"):
     the decision (and the modulator's view shows the latched w).
     """
 
-    latch_field = "reach_latched"
-
     def __init__(self, config: ModulationConfig = ModulationConfig()):
         super().__init__(config, (REF_JOINT_POS, OBSERVATION))
         from adadex.modules.anchor import ObjectAnchor, PalmShift
@@ -530,8 +525,6 @@ class GainModulation(LatchedChoice, ChannelTransform, channel="K"):
     step hold for the episode (carried state ``("modulation", "gain_state")``: arm, hand, latched
     flag), as channel L's lead.
     """
-
-    latch_field = "gain_latched"
 
     def __init__(self, config: ModulationConfig = ModulationConfig(), action_key="action"):
         super().__init__(config, (action_key,))

@@ -78,7 +78,7 @@ def check_numbers(owner: str, obj, names) -> None:
 
 
 def check_array(name: str, value, shape: tuple[int, ...]):
-    """Return ``value`` (a numpy array) if it has ``shape`` and only finite values; raise
+    """Return ``value`` (a numpy array or a torch tensor) if it has ``shape`` and only finite values; raise
     :class:`ArrayError` naming ``name``, the expected and the actual shape, or the first bad index.
 
     >>> import numpy as np
@@ -94,6 +94,10 @@ def check_array(name: str, value, shape: tuple[int, ...]):
     got = tuple(getattr(value, "shape", ()))
     if got != tuple(shape):
         raise ArrayError(f"{name}: expected shape {tuple(shape)}, got {got}")
+    if hasattr(value, "isfinite"):            # a torch tensor, on any device: one read back
+        if bool(value.isfinite().all()):
+            return value
+        value = value.detach().cpu().numpy()
     bad = ~np.isfinite(value)
     if bad.any():
         idx = tuple(int(i) for i in np.argwhere(bad)[0])

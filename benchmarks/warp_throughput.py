@@ -7,14 +7,21 @@ Measured per B (default 256, 1,024, 4,096, 8,192), each part alone and in this o
   everything above it (no readout, nothing leaves the GPU);
 * ``sim``: ``BatchedSim(..., backend="warp")`` — the library's backend, per-world scenes of the
   references' objects, ctrl given as a device tensor, each step's readout taken on the device;
-* ``env``: ``TrackingEnv(backend="warp")`` through ``env.step`` with zero actions — observation,
-  errors and reward (the env runs on the host: its numpy per-step work and one host copy of the
-  readout per step are part of this figure);
+* ``env``: ``TrackingEnv(backend="warp")`` stepped as a collector steps it (``step_and_maybe_reset``)
+  with kinematic replay's actions (the next reference frame as the target) — observation, errors and
+  reward computed on the device, worlds that end reset on the host. A fresh env's worlds all start
+  together, so few end within the timed steps: the steady-state reset rate (B / window worlds per
+  step) is timed apart, with and without Table 3's randomization, and reported as ``reset_ms`` and
+  ``fps_steady`` (= frames per step time plus that reset time);
 * ``collect``: TorchRL ``Collector`` on that env with the residual ``Tracker`` sampling (what PPO
   collects with), the policy on the GPU;
 * ``ppo``: ``PPOTrainer`` iterations (collect + GAE + minibatch updates) on that env, as the trainer
-  builds them (``sim.backend=warp``; ``ppo.device`` the GPU when there is one — before 2026-11-27's
-  ``ppo.device`` setting the updates ran on the host).
+  builds them (``sim.backend=warp``; ``ppo.device`` the GPU when there is one), nominal physics;
+* ``specialist``: a whole ``PPOTrainer.train()`` of 1 M frames (``--specialist-frames``) at B worlds,
+  wall time from the trainer's construction to its end (env build included, no evaluation).
+
+``--kernel-profile`` adds to the ``sim`` part the GPU time of each MuJoCo Warp kernel over one
+control step (launched one by one, not as the graph), the top ones by time: where the physics goes.
 
 Each part is timed over ``--steps`` frames after one warm-up pass (kernels compile on first use: the
 cold compile is reported separately as ``compile_s``). The JSON is rewritten after every part, so a
@@ -43,7 +50,7 @@ import torch
 
 from _data import RESULTS, check_result, dataset_or_tiny, write_result
 
-PARTS = ("physics", "sim", "env", "collect", "ppo")
+PARTS = ("physics", "sim", "env", "collect", "ppo", "specialist")
 
 
 def _sync(device: str) -> None:
@@ -103,7 +110,7 @@ def physics_fps(model, B: int, steps: int, device: str, substeps: int) -> dict:
             "solver_iteration_limit": bool(flags & solver)}
 
 
-def sim_fps(dataset, refs, B: int, steps: int, device: str) -> dict:
+def sim_fps(dataset, refs, B: int, steps: int, device: str, kernel_profile: bool = False) -> dict:
     """``BatchedSim(backend="warp")`` over per-world scenes of the references' objects."""
     from adadex.data.reference import ReferenceDataset
     from adadex.sim.batched import BatchedSim
@@ -129,30 +136,91 @@ def sim_fps(dataset, refs, B: int, steps: int, device: str) -> dict:
     _sync(device)
     dt = time.perf_counter() - t0
     unstable = int(torch.as_tensor(r.unstable).sum())
+    # the same worlds' physics alone (the captured graph), the readout alone, the overflow check alone
+    parts = {}
+    for name, fn in (("physics_ms", sim._physics), ("readout_ms", sim.device_readout),
+                     ("overflow_check_ms", sim._check_overflow)):
+        _sync(device)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            fn()
+        _sync(device)
+        parts[name] = (time.perf_counter() - t0) / steps * 1e3
+    out = {"fps": B * steps / dt, "step_ms": dt / steps * 1e3, "build_s": build_s, "compile_s": compile_s,
+           "objects": len(scenes), "unstable_worlds": unstable, **parts}
+    if kernel_profile:
+        out["kernels_ms"] = _kernel_profile(sim, device)
     sim.close()
-    return {"fps": B * steps / dt, "step_ms": dt / steps * 1e3, "build_s": build_s, "compile_s": compile_s,
-            "objects": len(scenes), "unstable_worlds": unstable}
+    return out
+
+
+def _kernel_profile(sim, device: str, top: int = 25) -> dict:
+    """GPU milliseconds of each kernel over one control step of ``sim`` (launched eagerly), top ``top``."""
+    import warp as wp
+
+    if not device.startswith("cuda"):
+        return {}
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+    with wp.ScopedDevice(sim.device):
+        for _ in range(sim.substeps):
+            sim._mjw.step(sim._model, sim._data)
+    results = wp.timing_end()
+    per: dict[str, float] = {}
+    for r in results:
+        per[r.name] = per.get(r.name, 0.0) + r.elapsed
+    total = sum(per.values())
+    rows = dict(sorted(per.items(), key=lambda kv: -kv[1])[:top])
+    return {"total": total, "launches": len(results), **rows}
 
 
 def env_fps(dataset, refs, B: int, steps: int, device: str) -> dict:
-    """``TrackingEnv(backend="warp")`` through ``env.step`` with zero actions."""
+    """``TrackingEnv(backend="warp")`` stepped with kinematic replay's actions, as a collector steps it;
+    the steady-state resets timed apart (see the module docstring)."""
+    from adadex.envs.randomization import Randomization
     from adadex.envs.tracking import TrackingEnv
 
     t0 = time.perf_counter()
-    env = TrackingEnv(dataset, num_worlds=B, references=refs, split=None, seed=0, backend="warp")
+    env = TrackingEnv(dataset, num_worlds=B, references=refs, split=None, seed=0, backend="warp", device=device)
     build_s = time.perf_counter() - t0
+    bound = env.config.max_action
+
+    def replay(td):
+        return (td["reference", "hand_joint_pos"][:, 1] - td["proprio", "joint_target"]).clamp(-bound, bound)
+
     td = env.reset()
-    zero = torch.zeros(B, 22)
-    td.set("action", zero)
-    env.step(td)                              # warm-up (kernels compiled by now)
+    for _ in range(2):                        # warm-up (kernels compiled by now)
+        _, td = env.step_and_maybe_reset(td.set("action", replay(td)))
+    _sync(device)
+    ended = torch.zeros((), dtype=torch.long, device=env.device)      # summed on the device: no read back
     t0 = time.perf_counter()
     for _ in range(steps):
-        td.set("action", zero)
-        td = env.step(td)["next"].exclude("reward", "done", "terminated", "truncated")
+        out, td = env.step_and_maybe_reset(td.set("action", replay(td)))
+        ended += out["next", "done"].sum()
+    _sync(device)
     dt = time.perf_counter() - t0
-    unstable = env.unstable_count
+    out = {"fps": B * steps / dt, "step_ms": dt / steps * 1e3, "build_s": build_s, "unstable": env.unstable_count,
+           "episodes_ended": int(ended), "device": str(env.device)}
     env.close()
-    return {"fps": B * steps / dt, "step_ms": dt / steps * 1e3, "build_s": build_s, "unstable": unstable}
+    k = max(1, round(B / env.config.window))  # worlds an env of B resets per step once episodes desynchronize
+    for name, rnd in (("", None), ("_randomized", Randomization())):
+        env = TrackingEnv(dataset, num_worlds=B, references=refs, split=None, seed=0, backend="warp", device=device,
+                          randomize=rnd)
+        td = env.reset()
+        times = []
+        for i in range(8):                    # the first resets meet new scenes and mesh sizes: median
+            mask = torch.zeros(B, 1, dtype=torch.bool, device=env.device)
+            mask[(i * k) % B:(i * k) % B + k] = True
+            _sync(device)
+            t0 = time.perf_counter()
+            env.reset(td.clone().set("_reset", mask))
+            _sync(device)
+            times.append(time.perf_counter() - t0)
+        env.close()
+        reset_ms = float(np.median(times)) * 1e3
+        out[f"reset_ms{name}"] = reset_ms
+        out[f"fps_steady{name}"] = B / (out["step_ms"] + reset_ms) * 1e3
+    out["resets_per_step"] = k
+    return out
 
 
 def collect_fps(dataset, refs, B: int, steps: int, device: str) -> dict:
@@ -177,30 +245,32 @@ def collect_fps(dataset, refs, B: int, steps: int, device: str) -> dict:
     return {"fps": batch.numel() / dt, "batch_s": dt, "first_batch_s": first_s, "frames_per_batch": fpb}
 
 
-def ppo_fps(dataset, B: int, steps: int, device: str, iterations: int = 3) -> dict:
-    """PPO iterations as the trainer runs them, its env on the warp backend."""
+def ppo_fps(dataset, B: int, steps: int, device: str, iterations: int = 3, total_frames: int | None = None) -> dict:
+    """PPO iterations as the trainer runs them, its env on the warp backend (``total_frames``: a whole
+    run of that many frames instead, ``steps`` per batch)."""
     import tempfile
 
     from adadex.train.config import CollectorConfig, PolicyConfig, PPOConfig, SimConfig, TrainConfig
     from adadex.train.ppo import PPOTrainer
 
     fpb = B * steps
+    total = total_frames if total_frames is not None else fpb * (iterations + 1)
     with tempfile.TemporaryDirectory() as tmp:
         cfg = TrainConfig(dataset=str(dataset), out=str(Path(tmp) / "ppo"), randomize=False, wandb=False,
                           progress=False, eval_max_references=0, checkpoint_every=10 ** 6,
-                          ppo=PPOConfig(total_frames=fpb * (iterations + 1), frames_per_batch=fpb,
+                          ppo=PPOConfig(total_frames=total, frames_per_batch=fpb,
                                         device=device if device.startswith("cuda") else "cpu"),
                           collector=CollectorConfig(worlds=B), sim=SimConfig(backend="warp"),
                           policy=PolicyConfig())
         t0 = time.perf_counter()
-        PPOTrainer(cfg).train()
-        total = time.perf_counter() - t0
+        result = PPOTrainer(cfg).train()
+        wall = time.perf_counter() - t0
         rows = list(__import__("csv").DictReader(open(Path(cfg.out) / "metrics.csv")))
     rows = [r for r in rows if r.get("fps")][1:]          # the first iteration fits the normalizers
     fps = [float(r["fps"]) for r in rows]
     col = [float(r["collect_fps"]) for r in rows if r.get("collect_fps")]
     return {"fps": float(np.median(fps)) if fps else None, "collect_fps": float(np.median(col)) if col else None,
-            "timed_iterations": len(rows), "total_s": total, "frames_per_batch": fpb}
+            "timed_iterations": len(rows), "total_s": wall, "frames": result["frames"], "frames_per_batch": fpb}
 
 
 def _device_info(device: str) -> dict:
@@ -228,6 +298,9 @@ def main(argv=None) -> dict:
     p.add_argument("--device", default=None, help="Warp device (default: cuda:0 when there is one, else cpu)")
     p.add_argument("--out", type=Path, default=RESULTS / "warp_throughput.json")
     p.add_argument("--ppo-batches", default="1024,4096", help="the B at which the ppo part runs (it is slow)")
+    p.add_argument("--specialist-batch", type=int, default=4096, help="B of the specialist part")
+    p.add_argument("--specialist-frames", type=int, default=1_000_000)
+    p.add_argument("--kernel-profile", action="store_true", help="GPU time per kernel in the sim part")
     p.add_argument("--budget-s", type=float, default=None,
                    help="start no new measurement after this many seconds (the JSON keeps what was measured)")
     p.add_argument("--force", action="store_true")
@@ -262,7 +335,7 @@ def main(argv=None) -> dict:
         result["substeps"] = substeps
         for part in parts:
             rows = result["parts"].setdefault(part, {})
-            for B in (ppo_batches if part == "ppo" else batches):
+            for B in {"ppo": ppo_batches, "specialist": [a.specialist_batch]}.get(part, batches):
                 if a.budget_s is not None and time.perf_counter() - t_start > a.budget_s:
                     rows[str(B)] = {"skipped": f"--budget-s {a.budget_s:g} spent"}
                     continue
@@ -271,13 +344,15 @@ def main(argv=None) -> dict:
                     if part == "physics":
                         r = physics_fps(model, B, a.steps, device, substeps)
                     elif part == "sim":
-                        r = sim_fps(dataset, refs, B, a.steps, device)
+                        r = sim_fps(dataset, refs, B, a.steps, device, kernel_profile=a.kernel_profile)
                     elif part == "env":
                         r = env_fps(dataset, refs, B, a.steps, device)
                     elif part == "collect":
                         r = collect_fps(dataset, refs, B, a.steps, device)
-                    else:
+                    elif part == "ppo":
                         r = ppo_fps(dataset, B, a.steps, device, iterations=2)
+                    else:
+                        r = ppo_fps(dataset, B, 32, device, total_frames=a.specialist_frames)
                 except Exception as e:          # a part that fails is recorded, the others still run
                     r = {"error": f"{type(e).__name__}: {e}"[:500]}
                 r["wall_s"] = time.perf_counter() - t0

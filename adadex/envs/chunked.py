@@ -26,6 +26,7 @@ Example::
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Iterator, Sequence
 from typing import NamedTuple
 
@@ -128,6 +129,7 @@ def chunked_rollouts(policy, dataset, references: Sequence[int], *, max_worlds: 
 def _chunks(policy, ds, refs, max_worlds, seed, derive_seed, config, env_transform, exploration, progress, desc,
             bar, steps, env_kwargs) -> Iterator[RolloutChunk]:
     own_bar = bar is None
+    moved = {}            # the policy on each env device it met (a GPU env's, when it lives on the host)
     if own_bar:
         bar = tqdm(total=len(refs) * steps, unit="frame", desc=desc, disable=not progress)
     try:
@@ -141,8 +143,10 @@ def _chunks(policy, ds, refs, max_worlds, seed, derive_seed, config, env_transfo
                     env = TransformedEnv(env, env_transform())
                 with torch.no_grad(), set_exploration_type(exploration):
                     td = env.reset()
-                    td = env.rollout(steps, policy, tensordict=td, auto_reset=False, break_when_any_done=False,
-                                     callback=lambda *_: bar.update(len(chunk)))
+                    td = env.rollout(steps, _on_device(policy, env.device, moved), tensordict=td, auto_reset=False,
+                                     break_when_any_done=False, callback=lambda *_: bar.update(len(chunk)))
+                    if td.device is not None and td.device.type != "cpu":
+                        td = td.to("cpu")      # what callers read (metrics, teacher tables) is on the host
                 bar.update(len(chunk))       # the rollout calls back after every step but its last
                 # yielded outside no_grad and the exploration type: the caller's code runs in its own modes
                 item = RolloutChunk(k, chunk, chunk_env_seed, td, env)
@@ -154,3 +158,14 @@ def _chunks(policy, ds, refs, max_worlds, seed, derive_seed, config, env_transfo
     finally:
         if own_bar:
             bar.close()
+
+
+def _on_device(policy, device: torch.device, moved: dict):
+    """``policy``, or a copy of it on ``device`` when its parameters live elsewhere (an env on the GPU,
+    a policy trained on the host): the caller's policy is never moved."""
+    tensors = [*policy.parameters(), *policy.buffers()] if isinstance(policy, torch.nn.Module) else []
+    if not tensors or all(t.device == device for t in tensors):
+        return policy
+    if device not in moved:
+        moved[device] = copy.deepcopy(policy).to(device)
+    return moved[device]

@@ -30,10 +30,15 @@ Per step:
   reference start at once so no NaN leaves the env, and :attr:`TrackingEnv.unstable_count` grows);
   ``truncated`` at the end of the episode window.
 
-The step itself runs on numpy arrays — the readouts MuJoCo fills, the reference frames — through the
-same observation, error and reward functions the torch modules use (:mod:`adadex.arrays`), and hands
-TorchRL tensors that share the arrays' memory: at B = 64 the env runs at about 0.89 × the speed of
-its physics alone (``benchmarks/env_throughput.py``).
+On the default rollout backend the step runs on numpy arrays — the readouts MuJoCo fills, the
+reference frames — through the same observation, error and reward functions the torch modules use
+(:mod:`adadex.arrays`), and hands TorchRL tensors that share the arrays' memory: at B = 64 the env
+runs at about 0.89 × the speed of its physics alone (``benchmarks/env_throughput.py``). On the warp
+backend (``backend="warp"``) the env lives on the sim's device (a GPU when there is one): the same
+functions run on torch tensors there, the reference frames are held there, the step's noise is drawn
+there, and nothing but the step's unstable-world check is read back; resets (reference draws, scenes,
+randomization, C MuJoCo's forward pass) stay host work written to the device. Command- and
+sensor-stage effects of a patch run on the host, a round trip per step.
 
 Physics randomization (:class:`~adadex.envs.randomization.Randomization`) draws an effect patch per
 world at each reset — Table 3's scales, or ranges around a fitted patch:
@@ -68,6 +73,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from adadex.arrays import to_float
 from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset, check_frames, check_split
 from adadex.envs.frame_errors import ERROR_NAMES, frame_errors
 from adadex.envs.latent import encoder_latent
@@ -128,6 +134,21 @@ class TrackingConfig:
             raise ConfigError(f"window must be at least {max(REF_OFFSETS) + 2} frames, got {self.window}")
         check_numbers("TrackingConfig", self,
                       ("max_action", "terminate_object_error", "terminate_palm_error", "object_lift", "max_object_speed"))
+
+
+def env_device(backend: str, device=None) -> torch.device:
+    """Where a :class:`TrackingEnv` on ``backend`` steps and hands out its tensors: the CPU for the rollout
+    backend (MuJoCo on the CPU cores); for ``"warp"``, ``device`` (a Warp or torch device name) or Warp's
+    default device — a GPU when there is one, so nothing leaves it on the step's hot path."""
+    if check_backend(backend) == "rollout":
+        if device is not None and torch.device(device).type != "cpu":
+            raise ConfigError(f"TrackingEnv(device={str(device)!r}): the rollout backend runs MuJoCo on the CPU "
+                              f"and hands out CPU tensors; use backend='warp' for a GPU, or keep the env on the "
+                              f"CPU and put the policy on the GPU through the collector (policy_device)")
+        return torch.device("cpu")
+    from adadex.sim.warp_backend import torch_device
+
+    return torch_device(device)
 
 
 def _as_patch(patch, effects) -> ModelPatch:
@@ -207,15 +228,16 @@ class TrackingEnv(EnvBase):
             for evaluation).
         references: dataset indices to draw from instead of a split (e.g. one evaluation chunk);
             each needs a ``config.window``-frame episode window.
-        device: must be ``"cpu"`` (the default): the env hands out CPU tensors; a policy on a GPU
-            gets its inputs through the collector (``policy_device``).
+        device: where the env steps and hands out its tensors (:func:`env_device`): ``None`` (default)
+            is the CPU for the rollout backend and Warp's default device (a GPU when there is one) for
+            the warp backend; the rollout backend refuses any other than the CPU (a policy on a GPU gets
+            its inputs through the collector's ``policy_device``).
         scenes: compiled scenes to use instead of compiling them (:func:`scene_pack`; a collector's
             workers get them from the main process, so they start without compiling). ``None``
             (default): compile them here.
         backend: the physics of :class:`~adadex.sim.batched.BatchedSim`: ``"rollout"`` (default,
             MuJoCo on the CPU cores) or ``"warp"`` (MuJoCo Warp on its default device, a GPU when there
-            is one; ``pip install "adadex[warp]"``). The env itself stays on the CPU either way for now
-            and hands out CPU tensors.
+            is one; ``pip install "adadex[warp]"``), with the env on that device (``device``).
 
     Example:
         >>> env = TrackingEnv(tiny_dataset, num_worlds=2, split=None, draw="cycle")
@@ -230,14 +252,13 @@ class TrackingEnv(EnvBase):
                  config: TrackingConfig = TrackingConfig(),
                  latent_fn: Callable[[str], np.ndarray] = encoder_latent,
                  randomize: Randomization | None = None, patch=None, effects=None,
-                 nthread: int = 2, seed: int = 0, draw: str = "random", references=None, device="cpu",
+                 nthread: int = 2, seed: int = 0, draw: str = "random", references=None, device=None,
                  scenes: dict | None = None, backend: str = "rollout"):
         num_worlds = int(check_number("TrackingEnv num_worlds", num_worlds, low=1, integer=True))
-        if torch.device(device).type != "cpu":
-            raise ConfigError(f"TrackingEnv(device={device!r}): the env runs on the CPU (MuJoCo physics) and hands "
-                              f"out CPU tensors; keep it there and put the policy on another device through the "
-                              f"collector (Collector(..., policy_device={str(device)!r}))")
+        device = env_device(check_backend(backend), device)
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
+        #: the step's array namespace: numpy on the host (rollout backend), torch on the sim's device (warp)
+        self._xp = np if backend == "rollout" else torch
         self.dataset = dataset if isinstance(dataset, ReferenceDataset) else ReferenceDataset(dataset)
         self.config = config
         self.latent_fn = latent_fn
@@ -258,28 +279,33 @@ class TrackingEnv(EnvBase):
         self._nominal: dict[tuple[str, float], tuple[mujoco.MjModel, ModelBase]] = {}
         self._scales = randomize.scale_levels() if randomize is not None else np.array([1.0])
         self._scale = np.ones(num_worlds)
-        self._action_offset = np.zeros((num_worlds, NUM_JOINTS))
+        self._action_offset = self._array(np.zeros((num_worlds, NUM_JOINTS)))
         self._has_command_effects = any(e.spec.stage == "command" for e in self.patch.active().effects)
         self._servo_cmd = np.zeros((num_worlds, NUM_JOINTS))   # what the servos last received
         self.references = self._usable(check_split(split), references)
         check_frames(self.dataset, self.references)      # a bad frame is refused here, not turned into NaN
-        # The step runs on numpy arrays (the per-frame functions it calls take numpy or torch, see
-        # adadex.arrays) and hands torch views of them to TorchRL. Observations, errors and rewards
-        # are float32 end to end (no per-step casts); the joint targets and start states are float64.
+        # The step runs on numpy arrays (rollout backend) or on torch tensors on the sim's device (warp
+        # backend: nothing leaves the device on the step's hot path); the per-frame functions it calls take
+        # either (adadex.arrays). It hands TorchRL tensors sharing the arrays' memory. Observations, errors
+        # and rewards are float32 end to end (no per-step casts); on the host the joint targets are float64.
+        # Resets are host work (draws, scenes, C MuJoCo's forward pass), written into the step's arrays.
         frames = self.dataset.frames
-        self._ref_q = frames["hand_joint_pos"].to(torch.float32).numpy().copy()
+        self._ref_q = frames["hand_joint_pos"].to(torch.float32).numpy().copy()       # host: resets read them
         self._ref_link = frames["hand_link_pose"].to(torch.float32).numpy().copy()
         self._ref_obj = frames["object_pose"].to(torch.float32).numpy().copy()
+        self._step_ref_q, self._step_ref_link, self._step_ref_obj = (
+            self._array(a) for a in (self._ref_q, self._ref_link, self._ref_obj))    # the step's copies
         B = num_worlds
-        self._base = np.zeros(B, dtype=np.int64)       # frame index of each world's episode start
-        self._t = np.zeros(B, dtype=np.int64)
-        self._ref_index = np.zeros(B, dtype=np.int64)
-        self._latent = np.zeros((B, LATENT_DIM), dtype=np.float32)
-        self._object_start = np.zeros((B, 7), dtype=np.float32)   # object pose seen at each episode's first frame
+        self._base = self._array(np.zeros(B, dtype=np.int64))       # frame index of each world's episode start
+        self._t = self._array(np.zeros(B, dtype=np.int64))
+        self._ref_index = self._array(np.zeros(B, dtype=np.int64))
+        self._latent = self._array(np.zeros((B, LATENT_DIM), dtype=np.float32))
+        # object pose seen at each episode's first frame
+        self._object_start = self._array(np.zeros((B, 7), dtype=np.float32))
         lim = joint_limits()
-        self._lo, self._hi = lim[:, 0].copy(), lim[:, 1].copy()
-        self._offsets = np.asarray(REF_OFFSETS)[None]
-        self._q_target = np.zeros((B, NUM_JOINTS))
+        self._lo, self._hi = self._array(lim[:, 0].copy()), self._array(lim[:, 1].copy())
+        self._offsets = self._array(np.asarray(REF_OFFSETS)[None])
+        self._q_target = self._array(np.zeros((B, NUM_JOINTS)))
         self.unstable_count = 0
         self._set_seed(seed)
         first = self.dataset.entries[self.references[0]]["object"]
@@ -287,8 +313,8 @@ class TrackingEnv(EnvBase):
         # Compile every scene once; the data shared by the worlds is sized for the largest.
         scenes = [self._scene(n, 1.0) for n in objects]
         biggest = max(scenes, key=lambda m: (m.nC, m.nbvh, m.nbvhdynamic))
-        self.sim = BatchedSim([biggest] + [self._scene(first, 1.0)] * (B - 1), nthread=nthread,
-                              backend=check_backend(backend))
+        self.sim = BatchedSim([biggest] + [self._scene(first, 1.0)] * (B - 1), nthread=nthread, backend=backend,
+                              **({} if backend == "rollout" else {"device": str(self.device)}))
         self.sim.set_models([0], [self._scene(first, 1.0)])
         self._randomizer = ModelRandomizer(biggest) if randomize is not None else None
         self._make_specs()
@@ -380,13 +406,18 @@ class TrackingEnv(EnvBase):
         restarts draws only from the first stream, and two policies evaluated with the same seed meet
         the same noise in every episode they share (paired comparisons stay paired)."""
         self._rng = np.random.default_rng(seed)
-        self._step_rng = np.random.default_rng(None if seed is None else [int(seed), _STEP_STREAM])
+        if self._xp is np:
+            self._step_rng = np.random.default_rng(None if seed is None else [int(seed), _STEP_STREAM])
+        else:       # drawn on the device: the same seed gives the same noise there (not numpy's values)
+            self._step_rng = torch.Generator(device=self.device)
+            s = np.random.SeedSequence(None if seed is None else [int(seed), _STEP_STREAM]).generate_state(2)
+            self._step_rng.manual_seed(int(s[0]) << 32 | int(s[1]))
         return seed
 
     # -- references -------------------------------------------------------------------------------
     def _frames_at(self) -> np.ndarray:
         """(B, 5) frame indices of the reference at t + REF_OFFSETS, held at the window's last frame."""
-        return self._base[:, None] + np.minimum(self._t[:, None] + self._offsets, self.config.window - 1)
+        return self._base[:, None] + (self._t[:, None] + self._offsets).clip(max=self.config.window - 1)
 
     def _start_worlds(self, worlds: np.ndarray) -> None:
         """Draw references for ``worlds`` and put them at their episode start."""
@@ -396,27 +427,32 @@ class TrackingEnv(EnvBase):
             B = self.batch_size[0]
             picks = [self.references[(w + B * self._resets[w]) % len(self.references)] for w in worlds]
         self._resets[worlds] += 1
-        models = []
+        models, bases, latents, offsets = [], [], [], []
         cfg = self.randomize
         for w, r in zip(worlds, picks):
             e = self.dataset.entries[r]
-            self._ref_index[w] = r
-            self._base[w] = e["offset"] + e["window_start"]
-            self._latent[w] = np.asarray(self.latent_fn(e["object"]), dtype=np.float32)
+            bases.append(e["offset"] + e["window_start"])
+            latents.append(np.asarray(self.latent_fn(e["object"]), dtype=np.float32))
             self._scale[w] = self._rng.choice(self._scales)
             if cfg is not None:
                 model, self.world_patches[w] = self._randomized_scene(e["object"], float(self._scale[w]), self._rng)
-                self._action_offset[w] = self._rng.normal(0, cfg.action_noise_correlated, NUM_JOINTS)
+                offsets.append(self._rng.normal(0, cfg.action_noise_correlated, NUM_JOINTS))
             else:
                 model = self._scene(e["object"], float(self._scale[w]))
             models.append(model)
+        self._assign(self._ref_index, worlds, np.asarray(picks, dtype=np.int64))
+        self._assign(self._base, worlds, np.asarray(bases, dtype=np.int64))
+        self._assign(self._latent, worlds, np.stack(latents))
+        if offsets:
+            self._assign(self._action_offset, worlds, np.stack(offsets))
         self.sim.set_models(worlds, models)
-        self._t[worlds] = 0
-        self._put_at_start(worlds, perturb=cfg is not None)
+        self._assign(self._t, worlds, 0)
+        self._put_at_start(worlds, np.asarray(bases, dtype=np.int64), perturb=cfg is not None)
 
-    def _put_at_start(self, worlds: np.ndarray, perturb: bool = False) -> None:
-        b = self._base[worlds]
-        q = np.clip(self._ref_q[b].astype(np.float64), self._lo, self._hi)
+    def _put_at_start(self, worlds: np.ndarray, b: np.ndarray, perturb: bool = False) -> None:
+        """Put ``worlds`` at the reference frames ``b`` (their episodes' first frames)."""
+        lim = joint_limits()
+        q = np.clip(self._ref_q[b].astype(np.float64), lim[:, 0], lim[:, 1])
         obj = self._ref_obj[b].astype(np.float64)
         obj[:, 2] += self.config.object_lift
         for j, w in enumerate(worlds):   # a resized object still rests on the table
@@ -433,7 +469,7 @@ class TrackingEnv(EnvBase):
         # one call (on the warp backend, one device write); the servos have been holding q: a delayed or
         # lagged servo starts from it
         self.sim.reset(qpos=qpos, worlds=worlds, ctrl=q)
-        self._q_target[worlds] = q
+        self._assign(self._q_target, worlds, q)
         self._servo_cmd[worlds] = q
 
     # -- TorchRL ----------------------------------------------------------------------------------
@@ -443,15 +479,15 @@ class TrackingEnv(EnvBase):
             np.flatnonzero(mask.reshape(self.batch_size).cpu().numpy())
         if len(worlds):
             self._start_worlds(worlds)
-        readout = self.sim.readout()
-        self._object_start[worlds] = readout.object_pose[worlds]
+        readout = self._readout()
+        self._assign(self._object_start, worlds, readout.object_pose[self._index(worlds)])
         out, _ = self._observe(readout, self._rng)
-        B = self.batch_size
-        out[PRIVILEGED].update({"unstable": torch.zeros(*B, 1, dtype=torch.bool),
-                                "reward_terms": self._td({k: torch.zeros(*B) for k in TERM_NAMES})})
+        B, dev = self.batch_size, self.device
+        out[PRIVILEGED].update({"unstable": torch.zeros(*B, 1, dtype=torch.bool, device=dev),
+                                "reward_terms": self._td({k: torch.zeros(*B, device=dev) for k in TERM_NAMES})})
         out[PRIVILEGED] = self._td(out[PRIVILEGED])
-        out["is_init"] = (torch.ones(*B, 1, dtype=torch.bool) if mask is None
-                          else mask.reshape(*B, 1).to(torch.bool).cpu().clone())
+        out["is_init"] = (torch.ones(*B, 1, dtype=torch.bool, device=dev) if mask is None
+                          else mask.reshape(*B, 1).to(device=dev, dtype=torch.bool).clone())
         return self._td(out)
 
     def step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -475,24 +511,26 @@ class TrackingEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         cfg = self.config
-        action = check_array("action", self._action(tensordict).detach().cpu().numpy(), tuple(self.action_spec.shape))
+        action = self._action(tensordict).detach()
+        action = check_array("action", action.cpu().numpy() if self._xp is np else action.to(self.device, torch.float32),
+                             tuple(self.action_spec.shape))
         if self.randomize is not None:     # in units of the action bound, before it (as Isaac Gym's VecTask)
-            noise = self._action_offset + self._step_rng.normal(0, self.randomize.action_noise_uncorrelated,
-                                                                 action.shape)
+            noise = self._action_offset + self._noise(self._step_rng, self.randomize.action_noise_uncorrelated,
+                                                      tuple(action.shape))
             action = action + cfg.max_action * noise
-        action = np.clip(action, -cfg.max_action, cfg.max_action)
-        np.clip(self._q_target + action, self._lo, self._hi, out=self._q_target)
-        readout = self.sim.step(self._servo_command())
+        action = action.clip(-cfg.max_action, cfg.max_action)
+        self._q_target = (self._q_target + action).clip(self._lo, self._hi)
+        readout = self._sim_step(self._servo_command())
         self._t += 1
         # MuJoCo flags diverging worlds; an object flung faster than any tabletop motion is one too.
         unstable = readout.unstable | flung(readout.object_vel, cfg.max_object_speed)
-        if unstable.any():
-            worlds = np.flatnonzero(unstable)
+        if unstable.any():                      # on the device: the step's one read back
+            worlds = np.flatnonzero(self._host(unstable))
             self.unstable_count += len(worlds)
-            self._t[worlds] = 0
-            self._put_at_start(worlds)          # no NaN leaves the env; the episode ends below
-            readout = self.sim.readout()
-            self._object_start[worlds] = readout.object_pose[worlds]
+            self._assign(self._t, worlds, 0)
+            self._put_at_start(worlds, self._host(self._base)[worlds])   # no NaN leaves the env; it ends below
+            readout = self._readout()
+            self._assign(self._object_start, worlds, readout.object_pose[self._index(worlds)])
         out, frame = self._observe(readout, self._step_rng)
         err = frame["errors"]
         reward, terms = tracking_reward(cfg.reward, **frame)
@@ -502,14 +540,14 @@ class TrackingEnv(EnvBase):
         if cfg.terminate_palm_error > 0:
             terminated = terminated | (err["T_h"] > cfg.terminate_palm_error)
         truncated = self._t >= cfg.window - 1
-        terms["termination"] = cfg.reward.w_termination * terminated.astype(np.float32)
+        terms["termination"] = cfg.reward.w_termination * to_float(terminated, reward)
         reward = reward - terms["termination"]
-        t = torch.from_numpy
+        t = self._tensor
         out.update(reward=t(reward[:, None]), terminated=t(terminated[:, None]), truncated=t(truncated[:, None]),
-                   done=t((terminated | truncated)[:, None]), is_init=torch.zeros(*self.batch_size, 1, dtype=torch.bool))
+                   done=t((terminated | truncated)[:, None]),
+                   is_init=torch.zeros(*self.batch_size, 1, dtype=torch.bool, device=self.device))
         out[PRIVILEGED].update({"unstable": t(unstable[:, None]),
-                                "reward_terms": self._td({k: t(np.asarray(v, dtype=np.float32))
-                                                          for k, v in terms.items()})})
+                                "reward_terms": self._td({k: self._float32(v) for k, v in terms.items()})})
         out[PRIVILEGED] = self._td(out[PRIVILEGED])
         return self._td(out)
 
@@ -526,15 +564,68 @@ class TrackingEnv(EnvBase):
         (skips TensorDict's per-entry validation: this runs every step)."""
         return TensorDict._new_unsafe(entries, batch_size=self.batch_size, device=self.device)
 
-    def _servo_command(self) -> np.ndarray:
+    def _servo_command(self):
         """Targets → what the servos receive: command-stage effects (backlash …) run online, as the
-        workbench's sequence transform applied to (last servo command, new target)."""
+        workbench's sequence transform applied to (last servo command, new target) — on the host (for
+        the warp backend, a round trip per step with such effects)."""
         cmd = self._q_target
         if self._has_command_effects:
-            seq = np.stack([self._servo_cmd, cmd], axis=1)
-            cmd = self.patch.transform_command(seq, 1.0 / CONTROL_HZ)[:, 1]
-            self._servo_cmd = cmd.copy()
+            seq = np.stack([self._servo_cmd, self._host(cmd).astype(np.float64)], axis=1)
+            self._servo_cmd = self.patch.transform_command(seq, 1.0 / CONTROL_HZ)[:, 1].copy()
+            cmd = self._array(self._servo_cmd)
         return cmd
+
+    # -- the step's arrays: numpy on the host (rollout backend), torch on the sim's device (warp) ----
+    def _array(self, host: np.ndarray):
+        """``host`` as an array of the step (itself, or a tensor on the env's device; float64 → float32 there)."""
+        if self._xp is np:
+            return host
+        out = torch.as_tensor(host, device=self.device)
+        return out.to(torch.float32) if out.dtype == torch.float64 else out
+
+    @staticmethod
+    def _host(x) -> np.ndarray:
+        """A step array on the host (numpy)."""
+        return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x
+
+    def _index(self, worlds: np.ndarray):
+        """World indices for a step array."""
+        return worlds if self._xp is np else torch.as_tensor(worlds, device=self.device)
+
+    def _assign(self, arr, worlds: np.ndarray, values) -> None:
+        """``arr[worlds] = values`` for a step array, from host values (or a step array)."""
+        if self._xp is np:
+            arr[worlds] = values
+        else:
+            arr[self._index(worlds)] = torch.as_tensor(values, device=self.device).to(arr.dtype)
+
+    def _tensor(self, x) -> torch.Tensor:
+        """A step array as a tensor (sharing its memory)."""
+        return x if isinstance(x, torch.Tensor) else torch.from_numpy(x)
+
+    def _float32(self, x) -> torch.Tensor:
+        if isinstance(x, torch.Tensor):
+            return x.to(torch.float32)
+        return torch.from_numpy(np.asarray(x, dtype=np.float32))
+
+    @staticmethod
+    def _copy(x):
+        return x.clone() if isinstance(x, torch.Tensor) else x.copy()
+
+    def _noise(self, rng, sigma: float, shape: tuple, f32: bool = False):
+        """Gaussian noise for a step array: from a numpy generator (float32 if ``f32``; moved to the
+        device for the warp backend), or drawn on the device from a torch generator (float32)."""
+        if isinstance(rng, torch.Generator):
+            return sigma * torch.randn(shape, generator=rng, device=self.device)
+        n = rng.normal(0, sigma, shape)
+        return self._array(n.astype(np.float32) if f32 else n)
+
+    def _readout(self):
+        """The sim's readout of every world: numpy on the host, or the warp backend's device readout."""
+        return self.sim.readout() if self._xp is np else self.sim.device_readout()
+
+    def _sim_step(self, cmd):
+        return self.sim.step(cmd) if self._xp is np else self.sim.step_device(cmd)
 
     def _observe(self, readout, rng: np.random.Generator) -> tuple[dict, dict]:
         """Entries of the structured and flat observation plus the frame errors, for the current frame
@@ -542,36 +633,37 @@ class TrackingEnv(EnvBase):
         as numpy arrays, the reward's arguments. Computed on numpy arrays, handed out as torch tensors
         sharing their memory (every array here is new this step, so no output aliases the env's state)."""
         f32 = np.float32
-        joint_pos = readout.joint_pos.astype(f32)     # copies: the readout is reused
-        link_pose = readout.link_pose.astype(f32)
-        object_pose = readout.object_pose.astype(f32)
+        # copies: the host readout is reused (the device readout's tensors are new, float32 already)
+        joint_pos, link_pose, object_pose = (x if isinstance(x, torch.Tensor) else x.astype(f32)
+                                             for x in (readout.joint_pos, readout.link_pose, readout.object_pose))
         idx = self._frames_at()
-        ref_q, ref_link, ref_obj = self._ref_q[idx], self._ref_link[idx], self._ref_obj[idx]
+        ref_q, ref_link, ref_obj = self._step_ref_q[idx], self._step_ref_link[idx], self._step_ref_obj[idx]
         # What the policy sees: encoders (sensor-stage effects, noise) and noisy link positions.
         seen_q = joint_pos
-        if self._has_sensor_effects:
-            seen_q = self.patch.transform_measurement(seen_q.astype(np.float64)[:, None])[:, 0].astype(f32)
+        if self._has_sensor_effects:      # on the host
+            seen_q = self._array(self.patch.transform_measurement(self._host(seen_q).astype(np.float64)[:, None])
+                                 [:, 0].astype(f32))
         seen_link = link_pose
         if self.randomize is not None and self.randomize.proprio_noise > 0:
             sigma = self.randomize.proprio_noise
-            seen_q = seen_q + rng.normal(0, sigma, seen_q.shape).astype(f32)
-            seen_link = seen_link.copy()
-            seen_link[..., :3] += rng.normal(0, sigma, seen_link[..., :3].shape).astype(f32)
-        latent = self._latent.copy()
+            seen_q = seen_q + self._noise(rng, sigma, tuple(seen_q.shape), f32=True)
+            seen_link = self._copy(seen_link)
+            seen_link[..., :3] += self._noise(rng, sigma, tuple(seen_link[..., :3].shape), f32=True)
+        latent = self._copy(self._latent)
         flat = flat_observation(seen_q, seen_link, object_pose, latent, ref_q, ref_obj)
         errors = frame_errors(object_pose, ref_obj[:, 0], link_pose[:, 0], ref_link[:, 0, 0], joint_pos, ref_q[:, 0])
         frame = {"joint_pos": joint_pos, "link_pose": link_pose, "object_pose": object_pose, "ref_joint_pos": ref_q[:, 0],
                  "ref_link_pose": ref_link[:, 0], "ref_object_pose": ref_obj[:, 0], "errors": errors}
-        t, td = torch.from_numpy, self._td
+        t, td, c = self._tensor, self._td, self._copy
         out = {
-            "proprio": td({"joint_pos": t(seen_q), "joint_target": t(self._q_target.astype(f32)),
+            "proprio": td({"joint_pos": t(seen_q), "joint_target": self._float32(c(self._q_target)),
                            "link_pose": t(seen_link)}),
-            "object": td({"pose": t(object_pose), "latent": t(latent), "start_pose": t(self._object_start.copy()),
-                          "reference_start": t(self._ref_obj[self._base])}),
+            "object": td({"pose": t(object_pose), "latent": t(latent), "start_pose": t(c(self._object_start)),
+                          "reference_start": t(self._step_ref_obj[self._base])}),
             "reference": td({"hand_joint_pos": t(ref_q), "hand_link_pose": t(ref_link), "object_pose": t(ref_obj)}),
             "observation": t(flat),
             PRIVILEGED: {"errors": td({k: t(v) for k, v in errors.items()}),
-                         "reference_index": t(self._ref_index.copy()), "step": t(self._t.copy())},
+                         "reference_index": t(c(self._ref_index)), "step": t(c(self._t))},
         }
         return out, frame
 
@@ -579,7 +671,7 @@ class TrackingEnv(EnvBase):
     @property
     def current_references(self) -> list[str]:
         """Name of each world's current reference."""
-        return [self.dataset.entries[int(i)]["name"] for i in self._ref_index]
+        return [self.dataset.entries[int(i)]["name"] for i in self._host(self._ref_index)]
 
     def close(self, **kwargs):
         self.sim.close()

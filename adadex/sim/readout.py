@@ -22,8 +22,9 @@ MAX_OBJECT_SPEED = 4.0
 
 
 def flung(object_vel: np.ndarray, limit: float = MAX_OBJECT_SPEED) -> np.ndarray:
-    """(B,) whether each world's object moves faster than ``limit`` (m/s), from ``SimReadout.object_vel``."""
-    lin = np.asarray(object_vel)[..., :3]
+    """(B,) whether each world's object moves faster than ``limit`` (m/s), from ``SimReadout.object_vel``
+    (numpy, or a torch tensor on any device)."""
+    lin = (object_vel if hasattr(object_vel, "device") else np.asarray(object_vel))[..., :3]
     return (lin * lin).sum(axis=-1) > limit * limit
 
 

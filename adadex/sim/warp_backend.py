@@ -5,9 +5,8 @@
 control held), ``readout()``, ``models``, ``set_models``, ``set_state``, ``close`` — but keeps every
 world's state in MuJoCo Warp's device arrays, so a step costs no host round trip on a GPU beyond
 reading the overflow counters. Select it with ``BatchedSim(models, backend="warp")`` or
-``TrackingEnv(..., backend="warp")`` (the recipes' ``sim.backend`` accepts ``warp`` but the trainer's
-env factories do not pass it on yet, so TrainConfig refuses it); it needs the optional extra:
-``pip install "adadex[warp]"``.
+``TrackingEnv(..., backend="warp")`` (which then steps on the sim's device too) or the recipes'
+``sim.backend=warp``; it needs the optional extra: ``pip install "adadex[warp]"``.
 
 What it takes to match the rollout backend (tested against it on Warp's CPU device):
 
@@ -61,8 +60,8 @@ returns it. ``step`` accepts a numpy array or a torch tensor (on any device).
 Kernels compile on first use (about two minutes on 2 busy CPU cores, cached by Warp afterwards in
 ``wp.config.kernel_cache_dir``, ``WARP_CACHE_PATH``). On a CUDA device the ``substeps`` physics steps
 of a control step are captured once into a CUDA graph and replayed (``cuda_graph=True``), and Warp's
-stream and torch's are ordered by events both ways; that path has not run on a GPU yet (only Warp's
-CPU device is tested).
+stream and torch's are ordered by events both ways (run on an H100: see ``docs/gpu.md``; CI tests Warp's
+CPU device).
 
 Example::
 
@@ -125,6 +124,18 @@ def _import_warp():
         raise ConfigError(f'backend="warp" needs MuJoCo Warp, which is not installed ({e}); install the '
                           f'optional extra: {_INSTALL}') from e
     return warp, mujoco_warp
+
+
+def torch_device(device=None) -> torch.device:
+    """The torch device of Warp device ``device`` (a Warp or torch name; ``None``: Warp's default device,
+    a GPU when there is one) — where a ``WarpSim`` on it keeps its tensors."""
+    wp, _ = _import_warp()
+    wp.init()
+    try:
+        d = wp.get_device(None if device is None else str(device))
+    except (ValueError, RuntimeError) as e:
+        raise ConfigError(f"device={str(device)!r}: not a Warp device here ({e})") from e
+    return torch.device(wp.device_to_torch(d))
 
 
 def warp_available() -> bool:

@@ -67,10 +67,12 @@ def start_worker_server(method: str = "forkserver") -> None:
         forkserver.ensure_running()
 
 
-def collector_devices(policy) -> dict:
+def collector_devices(policy, env_device="cpu") -> dict:
     """``policy_device``, ``env_device`` and ``storing_device`` for a TorchRL collector: the policy's
-    own device for the policy, the CPU (where :class:`~adadex.envs.tracking.TrackingEnv` runs) for
-    the env and the batches.
+    own device for the policy, the env's (the CPU where :class:`~adadex.envs.tracking.TrackingEnv`
+    runs on the rollout backend; the GPU of the warp backend: :attr:`TrackingEnvFactory.device
+    <adadex.train.envs.TrackingEnvFactory.device>`) for the env and the batches, so a GPU env's
+    batches never leave the GPU.
 
     Left unset, TorchRL's ``Collector`` takes the policy's device for unknown: it strips the device
     from the tensordict it carries from step to step (every entry, twice per step) and, before each
@@ -79,8 +81,8 @@ def collector_devices(policy) -> dict:
     ``device`` the CPU instead of ``None``.
     """
     param = next(iter(policy.parameters()), None) if isinstance(policy, torch.nn.Module) else None
-    cpu = torch.device("cpu")
-    return {"policy_device": cpu if param is None else param.device, "env_device": cpu, "storing_device": cpu}
+    env = torch.device(env_device)
+    return {"policy_device": env if param is None else param.device, "env_device": env, "storing_device": env}
 
 
 def local_collector(create_env_fn, policy, *, frames_per_batch: int, total_frames: int) -> Collector:
@@ -95,7 +97,8 @@ def local_collector(create_env_fn, policy, *, frames_per_batch: int, total_frame
     policies here read the env's entries as they are.
     """
     return Collector(create_env_fn, policy, frames_per_batch=frames_per_batch, total_frames=total_frames,
-                     track_traj_ids=False, auto_register_policy_transforms=False, **collector_devices(policy))
+                     track_traj_ids=False, auto_register_policy_transforms=False,
+                     **collector_devices(policy, getattr(create_env_fn, "device", "cpu")))
 
 
 def make_collector(factory: TrackingEnvFactory, policy, cfg: CollectorConfig, *, frames_per_batch: int,
@@ -113,7 +116,7 @@ def make_collector(factory: TrackingEnvFactory, policy, cfg: CollectorConfig, *,
     start_worker_server(cfg.start_method)
     return MultiSyncCollector(factory.with_scenes().for_workers(cfg.workers), policy,
                               frames_per_batch=frames_per_batch, total_frames=total, cat_results="stack",
-                              auto_register_policy_transforms=False, **collector_devices(policy))
+                              auto_register_policy_transforms=False, **collector_devices(policy, factory.device))
 
 
 def connect_ray(cfg: CollectorConfig) -> None:
@@ -163,5 +166,6 @@ def _ray_collector(factory, policy, cfg: CollectorConfig, frames_per_batch: int,
     ray_sync._DIST_TIMEOUT = max(ray_sync._DIST_TIMEOUT, RAY_SYNC_TIMEOUT)
     return RayCollector(factory.for_workers(cfg.workers), policy, frames_per_batch=frames_per_batch,
                         total_frames=total, collector_class=RayWorkerCollector, sync=True,
-                        collector_kwargs={"auto_register_policy_transforms": False}, **collector_devices(policy),
+                        collector_kwargs={"auto_register_policy_transforms": False},
+                        **collector_devices(policy, factory.device),
                         remote_configs={"num_cpus": 1, "num_gpus": 0, "memory": 2 * 1024 ** 3})

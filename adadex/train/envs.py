@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 from torchrl.envs import RewardSum, TransformedEnv
 
 from adadex.envs.randomization import Randomization
-from adadex.envs.tracking import TrackingConfig, TrackingEnv, scene_pack
+from adadex.envs.tracking import TrackingConfig, TrackingEnv, env_device, scene_pack
 from adadex.modules.channels import ModulationConfig
 from adadex.modules.modulator_view import ViewLayout
 from adadex.modules.tracker import Tracker
@@ -43,6 +43,12 @@ class TrackingEnvFactory:
     transforms: tuple = ()
     #: the physics backend (:data:`adadex.sim.batched.BACKENDS`; config ``sim.backend``)
     backend: str = "rollout"
+
+    @property
+    def device(self):
+        """Where the env steps and hands out its tensors (:func:`~adadex.envs.tracking.env_device`): the CPU,
+        or Warp's default device for ``backend="warp"``."""
+        return env_device(self.backend)
 
     def __call__(self) -> TransformedEnv:
         """The env, with each episode's return summed into ``("next", "episode_reward")`` for the logs,

@@ -485,7 +485,8 @@ class PPOTrainer:
                 t_iter = time.perf_counter()
                 for data in collector:
                     t_collected = time.perf_counter()
-                    data = data.reshape(-1, data.shape[-1])          # [worlds (of all workers), T]
+                    # [worlds (of all workers), T], where the updates run (a no-op when the env is there too)
+                    data = data.reshape(-1, data.shape[-1]).to(self.device)
                     first = not self.fitted
                     if first:
                         fit_normalizers(self.policy, data[self.obs_key])    # as every run before obs_norm

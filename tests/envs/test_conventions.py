@@ -77,7 +77,7 @@ def test_privileged_entries_are_apart_and_complete(tiny_dataset):
 
 
 def test_a_non_cpu_device_is_refused_with_a_reason(tiny_dataset):
-    with pytest.raises(AdadexError, match="runs on the CPU"):
+    with pytest.raises(AdadexError, match="rollout backend runs MuJoCo on the CPU.*backend='warp'"):
         TrackingEnv(tiny_dataset, num_worlds=2, split=None, device="cuda")
     with pytest.raises(AdadexError, match="policy_device"):
         TrackingEnv(tiny_dataset, num_worlds=2, split=None, device="meta")

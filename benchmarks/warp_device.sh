@@ -4,6 +4,7 @@
 #
 #   bash benchmarks/warp_device.sh pack [DATASET [--force]]   # here: wheels for CPython 3.12 into .dev1/ and .dev2/
 #   bash benchmarks/warp_device.sh install   # there: unpack them into /tmp/site (PYTHONPATH)
+#   bash benchmarks/warp_device.sh bench OUTDIR   # there: benchmarks/warp_throughput.py's parts, JSON into OUTDIR
 #
 # Why two folders: warp-lang's wheel is 149 MB (its warp.so holds NVRTC and fat binaries for every GPU
 # generation), over the 64 MiB a call may carry. Its warp.so is shipped xz-compressed (81 MB) in three
@@ -78,8 +79,26 @@ PY
     ls /tmp/site/warp/bin/warp.so >/dev/null 2>&1 && echo "warp installed; dataset at /tmp/data/small_pg" \
         || echo "wheels installed into /tmp/site; warp-lang comes with .dev2"
     ;;
+bench)
+    # There, after install: the kernel cache (if .dev3 was staged), then the benchmark parts in order of
+    # what the targets need, each process under its own time limit, the JSON into OUTDIR.
+    outdir=${2:?usage: bash benchmarks/warp_device.sh bench OUTDIR}
+    export PYTHONPATH=/tmp/site:. PYTHONUNBUFFERED=1
+    for d in .dev3; do if [ -d "$d" ]; then cp -n "$d"/* /tmp/stage/ 2>/dev/null || true; fi; done
+    if ls /tmp/stage/warp_kernels_*.tar.xz >/dev/null 2>&1; then python3 benchmarks/warp_precompile.py unpack || echo "kernel cache unpack failed: kernels compile on first use"; fi
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+    bench=(python3 benchmarks/warp_throughput.py --dataset /tmp/data/small_pg --force)
+    timeout "${ADADEX_BENCH_A:-420}" "${bench[@]}" --parts env,specialist,ppo --batches 4096 --ppo-batches 4096 \
+        --budget-s "${ADADEX_BUDGET_A:-330}" --out "$outdir/warp_a.json" || echo "part A ended with $?"
+    timeout "${ADADEX_BENCH_B:-120}" "${bench[@]}" --parts sim,physics,collect --batches 4096 --kernel-profile \
+        --budget-s 60 --out "$outdir/warp_b.json" || echo "part B ended with $?"
+    ADADEX_WARP_TEST_DEVICE=cuda:0 timeout "${ADADEX_TESTS:-100}" python3 -m pytest -q -p no:cacheprovider -x \
+        tests/sim/test_warp_backend.py -k "tracking_env or flung or sims_device" 2>&1 | tail -60 || true
+    timeout "${ADADEX_BENCH_C:-90}" "${bench[@]}" --parts env --batches 1024,8192 --budget-s 45 \
+        --out "$outdir/warp_c.json" || echo "part C ended with $?"
+    ;;
 *)
-    echo "usage: bash benchmarks/warp_device.sh pack [DATASET [--force]] | install" >&2
+    echo "usage: bash benchmarks/warp_device.sh pack [DATASET [--force]] | install | bench OUTDIR" >&2
     exit 2
     ;;
 esac

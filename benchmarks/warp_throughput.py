@@ -173,7 +173,7 @@ def _kernel_profile(sim, device: str, top: int = 25) -> dict:
     return {"total": total, "launches": len(results), **rows}
 
 
-def env_fps(dataset, refs, B: int, steps: int, device: str) -> dict:
+def env_fps(dataset, refs, B: int, steps: int, device: str, kernel_profile: bool = False) -> dict:
     """``TrackingEnv(backend="warp")`` stepped with kinematic replay's actions, as a collector steps it;
     the steady-state resets timed apart (see the module docstring)."""
     from adadex.envs.randomization import Randomization
@@ -200,6 +200,15 @@ def env_fps(dataset, refs, B: int, steps: int, device: str) -> dict:
     dt = time.perf_counter() - t0
     out = {"fps": B * steps / dt, "step_ms": dt / steps * 1e3, "build_s": build_s, "unstable": env.unstable_count,
            "episodes_ended": int(ended), "device": str(env.device)}
+    # the physics alone (the captured graph) from the worlds' states now, mid-episode (hands on objects):
+    # what of step_ms is the physics under these actions, the rest being the env's own work
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        env.sim._physics()
+    _sync(device)
+    out["physics_ms"] = (time.perf_counter() - t0) / steps * 1e3
+    if kernel_profile:
+        out["kernels_ms"] = _kernel_profile(env.sim, device)
     env.close()
     k = max(1, round(B / env.config.window))  # worlds an env of B resets per step once episodes desynchronize
     for name, rnd in (("", None), ("_randomized", Randomization())):
@@ -245,9 +254,12 @@ def collect_fps(dataset, refs, B: int, steps: int, device: str) -> dict:
     return {"fps": batch.numel() / dt, "batch_s": dt, "first_batch_s": first_s, "frames_per_batch": fpb}
 
 
-def ppo_fps(dataset, B: int, steps: int, device: str, iterations: int = 3, total_frames: int | None = None) -> dict:
+def ppo_fps(dataset, B: int, steps: int, device: str, iterations: int = 3, total_frames: int | None = None,
+            minibatches: int = 4) -> dict:
     """PPO iterations as the trainer runs them, its env on the warp backend (``total_frames``: a whole
-    run of that many frames instead, ``steps`` per batch)."""
+    run of that many frames instead, ``steps`` per batch), each epoch in ``minibatches`` minibatches (as
+    GPU PPO runs: 4 × B·T / 4 frames; the trainer's default of 1,024 frames would be hundreds of small
+    updates per batch)."""
     import tempfile
 
     from adadex.train.config import CollectorConfig, PolicyConfig, PPOConfig, SimConfig, TrainConfig
@@ -258,7 +270,7 @@ def ppo_fps(dataset, B: int, steps: int, device: str, iterations: int = 3, total
     with tempfile.TemporaryDirectory() as tmp:
         cfg = TrainConfig(dataset=str(dataset), out=str(Path(tmp) / "ppo"), randomize=False, wandb=False,
                           progress=False, eval_max_references=0, checkpoint_every=10 ** 6,
-                          ppo=PPOConfig(total_frames=total, frames_per_batch=fpb,
+                          ppo=PPOConfig(total_frames=total, frames_per_batch=fpb, minibatch_size=fpb // minibatches,
                                         device=device if device.startswith("cuda") else "cpu"),
                           collector=CollectorConfig(worlds=B), sim=SimConfig(backend="warp"),
                           policy=PolicyConfig())
@@ -270,7 +282,8 @@ def ppo_fps(dataset, B: int, steps: int, device: str, iterations: int = 3, total
     fps = [float(r["fps"]) for r in rows]
     col = [float(r["collect_fps"]) for r in rows if r.get("collect_fps")]
     return {"fps": float(np.median(fps)) if fps else None, "collect_fps": float(np.median(col)) if col else None,
-            "timed_iterations": len(rows), "total_s": wall, "frames": result["frames"], "frames_per_batch": fpb}
+            "timed_iterations": len(rows), "total_s": wall, "frames": result["frames"], "frames_per_batch": fpb,
+            "minibatch_size": fpb // minibatches}
 
 
 def _device_info(device: str) -> dict:
@@ -301,6 +314,7 @@ def main(argv=None) -> dict:
     p.add_argument("--specialist-batch", type=int, default=4096, help="B of the specialist part")
     p.add_argument("--specialist-frames", type=int, default=1_000_000)
     p.add_argument("--kernel-profile", action="store_true", help="GPU time per kernel in the sim part")
+    p.add_argument("--minibatches", type=int, default=4, help="PPO minibatches per epoch (ppo, specialist)")
     p.add_argument("--budget-s", type=float, default=None,
                    help="start no new measurement after this many seconds (the JSON keeps what was measured)")
     p.add_argument("--force", action="store_true")
@@ -346,13 +360,13 @@ def main(argv=None) -> dict:
                     elif part == "sim":
                         r = sim_fps(dataset, refs, B, a.steps, device, kernel_profile=a.kernel_profile)
                     elif part == "env":
-                        r = env_fps(dataset, refs, B, a.steps, device)
+                        r = env_fps(dataset, refs, B, a.steps, device, kernel_profile=a.kernel_profile)
                     elif part == "collect":
                         r = collect_fps(dataset, refs, B, a.steps, device)
                     elif part == "ppo":
-                        r = ppo_fps(dataset, B, a.steps, device, iterations=2)
+                        r = ppo_fps(dataset, B, a.steps, device, iterations=2, minibatches=a.minibatches)
                     else:
-                        r = ppo_fps(dataset, B, 32, device, total_frames=a.specialist_frames)
+                        r = ppo_fps(dataset, B, 32, device, total_frames=a.specialist_frames, minibatches=a.minibatches)
                 except Exception as e:          # a part that fails is recorded, the others still run
                     r = {"error": f"{type(e).__name__}: {e}"[:500]}
                 r["wall_s"] = time.perf_counter() - t0

@@ -267,7 +267,7 @@ def test_tracking_env_observes_the_same_on_both_backends(warp, tiny_dataset, ran
     for _ in range(4):
         action = torch.as_tensor(rng.uniform(-0.05, 0.05, (3, 22)), dtype=torch.float32)
         tds = {b: env.step(tds[b].set("action", action.clone())) for b, env in envs.items()}
-        a, b = tds["warp"]["next"], tds["rollout"]["next"]
+        a, b = tds["warp"]["next"].cpu(), tds["rollout"]["next"]        # the warp env's tensors: its device's
         torch.testing.assert_close(a["observation"], b["observation"], atol=1e-4, rtol=0)
         torch.testing.assert_close(a["reward"], b["reward"], atol=1e-4, rtol=1e-4)
         assert torch.equal(a["done"], b["done"])
@@ -326,8 +326,9 @@ def test_tracking_env_on_warp_steps_on_the_sims_device(warp, tiny_dataset):
     assert devices == {a.device} and a.device.type == torch.device(DEVICE).type
     b, _ = rollout(1)
     c, _ = rollout(2)
-    assert torch.equal(a["next", "observation"], b["next", "observation"])
-    assert not torch.equal(a["next", "observation"], c["next", "observation"])
+    # the same draws; on a GPU MuJoCo Warp's contact sums are not bit-reproducible (atomics): to 1e-4
+    torch.testing.assert_close(a["next", "observation"], b["next", "observation"], atol=1e-4, rtol=0)
+    assert (a["next", "observation"] - c["next", "observation"]).abs().max() > 1e-3
     env = TrackingEnv(tiny_dataset, num_worlds=2, split=None, backend="warp")
     check_env_specs(env)
     env.close()

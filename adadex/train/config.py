@@ -69,10 +69,11 @@ class PPOConfig:
             object positions clipped; it stays the default because specialists trained with running
             statistics completed less (docs/training-log.md, "Running observation statistics").
         device: where the policy, the critic, GAE and the minibatch updates run: ``"cpu"`` (default)
-            or a CUDA device (``"cuda"``, ``"cuda:1"``). The env stays where its backend puts it; the
-            collector moves each step's observation to the policy's device and the batch back to the
-            host, and the update moves the batch to this device. A CUDA device needs the local
-            collector with one worker.
+            or a CUDA device (``"cuda"``, ``"cuda:1"``). The env stays where its backend puts it (the
+            host for ``sim.backend=rollout``, the GPU for ``warp``) and the collector stores each batch
+            there, moving each step's observation to the policy's device when it is another; the
+            update moves the batch to this device (with ``sim.backend=warp ppo.device=cuda`` nothing
+            leaves the GPU). A CUDA device needs the local collector with one worker.
     """
 
     total_frames: int = 1_000_000

@@ -198,6 +198,11 @@ _IGNORED = frozenset({"key_time", "key_qpos", "key_qvel", "key_act", "key_mpos",
                       "key_plastic"})
 
 
+def _fields_bytes(m: mujoco.MjModel, fields: Sequence[str]) -> bytes:
+    """``m``'s values of ``fields`` as one byte string (equal models, equal strings; for a fast check)."""
+    return b"".join(np.ascontiguousarray(getattr(m, f)).tobytes() for f in fields)
+
+
 def _active_slots(m: mujoco.MjModel) -> np.ndarray:
     """(ngeom,) which geoms can collide in ``m``."""
     return (np.asarray(m.geom_contype) != 0) | (np.asarray(m.geom_conaffinity) != 0)
@@ -241,6 +246,10 @@ class MeshPool:
         self.npolygonmax = 0
         self.nmeshdegmax = 0
         self._maps: dict[int, tuple[mujoco.MjModel, np.ndarray]] = {}
+        # arrays() so far: the pool grows by appending, so only new meshes are laid out again
+        self._parts: dict[str, list] = {f: [] for f in _MESH_FIELDS}
+        self._laid_out = 0
+        self._ends = (0,) * 7        # vert, normal, face, graph, poly, polyvert, polymap entries so far
 
     def __len__(self) -> int:
         return len(self._meshes)
@@ -293,10 +302,11 @@ class MeshPool:
         return out
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """The pool as MuJoCo Warp's ``mesh_*`` arrays (addresses rebased, indices stay per mesh)."""
-        out = {f: [] for f in _MESH_FIELDS}
-        v = n = fc = g = p = pv = pm = 0
-        for mesh in self._meshes:
+        """The pool as MuJoCo Warp's ``mesh_*`` arrays (addresses rebased, indices stay per mesh); meshes
+        laid out by an earlier call are not laid out again."""
+        out = self._parts
+        v, n, fc, g, p, pv, pm = self._ends
+        for mesh in self._meshes[self._laid_out:]:
             nv, nn, nf, npoly = len(mesh["vert"]), len(mesh["normal"]), len(mesh["face"]), len(mesh["polynormal"])
             out["mesh_vertadr"].append([v]), out["mesh_vertnum"].append([nv])
             out["mesh_normaladr"].append([n]), out["mesh_normalnum"].append([nn])
@@ -320,8 +330,11 @@ class MeshPool:
             v, n, fc, p = v + nv, n + nn, fc + nf, p + npoly
             pv += len(mesh["polyvert"])
             pm += len(mesh["polymap"])
-        return {f: np.concatenate([np.asarray(a) for a in parts]) if parts else np.zeros(0)
-                for f, parts in out.items()}
+        self._laid_out, self._ends = len(self._meshes), (v, n, fc, g, p, pv, pm)
+        for f, parts in out.items():       # one array per field, kept as the head of the next call's list
+            if len(parts) > 1:
+                out[f] = [np.concatenate([np.asarray(a) for a in parts])]
+        return {f: np.asarray(parts[0]) if parts else np.zeros(0) for f, parts in out.items()}
 
 
 class WarpSim:
@@ -426,22 +439,20 @@ class WarpSim:
                                   f"options between worlds (they cannot be batched)")
         act_t, act_m = _active_slots(t), _active_slots(m)
         both = act_t & act_m
+        plain, keyed = self._compared_fields()
         diff = []
-        for f in self._shared:
-            if f in _LIMIT_FLAGS or f.startswith("mesh_") or f in _IGNORED or (f == "dof_length" and not _sleeps(t)):
-                continue                      # meshes: the pool; ignored: never read while stepping
-            if f == "geom_group" and not _has_rays(t):
-                continue
+        if _fields_bytes(m, plain) != self._template_bytes(plain):   # one comparison for the usual case
+            diff = [f for f in plain if not np.array_equal(getattr(m, f), getattr(t, f))]
+        for f in _SLOT_FIELDS:
             a, b = np.asarray(getattr(m, f)), np.asarray(getattr(t, f))
-            if f in _SLOT_FIELDS:
-                a, b = a[both], b[both]       # a slot one of them leaves unused takes the other's values
-            if not np.array_equal(a, b):
+            if not np.array_equal(a[both], b[both]):    # a slot one of them leaves unused takes the other's values
                 diff.append(f)
         if diff:
             raise ConfigError(f"{what} differs from model 0 in {', '.join(diff)}, which MuJoCo Warp cannot set per "
                               f"world; per-world models may differ only in batchable parameters")
-        batch = {f for f in self._batchable if f not in self._batched
-                 and not np.array_equal(getattr(m, f), getattr(t, f))}
+        batch = set()
+        if _fields_bytes(m, keyed) != self._template_bytes(keyed):
+            batch = {f for f in keyed if not np.array_equal(getattr(m, f), getattr(t, f))}
         flags = {}
         for flag, rng in _LIMIT_FLAGS.items():
             on_m, on_t = np.asarray(getattr(m, flag)) != 0, np.asarray(getattr(t, flag)) != 0
@@ -451,6 +462,28 @@ class WarpSim:
                 batch.add(rng)            # the range carries the difference: infinite where off
         return batch - self._batched, act_m & ~act_t, flags
 
+    def _compared_fields(self) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        """(shared fields every world must hold as the template does — slot fields, limit flags, meshes
+        and fields never read while stepping aside —, batchable fields not batched yet)."""
+        t = self._template
+        key = (frozenset(self._batched), _sleeps(t), _has_rays(t))
+        if getattr(self, "_fields_key", None) != key:
+            plain = tuple(f for f in self._shared if not (
+                f in _LIMIT_FLAGS or f in _SLOT_FIELDS or f.startswith("mesh_") or f in _IGNORED
+                or (f == "dof_length" and not _sleeps(t)) or (f == "geom_group" and not _has_rays(t))))
+            self._fields_cache = (plain, tuple(f for f in self._batchable if f not in self._batched))
+            self._fields_key = key
+        return self._fields_cache
+
+    def _template_bytes(self, fields: tuple[str, ...]) -> bytes:
+        """The template's values of ``fields``, one byte string (cached until the template changes)."""
+        cache = self.__dict__.setdefault("_bytes_cache", {})
+        key = (fields, id(self._template))
+        if key not in cache:
+            cache.clear() if len(cache) > 8 else None
+            cache[key] = _fields_bytes(self._template, fields)
+        return cache[key]
+
     def _adopt(self, m: mujoco.MjModel, what: str) -> bool:
         """Check ``m`` and change the template to hold it; whether the device model must be put again."""
         hit = self._checked.get(id(m))
@@ -458,6 +491,8 @@ class WarpSim:
             return False
         batch, slots, flags = self._compare(m, what)
         t = self._template
+        if slots.any() or flags:
+            self.__dict__.pop("_bytes_cache", None)      # the template's values change
         for f in _SLOT_FIELDS:
             getattr(t, f)[slots] = getattr(m, f)[slots]
         for flag, on in flags.items():
@@ -548,6 +583,7 @@ class WarpSim:
             reput = [self._adopt(m, f"model for world {w}") for w, m in zip(worlds, models)]
         except ConfigError:
             self._template, self._batched = template     # nothing changed
+            self.__dict__.pop("_bytes_cache", None)
             raise
         for w, m in zip(worlds, models):
             self._models[w] = m
@@ -586,14 +622,51 @@ class WarpSim:
                 self.torch_device, self._sens.dtype)
         return self.readout()
 
+    def _state_parts(self) -> list[tuple[int, int, torch.Tensor]] | None:
+        """(offset in the full-physics state, size, the device data's torch view) of each component the
+        state holds, in ``mj_getState``'s order; ``None`` when it holds one not mapped here (then
+        MuJoCo Warp's ``set_state`` writes it)."""
+        m0, d, T = self._models[0], self._data, self._wp.to_torch
+        views = {mujoco.mjtState.mjSTATE_TIME: lambda: T(d.time)[:, None],
+                 mujoco.mjtState.mjSTATE_QPOS: lambda: T(d.qpos), mujoco.mjtState.mjSTATE_QVEL: lambda: T(d.qvel),
+                 mujoco.mjtState.mjSTATE_ACT: lambda: T(d.act),
+                 mujoco.mjtState.mjSTATE_HISTORY: lambda: T(d.history)}
+        parts, offset = [], 0
+        for bit in range(int(mujoco.mjtState.mjNSTATE)):
+            element = 1 << bit
+            if not FULLPHYSICS & element:
+                continue
+            size = mujoco.mj_stateSize(m0, element)
+            if size == 0:
+                continue
+            view = next((v for k, v in views.items() if int(k) == element), None)
+            if view is None:
+                return None
+            t = view()
+            if t.shape[-1] != size:
+                return None
+            parts.append((offset, size, t))
+            offset += size
+        return parts if offset == self.nstate else None
+
     def _write_state(self, idx: np.ndarray, states: np.ndarray) -> None:
+        """Full-physics ``states`` into worlds ``idx``: through torch views of the device data (a kernel
+        per component, no new Warp kernel: MuJoCo Warp's ``set_state`` builds and hashes one per call,
+        milliseconds each reset), else through ``set_state``."""
         tidx = torch.as_tensor(idx, device=self.torch_device)
-        self._state_t[tidx] = torch.as_tensor(states).to(self.torch_device, self._state_t.dtype)
-        self._active_t.zero_()
-        self._active_t[tidx] = True
-        self._warp_waits()
-        self._mjw.set_state(self._model, self._data, self._state_wp, FULLPHYSICS, active=self._active_wp)
-        self._torch_waits()
+        values = torch.as_tensor(states).to(self.torch_device, self._state_t.dtype)
+        if not hasattr(self, "_parts"):
+            self._parts = self._state_parts()
+        if self._parts is not None:
+            for offset, size, view in self._parts:
+                view[tidx] = values[:, offset:offset + size].to(view.dtype)
+        else:
+            self._state_t[tidx] = values
+            self._active_t.zero_()
+            self._active_t[tidx] = True
+            self._warp_waits()
+            self._mjw.set_state(self._model, self._data, self._state_wp, FULLPHYSICS, active=self._active_wp)
+            self._torch_waits()
         self._warmstart[tidx] = 0
         self._overflow[tidx] = 0
 
@@ -724,7 +797,7 @@ class WarpSim:
             return
         self._closed = True
         self._graph = None
-        for name in ("_model", "_data", "_fields", "_state_wp", "_active_wp", "_qpos", "_qvel", "_ctrl", "_act",
+        for name in ("_model", "_data", "_fields", "_parts", "_state_wp", "_active_wp", "_qpos", "_qvel", "_ctrl", "_act",
                      "_time", "_sens", "_warmstart", "_overflow", "_state_t", "_active_t"):
             if hasattr(self, name):
                 setattr(self, name, None)

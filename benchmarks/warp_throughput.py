@@ -32,7 +32,7 @@ B = 4,096; ``ppo`` ≥ 50 % of it; a specialist's 1 M frames in under a minute.
         [--parts physics,sim,env,collect,ppo] [--device cuda:0] [--out FILE]
 
 Needs the ``warp`` extra (``pip install "adadex[warp]"``); on a machine without a GPU it runs on Warp's
-CPU device (correct, never fast: do not read its figures as timings). See ``benchmarks/warp_device.sh``
+CPU device (correct, never fast: do not read its figures as timings). See ``benchmarks/device/warp_device.sh``
 for running it on a lent GPU machine whose Python holds torch only.
 """
 

@@ -38,6 +38,8 @@ the object-centric success (object completion: frames with the object within 5 c
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import dataclasses
 import json
 import shutil
@@ -293,22 +295,38 @@ def _aligned(rows: dict[str, dict], fields=("completion", "object_completion", "
     return out
 
 
-def ratio_bootstrap(numerator, denominator, reference_ids, *, resamples: int = 2000, seed: int = 0) -> dict:
+def ratio_bootstrap(numerator, denominator, reference_ids, seed_ids=None, *, resamples: int = 2000,
+                    seed: int = 0) -> dict:
     """mean(numerator) / mean(denominator) over paired episodes, with a percentile bootstrap interval
-    resampling references (each with all its episodes), as :func:`adadex.eval.paired.bootstrap_mean`
-    resamples them. Resamples whose denominator is ≤ 0 count as −∞ (no gap to recover: the ratio is
-    not defined there), so such resamples pull the lower end down instead of being dropped."""
+    resampling references (each with all its episodes) within each seed (``seed_ids``: the strata,
+    ``None``: one), as :func:`adadex.eval.paired.bootstrap_mean` resamples them; over seeds the ratio is
+    that of the seeds' mean numerator and mean denominator. Resamples whose denominator is ≤ 0 count as
+    −∞ (no gap to recover: the ratio is not defined there), so such resamples pull the lower end down
+    instead of being dropped."""
     num, den = np.asarray(numerator, float), np.asarray(denominator, float)
-    _, inv = np.unique(np.asarray(reference_ids), return_inverse=True)
-    sn, sd = np.bincount(inv, weights=num), np.bincount(inv, weights=den)
-    n = len(sn)
-    if n == 0 or sd.sum() <= 0:
+    refs = np.asarray(reference_ids)
+    seeds = np.zeros(len(num), dtype=np.int64) if seed_ids is None else np.asarray(seed_ids)
+    rng = np.random.default_rng(seed)
+    tn, td, est_n, est_d = np.zeros(int(resamples)), np.zeros(int(resamples)), 0.0, 0.0
+    strata = np.unique(seeds)
+    for k in strata:                                     # sorted: a fixed order of draws
+        m = seeds == k
+        _, inv = np.unique(refs[m], return_inverse=True)
+        sn, sd, cnt = (np.bincount(inv, weights=num[m]), np.bincount(inv, weights=den[m]),
+                       np.bincount(inv).astype(float))
+        n = len(sn)
+        if n == 0:
+            continue
+        draws = rng.multinomial(n, np.full(n, 1.0 / n), size=int(resamples)).astype(float)
+        c = draws @ cnt
+        tn += (draws @ sn) / c
+        td += (draws @ sd) / c
+        est_n, est_d = est_n + sn.sum() / cnt.sum(), est_d + sd.sum() / cnt.sum()
+    if len(strata) == 0 or est_d <= 0:
         return {"estimate": None, "ci95": None}
-    draws = np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=int(resamples)).astype(float)
-    d = draws @ sd
-    stats = np.where(d > 0, (draws @ sn) / np.where(d > 0, d, 1.0), -np.inf)
+    stats = np.where(td > 0, tn / np.where(td > 0, td, 1.0), -np.inf)
     lo, hi = np.quantile(stats, [0.025, 0.975])
-    return {"estimate": float(sn.sum() / sd.sum()), "ci95": [float(lo), float(hi)]}
+    return {"estimate": float(est_n / est_d), "ci95": [float(lo), float(hi)], "seeds": int(len(strata))}
 
 
 def row_statistics(evaluations: dict[str, dict], *, seed: int = 0) -> dict:
@@ -350,6 +368,58 @@ def row_statistics(evaluations: dict[str, dict], *, seed: int = 0) -> dict:
         if {"modulator_identified_real", "modulator_table3_real"} <= set(evaluations):
             d = paired_bootstrap(c["modulator_identified_real"], c["modulator_table3_real"], refs, seed=seed)
             out["identified_vs_table3_points"] = {"estimate": d["estimate"], "ci95": d["ci95"]}
+    return out
+
+
+def pool_seeds(results: Sequence[dict], *, seed: int = 0) -> dict:
+    """Several runs of the loop on one hidden robot (``sim2real.json`` results, one per training seed)
+    as one: every row's completion and object completion, the gap and the recovered fractions, the
+    mean over seeds with intervals that resample references within each seed
+    (:func:`adadex.eval.paired.bootstrap_mean`'s strata, :func:`ratio_bootstrap`). Each run's rows are
+    paired on its own draws; runs of other hidden robots, or with rows missing, are refused."""
+    from adadex.eval.paired import bootstrap_mean, paired_bootstrap
+
+    results = list(results)
+    if len(results) < 2:
+        raise Sim2RealError(f"pool_seeds needs the results of at least 2 runs, got {len(results)}")
+    reals = {str(r.get("real")) for r in results}
+    if len(reals) != 1:
+        raise Sim2RealError(f"pool_seeds: the runs are of different hidden robots: {sorted(reals)}")
+    seeds = [r.get("seed") for r in results]
+    if len(set(seeds)) != len(seeds):
+        raise Sim2RealError(f"pool_seeds: two runs share a seed ({seeds}); pool runs of different seeds")
+    names = [n for n in results[0]["per_episode"] if all(n in r["per_episode"] for r in results)]
+    if not {"tracker_nominal", "tracker_real"} <= set(names):
+        raise Sim2RealError("pool_seeds: every run needs the tracker_nominal and tracker_real rows")
+    parts = [_aligned({n: r["per_episode"][n] for n in names}) for r in results]
+    refs = np.concatenate([a["reference"] for a in parts])
+    seed_ids = np.concatenate([np.full(len(a["reference"]), i) for i, a in enumerate(parts)])
+    col = {f: {n: np.concatenate([a[f][n] for a in parts]) for n in names} for f in ("completion", "object_completion")}
+    rows = {}
+    for n in names:
+        row = {}
+        for metric, f in (("completion_pct", "completion"), ("object_success_pct", "object_completion")):
+            b = bootstrap_mean(col[f][n], refs, seed_ids, seed=seed)
+            row[metric], row[f"{metric}_ci95"] = b["estimate"], b["ci95"]
+            if n != "tracker_real":
+                d = paired_bootstrap(col[f][n], col[f]["tracker_real"], refs, seed_ids, seed=seed)
+                row[f"vs_tracker_real_{metric.replace('_pct', '')}_points"] = {"estimate": d["estimate"],
+                                                                               "ci95": d["ci95"]}
+        rows[n] = row
+    c = col["completion"]
+    gap = paired_bootstrap(c["tracker_nominal"], c["tracker_real"], refs, seed_ids, seed=seed)
+    out = {"real": results[0].get("real"), "seeds": seeds, "runs": len(results), "rows": rows,
+           "paired_episodes": int(len(refs)), "gap_points": gap["estimate"], "gap_points_ci95": gap["ci95"],
+           "per_seed_recovered_fraction": [r.get("recovered_fraction") for r in results]}
+    for n in ("modulator_identified_real", "modulator_table3_real", "modulator_oracle_real"):
+        if n in names:
+            r = ratio_bootstrap(c[n] - c["tracker_real"], c["tracker_nominal"] - c["tracker_real"], refs, seed_ids,
+                                seed=seed)
+            key = "recovered_fraction" if n == "modulator_identified_real" else f"recovered_fraction_{n}"
+            out[key], out[f"{key}_ci95"] = r["estimate"], r["ci95"]
+    if {"modulator_identified_real", "modulator_table3_real"} <= set(names):
+        d = paired_bootstrap(c["modulator_identified_real"], c["modulator_table3_real"], refs, seed_ids, seed=seed)
+        out["identified_vs_table3_points"] = {"estimate": d["estimate"], "ci95": d["ci95"]}
     return out
 
 

@@ -56,6 +56,44 @@ def test_ratio_bootstrap():
     r = ratio_bootstrap(0.5 * gap + rng.normal(0, 1, 60), gap, refs)
     assert abs(r["estimate"] - 0.5) < 0.05 and r["ci95"][0] < r["estimate"] < r["ci95"][1]
     assert ratio_bootstrap(gap, -gap, refs) == {"estimate": None, "ci95": None}       # no gap: not defined
+    # over seeds: the ratio of the seeds' mean numerator and denominator, references resampled within each
+    seeds = np.repeat([0, 1], 60)
+    two = ratio_bootstrap(np.concatenate([0.2 * gap, 0.8 * gap]), np.concatenate([gap, gap]), np.tile(refs, 2), seeds)
+    assert abs(two["estimate"] - 0.5) < 1e-9 and two["seeds"] == 2 and two["ci95"][0] < 0.5 < two["ci95"][1]
+
+
+def _run(seed, real="assets/gaps/x.json", recovered=0.5, n_refs=20, repeats=2):
+    """A sim2real.json result of one seed: every row's per-episode completion (fractions), the identified
+    modulator recovering ``recovered`` of a 10-point gap."""
+    rng = np.random.default_rng(seed)
+    refs = np.repeat(np.arange(n_refs), repeats)
+    real_c = rng.uniform(0.5, 0.7, refs.size)
+    rows = {"tracker_nominal": real_c + 0.10, "tracker_real": real_c, "modulator_table3_real": real_c + 0.01,
+            "modulator_identified_real": real_c + 0.10 * recovered}
+    ep = lambda c: {"reference": refs.tolist(), "repeat": np.tile(np.arange(repeats), n_refs).tolist(),
+                    "frames": [299] * refs.size, "completion": c.tolist(), "object_completion": (c / 2).tolist(),
+                    "T_o": [0.05] * refs.size}
+    return {"real": real, "seed": seed, "recovered_fraction": recovered,
+            "per_episode": {k: ep(v) for k, v in rows.items()}}
+
+
+def test_pool_seeds_pools_paired_rows_over_seeds():
+    from adadex.train.sim2real import Sim2RealError, pool_seeds
+
+    pooled = pool_seeds([_run(0, recovered=0.2), _run(1, recovered=0.6), _run(2, recovered=0.7)])
+    assert pooled["seeds"] == [0, 1, 2] and pooled["paired_episodes"] == 120
+    assert abs(pooled["gap_points"] - 10.0) < 1e-9
+    assert abs(pooled["recovered_fraction"] - 0.5) < 1e-9            # (2 + 6 + 7) / 3 points of a 10-point gap
+    lo, hi = pooled["recovered_fraction_ci95"]
+    assert lo <= 0.5 <= hi
+    assert abs(pooled["identified_vs_table3_points"]["estimate"] - 4.0) < 1e-9
+    assert pooled["per_seed_recovered_fraction"] == [0.2, 0.6, 0.7]
+    with pytest.raises(Sim2RealError, match="different hidden robots"):
+        pool_seeds([_run(0), _run(1, real="assets/gaps/y.json")])
+    with pytest.raises(Sim2RealError, match="share a seed"):
+        pool_seeds([_run(0), _run(0)])
+    with pytest.raises(Sim2RealError, match="at least 2"):
+        pool_seeds([_run(0)])
 
 
 def test_end_to_end_tiny_identifies_from_recordings_alone(tmp_path, tiny_dataset, monkeypatch, capsys):

@@ -2,9 +2,9 @@
 # Run benchmarks/warp_throughput.py on a GPU machine whose Python (3.12) already holds torch and nothing
 # of adadex's other dependencies, and that cannot reach a package index.
 #
-#   bash benchmarks/warp_device.sh pack [DATASET [--force]]   # here: wheels for CPython 3.12 into .dev1/ and .dev2/
-#   bash benchmarks/warp_device.sh install   # there: unpack them into /tmp/site (PYTHONPATH)
-#   bash benchmarks/warp_device.sh bench OUTDIR   # there: benchmarks/warp_throughput.py's parts, JSON into OUTDIR
+#   bash benchmarks/device/warp_device.sh pack [DATASET [--force]]   # here: wheels for CPython 3.12 into .dev1/ and .dev2/
+#   bash benchmarks/device/warp_device.sh install   # there: unpack them into /tmp/site (PYTHONPATH)
+#   bash benchmarks/device/warp_device.sh bench OUTDIR   # there: benchmarks/warp_throughput.py's parts, JSON into OUTDIR
 #
 # Why two folders: warp-lang's wheel is 149 MB (its warp.so holds NVRTC and fat binaries for every GPU
 # generation), over the 64 MiB a call may carry. Its warp.so is shipped xz-compressed (81 MB) in three
@@ -13,7 +13,7 @@
 # The first call copies .dev1 to /tmp/stage on the machine; the second, on the same warm machine,
 # installs everything from /tmp/stage and .dev2. mujoco-studio and PyOpenGL (a viewer's) stay behind.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 mode=${1:-}
 PLAT=(--only-binary=:all: --python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64
       --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64)
@@ -28,11 +28,11 @@ pack)
     # .dev1/.dev2 are this script's own output: refuse to write into folders it did not make
     for d in .dev1 .dev2; do
         if [ -e "$d" ] && [ ! -f "$d/.warp_device_pack" ] && [ "$force" != "--force" ]; then
-            echo "benchmarks/warp_device.sh: error: $d exists and was not written by this script; move it or add --force" >&2
+            echo "benchmarks/device/warp_device.sh: error: $d exists and was not written by this script; move it or add --force" >&2
             exit 2
         fi
     done
-    [ -d "$dataset/frames" ] || { echo "benchmarks/warp_device.sh: error: no dataset at $dataset (adadex data build ...)" >&2; exit 2; }
+    [ -d "$dataset/frames" ] || { echo "benchmarks/device/warp_device.sh: error: no dataset at $dataset (adadex data build ...)" >&2; exit 2; }
     rm -rf .dev1 .dev2
     tmp=$(mktemp -d)
     mkdir -p .dev1 .dev2
@@ -82,10 +82,10 @@ PY
 bench)
     # There, after install: the kernel cache (if .dev3 was staged), then the benchmark parts in order of
     # what the issue's targets need, each process under its own time limit, the JSON into OUTDIR.
-    outdir=${2:?usage: bash benchmarks/warp_device.sh bench OUTDIR}
+    outdir=${2:?usage: bash benchmarks/device/warp_device.sh bench OUTDIR}
     export PYTHONPATH=/tmp/site:. PYTHONUNBUFFERED=1
     for d in .dev3; do if [ -d "$d" ]; then cp -n "$d"/* /tmp/stage/ 2>/dev/null || true; fi; done
-    if ls /tmp/stage/warp_kernels_*.tar.xz >/dev/null 2>&1; then python3 benchmarks/warp_precompile.py unpack || echo "kernel cache unpack failed: kernels compile on first use"; fi
+    if ls /tmp/stage/warp_kernels_*.tar.xz >/dev/null 2>&1; then python3 benchmarks/device/warp_precompile.py unpack || echo "kernel cache unpack failed: kernels compile on first use"; fi
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
     bench=(python3 benchmarks/warp_throughput.py --dataset /tmp/data/small_pg --force)
     timeout "${ADADEX_BENCH_A:-420}" "${bench[@]}" --parts env,specialist,ppo --batches 4096 --ppo-batches 4096 \
@@ -98,7 +98,7 @@ bench)
         --out "$outdir/warp_c.json" || echo "part C ended with $?"
     ;;
 *)
-    echo "usage: bash benchmarks/warp_device.sh pack [DATASET [--force]] | install | bench OUTDIR" >&2
+    echo "usage: bash benchmarks/device/warp_device.sh pack [DATASET [--force]] | install | bench OUTDIR" >&2
     exit 2
     ;;
 esac

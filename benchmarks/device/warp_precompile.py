@@ -36,10 +36,10 @@ Warp's automatic choice on a driver older than its toolkit (Warp 1.19.0 is built
 would open (``Module._get_compile_output_name(None, output_arch=90, use_ptx=False, block_dim=…)`` under an
 extracted copy of the archive): hits and misses.
 
-    python benchmarks/warp_precompile.py [build] [--batches 256] [--gpu-batches 256,…,16384] [--force]
-    python benchmarks/warp_precompile.py verify [--batches 1024 --gpu-batches ""]     # a real B, no substitution
-    python3 benchmarks/warp_precompile.py unpack [--tar FILE] [--cache-dir DIR]        # GPU machine
-    python3 benchmarks/warp_precompile.py exec benchmarks/warp_throughput.py ARGS…    # GPU machine, CUBIN forced
+    python benchmarks/device/warp_precompile.py [build] [--batches 256] [--gpu-batches 256,…,16384] [--force]
+    python benchmarks/device/warp_precompile.py verify [--batches 1024 --gpu-batches ""]     # a real B, no substitution
+    python3 benchmarks/device/warp_precompile.py unpack [--tar FILE] [--cache-dir DIR]        # GPU machine
+    python3 benchmarks/device/warp_precompile.py exec benchmarks/warp_throughput.py ARGS…    # GPU machine, CUBIN forced
 
 Limits: the archive matches the code it was built from — rebuild after any change to adadex's sim/env
 code, MuJoCo Warp or Warp (a rebuild reuses what did not change). A kernel the GPU run makes that this
@@ -61,12 +61,12 @@ import threading
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 DEV = ROOT / ".dev3"
 TAR_NAME = "warp_kernels_sm90.tar.xz"
 MARKER = ".warp_precompile_pack"
 MANIFEST = "warp_precompile_manifest.json"
-PROG = "benchmarks/warp_precompile.py"
+PROG = "benchmarks/device/warp_precompile.py"
 DEFAULT_WORK = ROOT / "build" / "warp_precompile_sm90"
 #: Warp's block_dim for a CUDA launch that names none (``_resolve_launch_block_dim``)
 CUDA_DEFAULT_BLOCK_DIM = 256
@@ -305,7 +305,7 @@ def run_workload(a, watcher: LoadWatcher) -> dict:
     return {"workload_s": time.perf_counter() - t0}
 
 
-#: the GPU-side test selection of ``benchmarks/warp_device.sh bench`` (run there with
+#: the GPU-side test selection of ``benchmarks/device/warp_device.sh bench`` (run there with
 #: ADADEX_WARP_TEST_DEVICE=cuda:0): its kernels (tiny dataset, B = 2 and 3, model patches) are others
 TESTS = ["tests/sim/test_warp_backend.py", "-k", "tracking_env or flung or sims_device"]
 
@@ -529,7 +529,7 @@ def extract(tar_path: Path, dest: Path) -> dict:
 
 
 #: where ``unpack`` looks for the archive when --tar is not given: the carried .dev3, or where
-#: ``benchmarks/warp_device.sh`` stages carried folders between calls
+#: ``benchmarks/device/warp_device.sh`` stages carried folders between calls
 TAR_CANDIDATES = (DEV / TAR_NAME, Path("/tmp/stage") / TAR_NAME)
 
 
@@ -546,7 +546,7 @@ def cmd_unpack(a):
     try:
         import warp as wp
     except ImportError:
-        _die("needs warp importable (PYTHONPATH=/tmp/site after benchmarks/warp_device.sh install)")
+        _die("needs warp importable (PYTHONPATH=/tmp/site after benchmarks/device/warp_device.sh install)")
     wp.config.log_level = wp.LOG_WARNING
     if a.cache_dir:
         dest = Path(a.cache_dir)

@@ -49,7 +49,11 @@ when the selected values are refined jointly. Load-like effects (a payload, or a
 chosen on several joints of one chain are tried as one payload on one link of the unbranched chain
 below them, fitted to all their sequences; it replaces them when it
 explains their held-out sequences as well (a mass on the hand is one hypothesis, not a payload on the
-shoulder plus armature on the elbow). A candidate fitted at (or within 0.1 % of the bounds of) its
+shoulder plus armature on the elbow). Softer servos carrying a load (:func:`_shared_effect_and_load`):
+when the failing joints of one chain are not yet explained and one effect was chosen on several of
+them, that effect on all of them with a payload screened on top replaces the selection if it explains
+the held-out error better (kp × 0.3 on six arm joints and 2 kg at the palm, joint by joint kp here,
+damping, friction and kd there, are one softness and one payload). A candidate fitted at (or within 0.1 % of the bounds of) its
 absent value explains nothing
 and is dropped; explained fractions are reported clipped at 0. A selected value whose 95 % interval
 spans half of its bounds is reported as not identifiable from the recording, with the
@@ -71,6 +75,7 @@ best candidates explain too little; the report says how much).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from dataclasses import dataclass, field
@@ -380,6 +385,21 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     if sum(len(c) for c in selected_per_joint.values()) > 1 or knock_on or removed:
         explained.update(_score_jointly(setting, selected_per_joint, carried))
     explained = {j: max(0.0, v) for j, v in explained.items() if j in failing}
+    shared = (_shared_effect_and_load(setting, failing, selected_per_joint, explained, explained_at, tie)
+              if joints is None and not carried and "payload_mass" in candidates else None)
+    if shared is not None:
+        effect, cands, load_cand, reds, before_mean = shared
+        selected_per_joint = {j: [cands[j]] for j in failing}
+        selected_per_joint.setdefault(load_cand.joint, []).append(load_cand)
+        for c in [*cands.values(), load_cand]:
+            first_rounds.setdefault(c.joint, []).insert(0, c)
+        explained, knock_on, suggestions = dict(reds), [], []
+        mean = float(np.mean(list(reds.values())))
+        findings.append(f"{', '.join(failing)}: {effect} on every one of them "
+                        f"({min(c.value for c in cands.values()):.3g}–{max(c.value for c in cands.values()):.3g}) "
+                        f"and one payload_mass on the link of {load_cand.joint} ({_link_names(setting, load_cand.joint)}; "
+                        f"{_load_text(load_cand)}) explain their held-out errors better than the effects chosen joint by "
+                        f"joint ({mean:.0%} against {before_mean:.0%} on average): softer servos that carry a load.")
     loaded = {j: selected_per_joint[k] for k, aff in carried.items() for j in aff if j not in load_gone}
     own_knock_on = [j for j in knock_on if j not in loaded]
     if own_knock_on:
@@ -597,6 +617,72 @@ LOAD_SHORTLIST = 4
 #: load's step removes about 0.8 (0.6 kg at the palm, 1 kg on the forearm), a delay on the shoulder and
 #: friction on a finger 0.36 (with a mass on the shoulder's own link)
 LOAD_SCREEN_AT = 0.5
+
+
+def _shared_effect_and_load(setting: _Setting, failing: list[str], selected_per_joint: dict, explained: dict,
+                            explained_at: float, tie: float):
+    """One effect on every failing joint of a chain and one payload, instead of a different effect on each:
+    ``(effect, {joint: candidate}, load candidate, held-out reduction per joint, the selection's mean
+    reduction)`` or None.
+
+    Softer servos on an arm that carries a load look, joint by joint, like the softness where gravity
+    does not load the joint (a yaw, a roll) and like damping, friction, a stiffer derivative or a
+    softness of another size where it does (the pitch joints sag as well as lag), and the load screen
+    finds no load while the softness dominates. So when the failing joints, all on one chain, are not
+    yet explained to within ``tie`` and one effect was chosen on at least two of them, that effect is
+    tried on every failing joint at the median of its values and a payload screened on top
+    (:func:`_load_first` on that model); then the effect is refitted on each joint with the rest in
+    place. The pair replaces the selection when the payload explains most of what the effect alone
+    leaves (:func:`_load_first`'s test), the pair explains the failing joints' held-out error by ``tie``
+    more on average than the selection, the payload explains :data:`MIN_EXPLAINED` of some joint's
+    error beyond the refitted effect (it is not spurious there), and no value sits on a bound."""
+    robot = setting.replayer.robot
+    counts: dict[str, list[float]] = {}
+    for j in failing:
+        for c in selected_per_joint.get(j, []):
+            counts.setdefault(c.effect, []).append(c.value)
+    if not counts:
+        return None
+    effect, values = max(counts.items(), key=lambda kv: len(kv[1]))
+    current = float(np.mean([explained.get(j, 0.0) for j in failing]))
+    if (len(values) < 2 or effect == "payload_mass" or len(get_effect(effect).params) != 1
+            or current > 1.0 - tie or not _chain_below(setting, failing)):
+        return None
+    v = float(np.median(values))
+    base = setting.base_patch.with_effect(effect, failing, [v] * len(failing))
+    found = _load_first(dataclasses.replace(setting, base_patch=base), failing, explained_at)
+    if found is None:
+        return None
+    load, _ = found
+    load_values = [[load.value, *load.extra]]
+
+    def model(values: dict, with_load: bool = True, skip: str | None = None) -> ModelPatch:
+        js = [j for j in failing if j != skip]
+        p = setting.base_patch.with_effect(effect, js, [values[j] for j in js]) if js else setting.base_patch
+        return p.with_effect("payload_mass", [load.joint], load_values) if with_load else p
+
+    values = {j: v for j in failing}
+    fits = {}
+    for j in failing:                       # each joint's value with the load and the others in place
+        train, _ = setting.sequences(j)
+        fits[j] = JointFitter(setting.replayer, j, train, model(values, skip=j)).fit(effect)
+        values[j] = fits[j].value
+    if any(on_bound(effect, j, f.value, f.ci95, robot) or _is_absent(effect, f.value, j, robot) for j, f in fits.items()):
+        return None
+    before = _heldout_mse(setting, setting.base_patch, failing)
+    after = _heldout_mse(setting, model(values), failing)
+    no_load = _heldout_mse(setting, model(values, with_load=False), failing)
+    reds = {j: _reduction(before[j], after[j], setting.noise2(j)) for j in failing}
+    felt = [j for j in failing if reds[j] - _reduction(before[j], no_load[j], setting.noise2(j)) >= MIN_EXPLAINED]
+    mean = float(np.mean(list(reds.values())))
+    if mean < current + tie or not felt:
+        return None
+    cands = {j: Candidate(effect=effect, joint=j, value=f.value, ci95=f.ci95,
+                          train_error_reduction=1.0 - f.mse_after / max(f.mse_before, 1e-30),
+                          heldout_error_reduction=reds[j], score=reds[j] - COMPLEXITY_PENALTY)
+             for j, f in fits.items()}
+    load.heldout_error_reduction = mean
+    return effect, cands, load, reds, current
 
 
 def _load_first(setting: _Setting, failing: list[str], explained_at: float):

@@ -67,3 +67,21 @@ def recording(model: ModelSource, excited, *, freqs=(0.5, 2.0), amps=(0.3, 1.0),
     q = Replayer(proto, model=model, preroll_s=2.0, nthread=nthread).simulate()
     q = q + np.random.default_rng(seed).normal(0.0, noise, size=q.shape)
     return full.to_recording(q, {"noise_rad": noise, "seed": seed})
+
+
+def soft_servos(joints, scale: float):
+    """An edit: the position servos of ``joints`` with their stiffness (kp: gain and position bias) × ``scale``."""
+    def edit(spec):
+        for a in spec.actuators:
+            if a.target in joints:
+                a.gainprm[0] *= scale
+                a.biasprm[1] *= scale
+    return edit
+
+
+def both(*edits):
+    """An edit made of several."""
+    def edit(spec):
+        for e in edits:
+            e(spec)
+    return edit

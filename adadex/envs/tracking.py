@@ -303,6 +303,7 @@ class TrackingEnv(EnvBase):
         # object pose seen at each episode's first frame
         self._object_start = self._array(np.zeros((B, 7), dtype=np.float32))
         lim = joint_limits()
+        self._limits = lim                                          # host: resets clip to them
         self._lo, self._hi = self._array(lim[:, 0].copy()), self._array(lim[:, 1].copy())
         self._offsets = self._array(np.asarray(REF_OFFSETS)[None])
         self._q_target = self._array(np.zeros((B, NUM_JOINTS)))
@@ -451,8 +452,7 @@ class TrackingEnv(EnvBase):
 
     def _put_at_start(self, worlds: np.ndarray, b: np.ndarray, perturb: bool = False) -> None:
         """Put ``worlds`` at the reference frames ``b`` (their episodes' first frames)."""
-        lim = joint_limits()
-        q = np.clip(self._ref_q[b].astype(np.float64), lim[:, 0], lim[:, 1])
+        q = np.clip(self._ref_q[b].astype(np.float64), self._limits[:, 0], self._limits[:, 1])
         obj = self._ref_obj[b].astype(np.float64)
         obj[:, 2] += self.config.object_lift
         for j, w in enumerate(worlds):   # a resized object still rests on the table
@@ -524,7 +524,7 @@ class TrackingEnv(EnvBase):
         self._t += 1
         # MuJoCo flags diverging worlds; an object flung faster than any tabletop motion is one too.
         unstable = readout.unstable | flung(readout.object_vel, cfg.max_object_speed)
-        if unstable.any():                      # on the device: the step's one read back
+        if unstable.any():                      # on the device, a read back
             worlds = np.flatnonzero(self._host(unstable))
             self.unstable_count += len(worlds)
             self._assign(self._t, worlds, 0)

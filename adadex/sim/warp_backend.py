@@ -376,6 +376,8 @@ class WarpSim:
         self._template = copy.copy(m0)
         self._batched = {f for f in DEFAULT_BATCHED_FIELDS if f in self._batchable} | {"geom_dataid", "geom_margin"}
         self._checked: dict[int, mujoco.MjModel] = {}
+        self._fields_key, self._fields_cache = None, ((), ())   # _compared_fields
+        self._bytes_cache: dict = {}                             # _template_bytes
         for i, m in enumerate(self._models):
             self._adopt(m, f"model {i}")
         self._pool = MeshPool()
@@ -414,6 +416,7 @@ class WarpSim:
         link_idx = np.array([list(range(a, a + 3)) + list(range(q, q + 4)) for a, q in zip(adr, qadr)])
         self._link_idx = torch.as_tensor(link_idx, device=self.torch_device)
         self._host_data = mujoco.MjData(max(self._models, key=lambda m: (m.nC, m.nbvh, m.nbvhdynamic)))
+        self._parts = self._state_parts()
         self._closed = False
         self.reset()
 
@@ -467,7 +470,7 @@ class WarpSim:
         and fields never read while stepping aside —, batchable fields not batched yet)."""
         t = self._template
         key = (frozenset(self._batched), _sleeps(t), _has_rays(t))
-        if getattr(self, "_fields_key", None) != key:
+        if self._fields_key != key:
             plain = tuple(f for f in self._shared if not (
                 f in _LIMIT_FLAGS or f in _SLOT_FIELDS or f.startswith("mesh_") or f in _IGNORED
                 or (f == "dof_length" and not _sleeps(t)) or (f == "geom_group" and not _has_rays(t))))
@@ -477,12 +480,12 @@ class WarpSim:
 
     def _template_bytes(self, fields: tuple[str, ...]) -> bytes:
         """The template's values of ``fields``, one byte string (cached until the template changes)."""
-        cache = self.__dict__.setdefault("_bytes_cache", {})
         key = (fields, id(self._template))
-        if key not in cache:
-            cache.clear() if len(cache) > 8 else None
-            cache[key] = _fields_bytes(self._template, fields)
-        return cache[key]
+        if key not in self._bytes_cache:
+            if len(self._bytes_cache) > 8:
+                self._bytes_cache.clear()
+            self._bytes_cache[key] = _fields_bytes(self._template, fields)
+        return self._bytes_cache[key]
 
     def _adopt(self, m: mujoco.MjModel, what: str) -> bool:
         """Check ``m`` and change the template to hold it; whether the device model must be put again."""
@@ -492,7 +495,7 @@ class WarpSim:
         batch, slots, flags = self._compare(m, what)
         t = self._template
         if slots.any() or flags:
-            self.__dict__.pop("_bytes_cache", None)      # the template's values change
+            self._bytes_cache.clear()      # the template's values change
         for f in _SLOT_FIELDS:
             getattr(t, f)[slots] = getattr(m, f)[slots]
         for flag, on in flags.items():
@@ -583,7 +586,7 @@ class WarpSim:
             reput = [self._adopt(m, f"model for world {w}") for w, m in zip(worlds, models)]
         except ConfigError:
             self._template, self._batched = template     # nothing changed
-            self.__dict__.pop("_bytes_cache", None)
+            self._bytes_cache.clear()
             raise
         for w, m in zip(worlds, models):
             self._models[w] = m
@@ -655,8 +658,6 @@ class WarpSim:
         milliseconds each reset), else through ``set_state``."""
         tidx = torch.as_tensor(idx, device=self.torch_device)
         values = torch.as_tensor(states).to(self.torch_device, self._state_t.dtype)
-        if not hasattr(self, "_parts"):
-            self._parts = self._state_parts()
         if self._parts is not None:
             for offset, size, view in self._parts:
                 view[tidx] = values[:, offset:offset + size].to(view.dtype)

@@ -31,7 +31,7 @@ def main(argv=None) -> dict:
     p.add_argument("--force", action="store_true")
     a = p.parse_args(argv)
     check_result(a.out, name="sim2real_seeds", force=a.force)
-    from adadex.train.sim2real import Sim2RealError, pool_seeds
+    from adadex.train.sim2real import CONTRASTS, RECOVERING, Sim2RealError, pool_seeds
 
     results = []
     for run in a.runs:
@@ -55,9 +55,14 @@ def main(argv=None) -> dict:
         per = ", ".join(f"{x:.2f}" for x in pooled["per_seed_recovered_fraction"] if x is not None)
         print(f"recovered (identified): {pooled['recovered_fraction']:.2f} {_ci(pooled['recovered_fraction_ci95'], '.2f')}"
               f"   per seed: {per}")
-    if "identified_vs_table3_points" in pooled:
-        d = pooled["identified_vs_table3_points"]
-        print(f"identified − Table 3: {d['estimate']:+.1f} points {_ci(d['ci95'])}")
+    for name in RECOVERING[1:]:
+        if pooled.get(f"recovered_fraction_{name}") is not None:
+            print(f"recovered ({name}): {pooled[f'recovered_fraction_{name}']:.2f} "
+                  f"{_ci(pooled[f'recovered_fraction_{name}_ci95'], '.2f')}")
+    for a_row, b_row, key in CONTRASTS:
+        if key in pooled:
+            d = pooled[key]
+            print(f"{a_row} − {b_row}: {d['estimate']:+.1f} points {_ci(d['ci95'])}")
     write_result(a.out, pooled, name="sim2real_seeds", force=a.force)
     print(f"wrote {a.out}")
     return pooled

@@ -54,6 +54,11 @@ class Normalizer(nn.Module):
         self.scale.copy_(torch.where(std > self.eps, std, torch.ones_like(std)))
         return self
 
+    @property
+    def fitted(self) -> bool:
+        """Whether statistics were set (an unfitted normalizer is the identity: loc 0, scale 1)."""
+        return bool((self.loc != 0).any() or (self.scale != 1).any())
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return ((x - self.loc) / self.scale).clamp(-self.clip, self.clip)
 

@@ -126,7 +126,9 @@ class PPOTrainer:
             the env's action spec (22 for a tracker; the channels' size for a modulator). Its actor
             samples in the collector through ``policy.sampling_policy()`` where it has one that works
             (an actor from :func:`~adadex.modules.nets.make_actor`), else the actor itself. Its
-            normalizers, if any, are fitted as the built policy's are.
+            normalizers, if any, are fitted as the built policy's are — unless all of them are fitted
+            already (a trained policy given to fine-tune, e.g. ``Tracker.load(path)``): they are kept,
+            so the run starts from the policy exactly as it acts.
         loss: a factory ``(actor, critic) -> LossModule`` (default :func:`default_loss`: ``ClipPPOLoss``
             with ``cfg.ppo``'s settings), e.g. ``functools.partial(KLPENPPOLoss, dtarg=0.01)``. GAE
             (``cfg.ppo.gamma``, ``lmbda``) writes the advantage and value target before it; the
@@ -191,9 +193,10 @@ class PPOTrainer:
         self.iteration, self.frames = 0, 0
         #: ``tracker.pt`` or ``modulator.pt``: loads with ``Tracker.load`` / ``Modulator.load``
         self.policy_path = self.out / f"{self.policy.kind}.pt"
-        self.fitted = False
-        #: every observation collected so far (or the first batch alone: ``ppo.obs_norm``)
+        #: every observation collected so far (or the first batch alone: ``ppo.obs_norm``); a given
+        #: policy's own fit, if it has one, counts as its first batch
         self.moments = ObservationMoments()
+        self.fitted = policy is not None and self._moments_from_normalizers()
         self.buffer: TensorDictReplayBuffer | None = None
 
     # -- pieces -----------------------------------------------------------------------------------
@@ -297,11 +300,20 @@ class PPOTrainer:
         moments = blob.get("extra", {}).get("obs_moments")
         if moments is not None:
             self.moments.load_state_dict(moments)
-        elif (norm := next((m for m in self.policy.modules() if isinstance(m, Normalizer)), None)) is not None:
-            # a checkpoint from before the running statistics: its fit, as one batch
-            self.moments.load_state_dict({"count": self.ppo.frames_per_batch, "mean": norm.loc.double(),
-                                          "m2": norm.scale.double() ** 2 * (self.ppo.frames_per_batch - 1)})
+        else:                   # a checkpoint from before the running statistics: its fit, as one batch
+            self._moments_from_normalizers(force=True)
         self.fitted = True
+        return True
+
+    def _moments_from_normalizers(self, force: bool = False) -> bool:
+        """Seed :attr:`moments` with the policy's normalizer statistics, as one batch, when every
+        normalizer is fitted (``force``: the first one's, whatever it holds); whether it did."""
+        norms = [m for m in self.policy.modules() if isinstance(m, Normalizer)]
+        if not norms or not (force or all(n.fitted for n in norms)):
+            return False
+        n = self.ppo.frames_per_batch
+        self.moments.load_state_dict({"count": n, "mean": norms[0].loc.double(),
+                                      "m2": norms[0].scale.double() ** 2 * (n - 1)})
         return True
 
     def _checkpoint(self) -> None:

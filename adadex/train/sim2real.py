@@ -21,9 +21,12 @@ Stages (:func:`run_sim2real`), each the library's own code:
    (``modulator_table3``), one under :meth:`Randomization.from_patch` of the identified patch
    (``modulator_identified``: the fit's intervals around the fitted values, Table 3 elsewhere); with
    ``oracle`` also one around the hidden robot itself (the ceiling; it reads the hidden patch, and says so);
+   and the tracker itself fine-tuned under the identified randomization with the same frames and learner
+   (``finetuned_identified``, :func:`finetune_tracker`: what the budget buys without modulation);
 4. **evaluate** — every row on the same references, repeats and env seed (so they pair episode by
    episode, :mod:`adadex.eval.paired`), under Table 3 randomization: the tracker on the nominal model
-   (``tracker_nominal``), then on the hidden robot the tracker (``tracker_real``), the modulators, and an
+   (``tracker_nominal``), then on the hidden robot the tracker (``tracker_real``), the modulators, the
+   fine-tuned tracker, and an
    untrained modulator as the control for Table 3's reshuffling (``modulator_untrained_real``).
 
 ``out/sim2real.json``: ``{"rows": {name: {"completion_pct", "completion_pct_ci95", "object_success_pct",
@@ -57,7 +60,13 @@ SIM2REAL_RUN = "sim2real run"
 
 #: the rows in the order of the table
 ROWS = ("tracker_nominal", "tracker_real", "modulator_untrained_real", "modulator_table3_real",
-        "modulator_identified_real", "modulator_oracle_real")
+        "modulator_identified_real", "finetuned_identified_real", "modulator_oracle_real")
+#: the trained rows whose share of the gap is reported (``recovered_fraction`` is the first's)
+RECOVERING = ("modulator_identified_real", "modulator_table3_real", "finetuned_identified_real",
+              "modulator_oracle_real")
+#: paired completion differences reported beside the table: (row, row it is compared with, key)
+CONTRASTS = (("modulator_identified_real", "modulator_table3_real", "identified_vs_table3_points"),
+             ("modulator_identified_real", "finetuned_identified_real", "identified_vs_finetuned_points"))
 
 
 class Sim2RealError(AdadexError, ValueError):
@@ -241,20 +250,39 @@ def _trainer_class():
     return AroundModel
 
 
-def train_modulator(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomization, seed: int,
-                    name: str, progress: bool = True) -> str:
-    """A modulator (``p.channels``) around the frozen ``tracker``, trained in ``folder`` on ``dataset``'s
-    training references with envs drawing from ``randomization``; returns its checkpoint. A finished
-    run in ``folder`` with the same inputs is kept (a killed one continues); other inputs start over."""
+def _ppo_config(p: Sim2RealPreset):
+    """The learner of every trained row: the same frames and settings for modulators and the fine-tune."""
+    from adadex.train.config import PPOConfig
+
+    return PPOConfig(total_frames=p.frames, frames_per_batch=p.frames_per_batch, minibatch_size=p.minibatch_size,
+                     epochs=p.epochs, desired_kl=0.0, update_threads=1,    # as the pipeline trains modulators
+                     gamma=p.gamma, lmbda=p.lmbda)
+
+
+def fingerprint(module) -> str:
+    """SHA-256 of a module's settings and weights: which tracker a stage was trained around or from
+    (a checkpoint file's bytes are not stable across saves of the same weights)."""
+    import hashlib
+
+    h = hashlib.sha256(json.dumps(getattr(module, "config", None), sort_keys=True, default=str).encode())
+    for k, v in sorted(module.state_dict().items()):
+        h.update(k.encode())
+        h.update(v.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def _train(folder, *, dataset, p: Sim2RealPreset, randomization, seed: int, name: str, inputs: dict,
+           progress: bool, modulator=None, policy=None) -> str:
+    """One PPO run in ``folder`` (a modulator with ``modulator`` settings, or ``policy`` trained as it is)
+    with envs drawing from ``randomization``; returns its checkpoint. A finished run in ``folder`` with
+    the same ``inputs`` (plus the shared settings) is kept, a killed one continues, other inputs start over."""
     from adadex.envs.tracking import TrackingConfig
-    from adadex.train.config import CollectorConfig, ModulatorSettings, PPOConfig, TrainConfig
+    from adadex.io import atomic_write_text
+    from adadex.train.config import CollectorConfig, TrainConfig
 
     folder = Path(folder)
-    m = ModulatorSettings(tracker=str(tracker), channels=p.channels, hidden=p.hidden)
-    ppo = PPOConfig(total_frames=p.frames, frames_per_batch=p.frames_per_batch, minibatch_size=p.minibatch_size,
-                    epochs=p.epochs, desired_kl=0.0, update_threads=1,    # as the pipeline trains modulators
-                    gamma=p.gamma, lmbda=p.lmbda)
-    inputs = {"randomization": randomization.as_dict(), "window": p.window, "seed": seed, "channels": p.channels,
+    ppo = _ppo_config(p)
+    inputs = {**inputs, "randomization": randomization.as_dict(), "window": p.window, "seed": seed,
               "reward": dict(p.reward), "hidden": list(p.hidden),
               "ppo": {k: getattr(ppo, k) for k in ("total_frames", "frames_per_batch", "minibatch_size", "epochs",
                                                    "gamma", "lmbda")}}
@@ -263,14 +291,53 @@ def train_modulator(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomi
     if folder.exists() and not same:
         shutil.rmtree(folder)               # inside the recipe's own output: an earlier stage of other inputs
     tc = TrainConfig(dataset=str(dataset), out=str(folder), seed=seed, resume=(folder / "checkpoint.pt").is_file(),
-                     split=(p.split, "train"), ppo=ppo, collector=CollectorConfig(worlds=p.worlds), modulator=m,
-                     reward=dict(p.reward), eval_max_references=0, wandb=False, progress=progress)
-    from adadex.io import atomic_write_text
-
+                     split=(p.split, "train"), ppo=ppo, collector=CollectorConfig(worlds=p.worlds),
+                     modulator=modulator, reward=dict(p.reward), eval_max_references=0, wandb=False,
+                     progress=progress)
     folder.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(stamp, json.dumps(inputs))
-    trainer = _trainer_class()(tc, randomization, env_config=TrackingConfig(window=p.window), run_name=name)
+    trainer = _trainer_class()(tc, randomization, env_config=TrackingConfig(window=p.window), run_name=name,
+                               policy=policy)
     return str(trainer.train()["policy"])
+
+
+def train_modulator(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomization, seed: int,
+                    name: str, progress: bool = True) -> str:
+    """A modulator (``p.channels``) around the frozen ``tracker`` (a checkpoint), trained in ``folder`` on
+    ``dataset``'s training references with envs drawing from ``randomization``; returns its checkpoint.
+    A finished run in ``folder`` with the same inputs (the tracker's weights among them) is kept (a
+    killed one continues); other inputs start over."""
+    from adadex.modules.tracker import Tracker
+    from adadex.train.config import ModulatorSettings
+
+    m = ModulatorSettings(tracker=str(tracker), channels=p.channels, hidden=p.hidden)
+    return _train(folder, dataset=dataset, p=p, randomization=randomization, seed=seed, name=name,
+                  progress=progress, modulator=m,
+                  inputs={"channels": p.channels, "tracker": fingerprint(Tracker.load(tracker))})
+
+
+def finetune_tracker(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomization, seed: int,
+                     name: str, progress: bool = True) -> str:
+    """The tracker itself trained further — no modulator — with the same frames, learner and envs as a
+    modulator (the ``finetuned_identified_real`` row: what the same budget buys without modulation).
+    ``tracker``: a checkpoint, trained on from its weights and observation statistics as they are; or
+    ``"replay"``: a residual tracker of the preset's layers whose correction starts at exactly zero
+    (kinematic replay, as the frozen ``Tracker.replay()``), with the exploration the pipeline's trackers
+    start from (:class:`~adadex.train.config.PolicyConfig`, no anchor). Returns its checkpoint."""
+    from adadex.envs.tracking import TrackingConfig
+    from adadex.modules.tracker import Tracker
+    from adadex.train.config import PolicyConfig
+
+    if tracker == "replay":
+        import torch
+
+        torch.manual_seed(seed)                     # its untrained critic and layers: the same for a seed
+        policy = PolicyConfig(hidden=p.hidden, anchor=0.0).tracker(
+            max_action=TrackingConfig(window=p.window).max_action).zero_mean()
+    else:
+        policy = Tracker.load(tracker)
+    return _train(folder, dataset=dataset, p=p, randomization=randomization, seed=seed, name=name,
+                  progress=progress, policy=policy, inputs={"finetune": fingerprint(policy)})
 
 
 # ----------------------------------------------------------------------------------------------
@@ -359,15 +426,16 @@ def row_statistics(evaluations: dict[str, dict], *, seed: int = 0) -> dict:
         o = al["object_completion"]
         ogap = paired_bootstrap(o["tracker_nominal"], o["tracker_real"], refs, seed=seed)
         out["object_gap_points"], out["object_gap_points_ci95"] = ogap["estimate"], ogap["ci95"]
-        for name in ("modulator_identified_real", "modulator_table3_real", "modulator_oracle_real"):
+        for name in RECOVERING:
             if name not in evaluations:
                 continue
             r = ratio_bootstrap(c[name] - c["tracker_real"], c["tracker_nominal"] - c["tracker_real"], refs, seed=seed)
             key = "recovered_fraction" if name == "modulator_identified_real" else f"recovered_fraction_{name}"
             out[key], out[f"{key}_ci95"] = r["estimate"], r["ci95"]
-        if {"modulator_identified_real", "modulator_table3_real"} <= set(evaluations):
-            d = paired_bootstrap(c["modulator_identified_real"], c["modulator_table3_real"], refs, seed=seed)
-            out["identified_vs_table3_points"] = {"estimate": d["estimate"], "ci95": d["ci95"]}
+        for a, b, key in CONTRASTS:
+            if {a, b} <= set(evaluations):
+                d = paired_bootstrap(c[a], c[b], refs, seed=seed)
+                out[key] = {"estimate": d["estimate"], "ci95": d["ci95"]}
     return out
 
 
@@ -411,15 +479,16 @@ def pool_seeds(results: Sequence[dict], *, seed: int = 0) -> dict:
     out = {"real": results[0].get("real"), "seeds": seeds, "runs": len(results), "rows": rows,
            "paired_episodes": int(len(refs)), "gap_points": gap["estimate"], "gap_points_ci95": gap["ci95"],
            "per_seed_recovered_fraction": [r.get("recovered_fraction") for r in results]}
-    for n in ("modulator_identified_real", "modulator_table3_real", "modulator_oracle_real"):
+    for n in RECOVERING:
         if n in names:
             r = ratio_bootstrap(c[n] - c["tracker_real"], c["tracker_nominal"] - c["tracker_real"], refs, seed_ids,
                                 seed=seed)
             key = "recovered_fraction" if n == "modulator_identified_real" else f"recovered_fraction_{n}"
             out[key], out[f"{key}_ci95"] = r["estimate"], r["ci95"]
-    if {"modulator_identified_real", "modulator_table3_real"} <= set(names):
-        d = paired_bootstrap(c["modulator_identified_real"], c["modulator_table3_real"], refs, seed_ids, seed=seed)
-        out["identified_vs_table3_points"] = {"estimate": d["estimate"], "ci95": d["ci95"]}
+    for a, b, key in CONTRASTS:
+        if {a, b} <= set(names):
+            d = paired_bootstrap(c[a], c[b], refs, seed_ids, seed=seed)
+            out[key] = {"estimate": d["estimate"], "ci95": d["ci95"]}
     return out
 
 
@@ -446,11 +515,13 @@ def format_table(result: dict) -> str:
         lines.append(f"gap (tracker_nominal − tracker_real): {result['gap_points']:+.1f} completion points "
                      f"{_ci(result['gap_points_ci95'])}; object {result['object_gap_points']:+.1f} "
                      f"{_ci(result['object_gap_points_ci95'])}")
-    rf = result.get("recovered_fraction")
-    if "recovered_fraction" in result:
-        lines.append("recovered by modulator_identified_real: " + (
-            "not defined (the hidden robot loses no completion)" if rf is None else
-            f"{rf:.2f} [{result['recovered_fraction_ci95'][0]:.2f}, {result['recovered_fraction_ci95'][1]:.2f}]"))
+    for name in RECOVERING:
+        key = "recovered_fraction" if name == RECOVERING[0] else f"recovered_fraction_{name}"
+        if key in result:
+            rf, ci = result[key], result.get(f"{key}_ci95")
+            lines.append(f"recovered by {name}: " + (
+                "not defined (the hidden robot loses no completion)" if rf is None else
+                f"{rf:.2f}" + (f" [{ci[0]:.2f}, {ci[1]:.2f}]" if ci else "")))
     return "\n".join(lines)
 
 
@@ -590,6 +661,13 @@ def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "smal
         modulators[name] = train_modulator(out / "train" / name, dataset=data, tracker=str(tracker_path), p=p,
                                            randomization=randomization, seed=seed, name=name, progress=progress)
         stage(f"train_{name}", t0)
+    t0 = time.perf_counter()
+    print(f"\n[3/4] train finetuned_identified (the tracker itself, {p.frames} frames)", flush=True)
+    finetuned = finetune_tracker(out / "train" / "finetuned_identified", dataset=data,
+                                 tracker="replay" if tracker == "replay" else str(tracker_path), p=p,
+                                 randomization=around["modulator_identified"], seed=seed,
+                                 name="finetuned_identified", progress=progress)
+    stage("train_finetuned_identified", t0)
 
     # 4. evaluate: every row on the same episodes and draws
     episodes = refs * p.eval_repeats
@@ -601,7 +679,8 @@ def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "smal
     untrained = Modulator(p.channels, hidden=p.hidden)
     policies = {"tracker_real": make_policy(loaded, None, channels="none"),
                 "modulator_untrained_real": make_policy(loaded, untrained),
-                **{f"{k}_real": make_policy(loaded, Modulator.load(v)) for k, v in modulators.items()}}
+                **{f"{k}_real": make_policy(loaded, Modulator.load(v)) for k, v in modulators.items()},
+                "finetuned_identified_real": make_policy(Tracker.load(finetuned).freeze(), None, channels="none")}
     evaluations = {}
     t0 = time.perf_counter()
     print(f"\n[4/4] evaluate: {len(refs)} test references × {p.eval_repeats} draws, Table 3", flush=True)

@@ -79,6 +79,34 @@ def test_a_users_policy_with_its_own_critic_trains_and_resumes(tiny_dataset, tmp
     torch.testing.assert_close(_critic_params(fresh), _critic_params(policy))
 
 
+def _normalizers(policy):
+    from adadex.modules.nets import Normalizer
+
+    return [m for m in policy.modules() if isinstance(m, Normalizer)]
+
+
+def test_a_trained_tracker_given_to_fine_tune_keeps_its_observation_statistics(tiny_dataset, tmp_path):
+    """A policy whose normalizers are all fitted starts from them (fine-tuning acts as the tracker did);
+    one whose normalizers are not is fitted on the first batch, as the built policy is."""
+    torch.manual_seed(0)
+    trained = train(_config(tiny_dataset, tmp_path / "first", frames=256))["policy"]
+    tracker = Tracker.load(trained)
+    stats = [(n.loc.clone(), n.scale.clone()) for n in _normalizers(tracker)]
+    assert stats and all(n.fitted for n in _normalizers(tracker))
+    trainer = PPOTrainer(_config(tiny_dataset, tmp_path / "again", frames=256), policy=tracker)
+    assert trainer.fitted
+    trainer.train()
+    for n, (loc, scale) in zip(_normalizers(tracker), stats):
+        torch.testing.assert_close(n.loc, loc)
+        torch.testing.assert_close(n.scale, scale)
+    fresh = PolicyConfig(hidden=(32, 32)).tracker()
+    assert not any(n.fitted for n in _normalizers(fresh))
+    other = PPOTrainer(_config(tiny_dataset, tmp_path / "fresh", frames=256), policy=fresh)
+    assert not other.fitted
+    other.train()
+    assert all(n.fitted for n in _normalizers(fresh))
+
+
 def test_a_loss_factory_replaces_clip_ppo(tiny_dataset, tmp_path):
     """KLPENPPOLoss reads the collecting policy's distribution parameters from the minibatch: the
     trainer keeps the loss's own inputs in its buffer."""

@@ -69,7 +69,7 @@ def _run(seed, real="assets/gaps/x.json", recovered=0.5, n_refs=20, repeats=2):
     refs = np.repeat(np.arange(n_refs), repeats)
     real_c = rng.uniform(0.5, 0.7, refs.size)
     rows = {"tracker_nominal": real_c + 0.10, "tracker_real": real_c, "modulator_table3_real": real_c + 0.01,
-            "modulator_identified_real": real_c + 0.10 * recovered}
+            "modulator_identified_real": real_c + 0.10 * recovered, "finetuned_identified_real": real_c + 0.03}
     ep = lambda c: {"reference": refs.tolist(), "repeat": np.tile(np.arange(repeats), n_refs).tolist(),
                     "frames": [299] * refs.size, "completion": c.tolist(), "object_completion": (c / 2).tolist(),
                     "T_o": [0.05] * refs.size}
@@ -87,6 +87,8 @@ def test_pool_seeds_pools_paired_rows_over_seeds():
     lo, hi = pooled["recovered_fraction_ci95"]
     assert lo <= 0.5 <= hi
     assert abs(pooled["identified_vs_table3_points"]["estimate"] - 4.0) < 1e-9
+    assert abs(pooled["identified_vs_finetuned_points"]["estimate"] - 2.0) < 1e-9
+    assert abs(pooled["recovered_fraction_finetuned_identified_real"] - 0.3) < 1e-9
     assert pooled["per_seed_recovered_fraction"] == [0.2, 0.6, 0.7]
     with pytest.raises(Sim2RealError, match="different hidden robots"):
         pool_seeds([_run(0), _run(1, real="assets/gaps/y.json")])
@@ -122,13 +124,20 @@ def test_end_to_end_tiny_identifies_from_recordings_alone(tmp_path, tiny_dataset
     assert not real.exists()
     result = json.loads((out / "sim2real.json").read_text())
     for row in ("tracker_nominal", "tracker_real", "modulator_untrained_real", "modulator_table3_real",
-                "modulator_identified_real"):
+                "modulator_identified_real", "finetuned_identified_real"):
         r = result["rows"][row]
         assert 0 <= r["completion_pct"] <= 100 and len(r["completion_pct_ci95"]) == 2
         assert "object_success_pct" in r and "T_o" in r
     assert "vs_tracker_real" in result["rows"]["modulator_identified_real"]
     assert "gap_points" in result and "recovered_fraction" in result and "stage_minutes" in result
     assert (out / "sim2real.png").is_file()
+    # the fine-tuned row trained the tracker itself, from replay (its correction heads start at zero)
+    from adadex.modules.tracker import Tracker
+
+    tuned = Tracker.load(out / "train" / "finetuned_identified" / "tracker.pt")
+    assert any(float(h.weight.detach().abs().max()) > 0 for h in tuned.actor._sampling_parts[0].heads)
+    assert "train_finetuned_identified" in result["stage_minutes"]
+    assert "recovered_fraction_finetuned_identified_real" in result and "identified_vs_finetuned_points" in result
     identified = {e["effect"] for e in result["identified_patch"]["effects"]}
     assert "actuator_delay" in identified, result["identified_patch"]
     assert result["diagnosis"]["verdict"] == "explained"

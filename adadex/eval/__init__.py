@@ -10,7 +10,7 @@ from adadex._exports import lazy_exports
 
 _EXPORTS = {
     "adadex.eval.evaluate": ("evaluate", "format_summary"),
-    "adadex.eval.metrics": ("trajectory_metrics", "summarize", "from_rollout"),
+    "adadex.eval.metrics": ("trajectory_metrics", "summarize", "from_rollout", "with_units"),
     "adadex.eval.paired": ("paired_bootstrap", "bootstrap_mean"),
     "adadex.eval.table1": ("aggregate", "table_markdown"),
     "adadex.eval.tables": ("results_table", "plot_results"),
@@ -21,7 +21,7 @@ __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 if TYPE_CHECKING:      # the same names, for type checkers and IDEs
     from adadex.eval.evaluate import evaluate, format_summary
-    from adadex.eval.metrics import trajectory_metrics, summarize, from_rollout
+    from adadex.eval.metrics import trajectory_metrics, summarize, from_rollout, with_units
     from adadex.eval.paired import paired_bootstrap, bootstrap_mean
     from adadex.eval.table1 import aggregate, table_markdown
     from adadex.eval.tables import results_table, plot_results

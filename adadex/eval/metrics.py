@@ -120,6 +120,24 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
     return out
 
 
+#: the unit of each error mean in a summary (and in the training logs): positions in cm, rotations and
+#: fingers in rad — the paper's tables' units
+SUMMARY_UNITS = {"T_o": "cm", "T_h": "cm", "R_o": "rad", "R_h": "rad", "E_finger": "rad"}
+#: the factor from a frame error (:data:`ERROR_NAMES`, m and rad) to its summary unit
+SUMMARY_SCALE = {k: 100.0 if u == "cm" else 1.0 for k, u in SUMMARY_UNITS.items()}
+
+
+def with_units(values: dict, prefix: str = "") -> dict:
+    """``values`` with each error mean named with its unit (``T_o`` → ``T_o_cm``; the other names, whose
+    unit is in the name already or that have none, as they are), each key prefixed with ``prefix``:
+    the names of the training logs (``metrics.csv``, wandb).
+
+    >>> with_units({"T_o": 9.8, "R_h": 0.1, "completion_pct": 82.0}, "eval_")
+    {'eval_T_o_cm': 9.8, 'eval_R_h_rad': 0.1, 'eval_completion_pct': 82.0}
+    """
+    return {f"{prefix}{k}_{SUMMARY_UNITS[k]}" if k in SUMMARY_UNITS else f"{prefix}{k}": v for k, v in values.items()}
+
+
 def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
     """Over non-empty trajectories: mean errors (positions in cm, rotations in rad, fingers in rad)
     and success rates in %, as the paper's tables report them."""
@@ -130,8 +148,7 @@ def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
         return out | {k: math.nan for k in (*ERROR_NAMES, "success_mean_error_pct", "completion_pct",
                                             "object_completion_pct", "carried_pct")}
     for k in ERROR_NAMES:
-        scale = 100.0 if k in ("T_o", "T_h") else 1.0
-        out[k] = float(per_traj[k][keep].mean()) * scale
+        out[k] = float(per_traj[k][keep].mean()) * SUMMARY_SCALE[k]
     out["success_mean_error_pct"] = 100.0 * float(per_traj["success_mean_error"][keep].double().mean())
     out["completion_pct"] = 100.0 * float(per_traj["completion"][keep].mean())
     out["object_completion_pct"] = 100.0 * float(per_traj["object_completion"][keep].mean())

@@ -57,7 +57,7 @@ from adadex.envs.observation import OBSERVATION, REFERENCE_INDEX, REWARD_TERMS, 
 from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import AdadexError, ConfigError
 from adadex.eval.evaluate import evaluate
-from adadex.eval.metrics import ERROR_NAMES, frame_success
+from adadex.eval.metrics import ERROR_NAMES, SUMMARY_SCALE, frame_success, with_units
 from adadex.modules.nets import ActorCritic, Normalizer, ObservationMoments, fit_normalizers, stored_bounds_actor
 from adadex.modules.channels import CHANNELS, ModulationConfig
 from adadex.modules.modulator import Modulator
@@ -435,12 +435,12 @@ class PPOTrainer:
 
     @staticmethod
     def batch_metrics(data: TensorDictBase) -> dict:
-        """Rollout statistics of one batch: reward, its terms, errors, frame success, episodes ended."""
+        """Rollout statistics of one batch: reward, its terms, errors (named with their units, as the
+        evaluation's: :func:`~adadex.eval.metrics.with_units`), frame success, episodes ended."""
         nxt = data["next"]
         out = {"reward": float(nxt["reward"].mean())}
         errs = data.get(ERRORS)
-        for k in ERROR_NAMES:
-            out[k] = float(errs[k].mean())
+        out.update(with_units({k: float(errs[k].mean()) * SUMMARY_SCALE[k] for k in ERROR_NAMES}))
         out["frame_success_pct"] = 100.0 * float(frame_success({k: errs[k] for k in ERROR_NAMES}).float().mean())
         done, term = nxt["done"], nxt["terminated"]
         out["episodes_done"] = float(done.sum())
@@ -474,7 +474,7 @@ class PPOTrainer:
                        randomize=self.cfg.randomization_config(), seed=self.cfg.seed + 17,
                        nthread=self.cfg.collector.env_threads, backend=self.cfg.sim.backend)
         s = res["summary"]
-        return {f"eval_{k}": v for k, v in s.items() if isinstance(v, (int, float))}
+        return with_units({k: v for k, v in s.items() if isinstance(v, (int, float))}, "eval_")
 
     # -- the run ----------------------------------------------------------------------------------
     def train(self) -> dict:

@@ -50,10 +50,13 @@ def test_in_process_run_writes_a_loadable_tracker_and_metrics(tiny_dataset, tmp_
     assert tracker.config["residual"] == PolicyConfig().residual > 0
     rows = _rows(tmp_path / "run")
     assert [int(r["iteration"]) for r in rows] == [1, 2, 3, 3]        # the last row: final evaluation
-    for k in ("reward", "T_o", "E_finger", "frame_success_pct", "loss_objective", "loss_critic", "kl_approx",
+    for k in ("reward", "T_o_cm", "E_finger_rad", "frame_success_pct", "loss_objective", "loss_critic", "kl_approx",
               "clip_fraction", "fps", "grad_norm"):
         assert rows[0][k] != "", k
     assert float(rows[-1]["eval_completion_pct"]) >= 0
+    # every error column carries its unit, the same in training and evaluation (T_o in cm in both)
+    assert not {"T_o", "T_h", "R_o", "R_h", "E_finger", "eval_T_o", "eval_E_finger"} & (set(rows[0]) | set(rows[-1]))
+    assert 0 < float(rows[-1]["eval_T_o_cm"]) < 100 and 0 < float(rows[0]["T_o_cm"]) < 100
     ck = load_checkpoint(tmp_path / "run")
     assert ck["frames"] == 768 and ck["iteration"] == 3
     assert {"module", "optimizer", "rng", "config"} <= set(ck)

@@ -8,11 +8,11 @@ input to the env's action spec (entries under ``"modulation"``, in [−1, 1]) an
 * :class:`ReferenceModulation` (R): ŝ_{t+k} ← ŝ_{t+k} + λ_x · a_ref for k ∈ {1, 2, 4, 12},
   x ∈ {hand joints, object pose}; the object rotation residual is a rotation vector, composed on
   the left. By default the edit *persists*: the edited future frames stay edited as the episode
-  moves on (PAPER.md decision). The edit is state carried in the tensordict,
-  ``("modulation", "hand_edit")`` (…, 13, 22) and ``("modulation", "object_edit")`` (…, 13, 6),
-  for frames t … t+12, shifted by one frame per step and zero after a reset; the observation
-  leaving the env shows the edited reference (structured entries and the 273-D vector), the
-  reward still scores the original one. ``persistent=False`` edits the current step only.
+  moves on (our design decision, which the paper leaves open; per-step edits are a switch). The
+  edit is state carried in the tensordict, ``("modulation", "hand_edit")`` (…, 13, 22) and
+  ``("modulation", "object_edit")`` (…, 13, 6), for frames t … t+12, shifted by one frame per step
+  and zero after a reset; the observation leaving the env shows the edited reference (structured
+  entries and the 273-D vector), the reward still scores the original one. ``persistent=False`` edits the current step only.
 * :class:`ReferenceLead` (L): the visible reference read ahead in time, up to ``max_lead`` control
   steps, the arm's and the hand's joints apart (latched for the episode by default).
 * :class:`CompactModulation` (C): R in 7 numbers — the visible reference's palm moved by an offset

@@ -31,7 +31,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from adadex.data import feasibility
 from adadex.data.object_contact import ObjectContact
@@ -42,6 +41,7 @@ from adadex.data.retarget import Retargeter
 from adadex.data.synth import VERBS, HumanMotion, NoiseConfig, Synthesizer, make_instruction
 from adadex.errors import ConfigError
 from adadex.io import check_output
+from adadex.progress import progress_bar
 from adadex.sim.objects import held_out_objects
 
 
@@ -94,7 +94,7 @@ def references_from_motions(motions: list[HumanMotion], group_ids: list[int], na
     order = sorted(range(len(motions)), key=lambda i: len(motions[i].keypoints))
     batches = [order[s: s + batch] for s in range(0, len(order), batch)]
     lengths = [max(len(motions[i].keypoints) for i in idx) for idx in batches]
-    bar = tqdm(total=sum(len(b) * T for b, T in zip(batches, lengths)), desc="retarget", unit="frame",
+    bar = progress_bar(total=sum(len(b) * T for b, T in zip(batches, lengths)), desc="retarget", unit="frame",
                disable=not progress, leave=False)
     t0 = time.perf_counter()
     results = []
@@ -111,7 +111,7 @@ def references_from_motions(motions: list[HumanMotion], group_ids: list[int], na
     report.retargeted_frames += frames
 
     t0 = time.perf_counter()
-    for i, res, j in tqdm(sorted(results, key=lambda r: r[0]), desc="check", disable=not progress, leave=False):
+    for i, res, j in progress_bar(sorted(results, key=lambda r: r[0]), desc="check", disable=not progress, leave=False):
         m = motions[i]
         T = len(m.keypoints)
         q, meta = res.joint_pos[j, :T], dict(m.meta)
@@ -180,7 +180,7 @@ def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfi
     synth = Synthesizer(noise)
     bases = plan_instructions(preset, seed)[:limit]
     motions, groups, names = [], [], []
-    for g, base in enumerate(tqdm(bases, desc="synthesize", disable=not progress, leave=False)):
+    for g, base in enumerate(progress_bar(bases, desc="synthesize", disable=not progress, leave=False)):
         for instr in synth.paraphrases(base, preset.paraphrases, seed=seed * 100003 + g):
             name = f"g{g:04d}_p{instr.paraphrase}_{instr.verb}_{instr.object_name}"
             report.candidates += 1

@@ -35,11 +35,11 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from tqdm.auto import tqdm
 
 from adadex.data.reference import ReferenceDataset
 from adadex.envs.tracking import TrackingConfig, TrackingEnv
 from adadex.errors import ConfigError, check_number
+from adadex.progress import progress_bar
 
 #: TrackingEnv arguments the loop sets itself (per chunk), refused in ``env_kwargs``
 _SET_PER_CHUNK = ("num_worlds", "split", "references", "draw", "seed")
@@ -131,7 +131,7 @@ def _chunks(policy, ds, refs, max_worlds, seed, derive_seed, config, env_transfo
     own_bar = bar is None
     moved = {}            # the policy on each env device it met (a GPU env's, when it lives on the host)
     if own_bar:
-        bar = tqdm(total=len(refs) * steps, unit="frame", desc=desc, disable=not progress)
+        bar = progress_bar(total=len(refs) * steps, unit="frame", desc=desc, disable=not progress)
     try:
         for k, start in enumerate(range(0, len(refs), max_worlds)):
             chunk = refs[start:start + max_worlds]

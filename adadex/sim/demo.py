@@ -11,8 +11,8 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from tqdm import tqdm
 
+from adadex.progress import progress_bar
 from adadex.sim import objects
 from adadex.sim.batched import BatchedSim
 from adadex.sim.grasp import scripted_grasp_lift
@@ -27,7 +27,7 @@ def settle_objects(names, worlds: int, nthread: int, seed: int, seconds: float =
     """Drop each object 2 cm above the table in ``worlds`` worlds; return per-object statistics."""
     rng = np.random.default_rng(seed)
     rows = []
-    for name in tqdm(names, desc="settling objects", unit="object"):
+    for name in progress_bar(names, desc="settling objects", unit="object"):
         model = build_scene_model(name)
         qpos, ctrl = home_state(model)
         q = np.tile(qpos, (worlds, 1))

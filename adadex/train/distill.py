@@ -45,11 +45,11 @@ import torch.nn.functional as F
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from tqdm.auto import tqdm
 
 from adadex.errors import ConfigError, check_number, check_numbers, from_known_keys
 from adadex.modules.nets import fit_normalizers
 from adadex.modules.tracker import Tracker
+from adadex.progress import progress_bar
 from adadex.train.checkpoint import (DISTILLATION_RUN, CheckpointError, check_run, save_checkpoint,
                                      set_rng_state, start_run)
 from adadex.train.logs import RunLog
@@ -233,7 +233,7 @@ class Distiller:
         if not resumed:
             self._fit_normalizers()
             log.log(0, {"probe_loss": imitation_loss(self.student, self.probe), "samples": 0})
-        bar = tqdm(total=cfg.steps, initial=self.step, unit="step", desc=self.run_name, disable=not cfg.progress)
+        bar = progress_bar(total=cfg.steps, initial=self.step, unit="step", desc=self.run_name, disable=not cfg.progress)
         params = list(self.student.actor.parameters())
         losses, grads = [], []
         try:

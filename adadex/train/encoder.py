@@ -170,7 +170,7 @@ def train_encoder(objects: Sequence[str] | None = None, *, steps: int = TrainSet
     end), ``"initial"`` / ``"final"`` (:func:`summarize_evaluation`), ``"per_object"``
     (:func:`evaluate_encoder` at the end), ``"seconds"`` and ``"meta"`` (what :func:`save_encoder` stores).
     """
-    from tqdm.auto import tqdm
+    from adadex.progress import progress_bar
 
     check_settings(steps, batch_size, points, lr)
     objects = tuple(objects) if objects is not None else training_objects()
@@ -195,7 +195,7 @@ def train_encoder(objects: Sequence[str] | None = None, *, steps: int = TrainSet
     history: dict = {"loss": [], "evals": []}
     per_object = evaluate(0)
     t0 = time.perf_counter()
-    bar = tqdm(range(steps), desc="encoder", disable=not progress, dynamic_ncols=True)
+    bar = progress_bar(range(steps), desc="encoder", disable=not progress, dynamic_ncols=True)
     for step in bar:
         loss = model.loss(_subsets(bank, batch_size, points, g)).mean()
         opt.zero_grad()

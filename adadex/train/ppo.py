@@ -49,7 +49,6 @@ from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.envs.utils import ExplorationType
 from torchrl.objectives import ClipPPOLoss, LossModule
 from torchrl.objectives.value import GAE
-from tqdm.auto import tqdm
 
 from adadex.data.reference import ReferenceDataset
 from adadex.envs.observation import ERRORS as ERRORS_KEY
@@ -62,6 +61,7 @@ from adadex.modules.nets import ActorCritic, Normalizer, ObservationMoments, fit
 from adadex.modules.channels import CHANNELS, ModulationConfig
 from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
+from adadex.progress import progress_bar
 from adadex.train.checkpoint import TRAINING_RUN, check_run, save_checkpoint, set_rng_state, start_run
 from adadex.train.collectors import make_collector, start_worker_server
 from adadex.sim.robot import NUM_JOINTS
@@ -489,7 +489,7 @@ class PPOTrainer:
         factory = self.env_factory(self.cfg.seed + 7919 * self.iteration)
         collector = make_collector(factory, self.collecting_policy(), self.cfg.collector,
                                    frames_per_batch=self.ppo.frames_per_batch, total_frames=remaining)
-        bar = tqdm(total=self.ppo.total_frames, initial=self.frames, unit="frame", desc=self.run_name,
+        bar = progress_bar(total=self.ppo.total_frames, initial=self.frames, unit="frame", desc=self.run_name,
                    disable=not self.cfg.progress)
         with torch_threads(1):                  # collection: one torch thread beside MuJoCo's
             try:

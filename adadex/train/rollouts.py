@@ -52,7 +52,6 @@ from pathlib import Path
 import torch
 from torchrl.data import LazyMemmapStorage, ReplayBuffer, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
-from tqdm.auto import tqdm
 
 from adadex.data.reference import ReferenceDataset
 from adadex.envs.chunked import chunked_rollouts
@@ -63,6 +62,7 @@ from adadex.errors import AdadexError, ConfigError, check_number
 from adadex.eval.metrics import Thresholds, from_rollout
 from adadex.io import atomic_write_text, output_folder
 from adadex.modules.tracker import Tracker
+from adadex.progress import progress_bar
 from adadex.sim.robot import NUM_JOINTS
 
 KIND = "teacher-rollouts"
@@ -188,7 +188,7 @@ def teacher_rollouts(teachers: Mapping, dataset, out, *, episodes_per_reference:
     total = sum(len(p[3]) for p in plan) * episodes_per_reference
     per_ref: dict[int, dict] = {}
     teacher_info = []
-    bar = tqdm(total=total * steps, unit="frame", desc="teacher rollouts", disable=not progress)
+    bar = progress_bar(total=total * steps, unit="frame", desc="teacher rollouts", disable=not progress)
     with output_folder(out, KIND, force=force) as tmp:
         staging = ReplayBuffer(storage=LazyMemmapStorage(total * steps, scratch_dir=tmp / ".staging"))
         chunk_index, episode, kept_frames = 0, 0, 0

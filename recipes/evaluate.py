@@ -43,14 +43,10 @@ from adadex.transforms.policy import make_policy
 
 
 def _dataset(cfg) -> Path:
-    path = Path(cfg.dataset)
-    if not (path / "index.json").exists():
-        if cfg.build_preset is None:
-            raise FileNotFoundError(f"{path}: no reference dataset there (set build_preset to build one)")
-        from adadex.data.build import build_dataset
+    from adadex.data.build import dataset_at
 
-        build_dataset(cfg.build_preset, path, seed=int(cfg.seed))
-    return path
+    return dataset_at(cfg.dataset, preset=cfg.build_preset, setting="dataset", seed=int(cfg.seed),
+                      hint="set build_preset to build one")
 
 
 def _checkpoint(path, key: str) -> str:

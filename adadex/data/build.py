@@ -156,6 +156,31 @@ def make_splits(refs: list[Reference], seed: int, test_fraction: float = 0.2) ->
             "unseen_object": {"train": train, "test": unseen}}
 
 
+def dataset_at(path, *, preset: str | None, setting: str, seed: int = 0, planned_grasp: bool = False,
+               progress: bool = True, log=print, hint: str = "") -> Path:
+    """The reference dataset at ``path``, built there from ``preset`` when there is none: the one
+    build-if-missing of every recipe (training, the pipeline, the sim-to-real loop).
+
+    A folder that holds a dataset is used as it is; a missing or empty one is built into (``log`` says
+    so first); with ``preset`` None, or a folder that holds other files, nothing is built and a
+    one-line ``FileNotFoundError`` names ``setting`` (the key the user set, e.g. ``"dataset"``), with
+    ``hint`` (how to get one) after it.
+    """
+    from adadex.data.reference import is_dataset
+
+    path = Path(path)
+    if is_dataset(path):
+        return path
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise FileNotFoundError(f"{setting}={path}: not a reference dataset (no index.json), and not empty: "
+                                f"nothing is built over it")
+    if preset is None:
+        raise FileNotFoundError(f"{setting}={path}: no reference dataset there" + (f" ({hint})" if hint else ""))
+    log(f"building the {preset} reference dataset into {path}")
+    build_dataset(preset, path, seed=seed, planned_grasp=planned_grasp, progress=progress)
+    return path
+
+
 def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfig = NoiseConfig(),
                   config: feasibility.FeasibilityConfig = feasibility.FeasibilityConfig(),
                   progress: bool = True, limit: int | None = None, force: bool = False,

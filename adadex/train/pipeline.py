@@ -231,15 +231,13 @@ class Pipeline:
 
     # -- shared --------------------------------------------------------------------------------
     def dataset(self) -> ReferenceDataset:
-        path = Path(self.cfg.dataset) if self.cfg.dataset else self.out / "data"
-        if not (path / "index.json").exists():
-            if self.cfg.dataset:
-                raise FileNotFoundError(f"{path}: no reference dataset there (leave dataset unset to build one)")
-            from adadex.data.build import build_dataset
+        from adadex.data.build import dataset_at
 
-            self.log(f"[run ] dataset: preset {self.cfg.dataset_preset} → {path}")
-            build_dataset(self.cfg.dataset_preset, path, seed=self.cfg.dataset_seed, progress=self.cfg.progress,
-                          planned_grasp=self.cfg.dataset_planned_grasp)
+        path = dataset_at(self.cfg.dataset or self.out / "data",
+                          preset=None if self.cfg.dataset else self.cfg.dataset_preset, setting="dataset",
+                          seed=self.cfg.dataset_seed, planned_grasp=self.cfg.dataset_planned_grasp,
+                          progress=self.cfg.progress, log=lambda m: self.log(f"[run ] {m}"),
+                          hint="leave dataset unset to build one")
         ds = ReferenceDataset(path)
         if not self.cfg.dataset:       # built here: by these settings, or refused like any other stage
             want = {"preset": self.cfg.dataset_preset, "seed": self.cfg.dataset_seed,

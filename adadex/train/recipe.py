@@ -307,14 +307,10 @@ def _run(cfg: Mapping, name: str) -> dict:
         print(f"{name}: {tc.out} holds the finished run ({blob['frames']} of {tc.ppo.total_frames} frames): "
               f"nothing to do (a larger total_frames trains on)")
         return {}
-    dataset = Path(tc.dataset)
-    if not (dataset / "index.json").exists():
-        preset = cfg.get("build_preset")
-        if preset is None:
-            raise FileNotFoundError(f"{dataset}: no reference dataset there (set build_preset to build one)")
-        from adadex.data.build import build_dataset
+    from adadex.data.build import dataset_at
 
-        build_dataset(preset, dataset, seed=tc.seed)
+    dataset_at(tc.dataset, preset=cfg.get("build_preset"), setting="dataset", seed=tc.seed,
+               hint="set build_preset to build one")
     start_run(tc.out, TRAINING_RUN, fresh=blob is None)
     result = train(tc, run_name=name)
     print(f"{name}: {result['frames']} frames, {result['iterations']} iterations -> {result['policy']}")

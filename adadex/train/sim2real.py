@@ -577,15 +577,10 @@ def check_out(out, *, force: bool = False, ignore=()) -> Path:
 
 
 def _dataset(p: Sim2RealPreset, dataset, out: Path) -> Path:
-    path = Path(dataset or p.dataset or out / "data")
-    if not (path / "index.json").is_file():
-        if dataset is not None and Path(str(dataset)).exists():
-            raise FileNotFoundError(f"dataset={dataset}: no reference dataset there (no index.json)")
-        from adadex.data.build import build_dataset
+    from adadex.data.build import dataset_at
 
-        print(f"building the {p.build} reference dataset into {path}", flush=True)
-        build_dataset(p.build, path, seed=p.build_seed, planned_grasp=p.planned_grasp)
-    return path
+    return dataset_at(dataset or p.dataset or out / "data", preset=p.build, setting="dataset", seed=p.build_seed,
+                      planned_grasp=p.planned_grasp, log=lambda m: print(m, flush=True))
 
 
 def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "small", seed: int = 0,

@@ -251,3 +251,26 @@ def test_short_reference_is_rejected():
 def test_reasons_are_the_documented_ones():
     assert set(REASONS) == {"no_grasp", "no_planned_grasp", "two_hands", "unreachable", "hand_arm_collision",
                             "table_collision", "window_too_short"}
+
+
+def test_dataset_at_uses_builds_or_refuses(tiny, tmp_path):
+    """The recipes' one build-if-missing: a dataset is used as it is, a missing folder is built into, a
+    folder of other files is refused untouched, and nothing is built without a preset."""
+    from adadex.data.build import dataset_at
+
+    _, ds = tiny
+    said = []
+    assert dataset_at(ds.path, preset="tiny", setting="dataset", log=said.append) == ds.path and said == []
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("x")
+    with pytest.raises(FileNotFoundError, match=r"dataset=.*mine: not a reference dataset .*not empty"):
+        dataset_at(mine, preset="tiny", setting="dataset")
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]
+    with pytest.raises(FileNotFoundError, match=r"data_dir=.*nothing: no reference dataset there \(set it\)"):
+        dataset_at(tmp_path / "nothing", preset=None, setting="data_dir", hint="set it")
+    assert not (tmp_path / "nothing").exists()
+    built = dataset_at(tmp_path / "built", preset="tiny", setting="dataset", seed=SEED, progress=False,
+                       log=said.append)
+    assert said == [f"building the tiny reference dataset into {tmp_path / 'built'}"]
+    assert [e["name"] for e in ReferenceDataset(built).entries] == [e["name"] for e in ds.entries]

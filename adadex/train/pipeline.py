@@ -44,16 +44,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import multiprocessing
-import os
-import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset
 from adadex.envs.randomization import Randomization
@@ -62,8 +57,7 @@ from adadex.errors import ConfigError, check_number, from_known_keys
 from adadex.io import atomic_write_text, check_output_dir, mark_output_dir
 from adadex.train.config import (CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, TrainConfig,
                                  randomization_with)
-
-STAGE = "stage.json"
+from adadex.train.stages import STAGE, run_in_processes, run_stage
 #: modulator rows of the table → the channel set each trains
 MODULATOR_ROWS = {"R": "R", "RT": "R+T", "ROT": "R+O+T", "O": "O"}
 EVAL_SPLITS = ("unseen_trajectory", "unseen_object")
@@ -170,34 +164,6 @@ class PipelineConfig:
     @classmethod
     def from_dict(cls, d: dict) -> PipelineConfig:
         return from_known_keys(cls, d)
-
-
-def _plain(x):
-    """JSON round trip: tuples become lists, so settings compare equal to their stored form."""
-    return json.loads(json.dumps(x, default=str))
-
-
-def run_stage(folder: Path, settings: dict, fn, *, label: str, log=print) -> dict:
-    """``fn()`` once: its result is stored with ``settings`` in ``folder/stage.json``; a later call with
-    the same settings returns it without running, one with other settings is refused."""
-    marker = folder / STAGE
-    settings = _plain(settings)
-    if marker.is_file():
-        done = json.loads(marker.read_text(encoding="utf-8"))
-        if done.get("settings") != settings:
-            changed = sorted(k for k in set(settings) | set(done.get("settings", {}))
-                             if settings.get(k) != done.get("settings", {}).get(k))
-            raise ConfigError(f"{folder}: this stage was run with other settings (differing: {changed}); "
-                              f"use a new out= or remove {folder}")
-        log(f"[skip] {label}: done ({folder})")
-        return done["result"]
-    log(f"[run ] {label}")
-    t0 = time.perf_counter()
-    result = _plain(fn())
-    folder.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(marker, json.dumps({"stage": label, "settings": settings, "result": result,
-                                          "wall_s": time.perf_counter() - t0}, indent=1))
-    return result
 
 
 def specialist_blocks(dataset: ReferenceDataset, k: int, window: int) -> list[list[int]]:
@@ -428,12 +394,8 @@ class Pipeline:
         self.ds = self.dataset()
         seeds = self.cfg.seeds
         workers = min(self.cfg.seed_workers, len(seeds))
-        if workers > 1:
-            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                                     initializer=_die_with_parent, initargs=(os.getpid(),)) as pool:
-                chains = list(pool.map(_seed_chain, [(self.cfg, self.env_config, s) for s in seeds]))
-        else:
-            chains = [self.chain(s) for s in seeds]
+        chains = (run_in_processes(_seed_chain, [(self.cfg, self.env_config, s) for s in seeds], workers)
+                  if workers > 1 else [self.chain(s) for s in seeds])
         summaries: dict = {}
         episodes: dict = {}        # per key, one per_episode record (or None: an older stage) per seed, in seed order
         scaling: dict = {}
@@ -454,61 +416,10 @@ class Pipeline:
         return {"table": table, "figures": figures, "wall_s": wall}
 
     def figures(self, table: dict, scaling: dict, paths: dict, seed: int) -> dict[str, str]:
-        from adadex.eval import figures as fig
-        from adadex.eval.latent_smoothness import latent_smoothness, plot_latent_smoothness
-        from adadex.modules.channels import ModulationConfig
-        from adadex.envs.latent import SHIPPED_ENCODER, encoder_latent
-        from adadex.eval.table1 import ROW_LABELS, ci95
-        from adadex.modules.encoder import load_encoder
-        from adadex.modules.tracker import Tracker
+        """``out/figures/`` (:func:`adadex.train.pipeline_figures.pipeline_figures`)."""
+        from adadex.train.pipeline_figures import pipeline_figures
 
-        folder = self.out / "figures"
-        out = {"ablation": fig.plot_ablation(table, folder / "ablation.png")}
-        # Fig. 4 and 5: the R+O+T policy of the first seed on the unseen-trajectory test references
-        refs = episode_references(self.ds, ("unseen_trajectory", "test"), self.env_config.window)[: self.cfg.worlds]
-        res = self.evaluate(self.policy("ROT", paths), "unseen_trajectory", "nominal", 20_000 + seed,
-                            references=refs, keep_rollouts=True)
-        td = res["rollouts"][0]
-        paths_xyz = [fig.object_paths(td, self.ds, refs, w) for w in range(len(refs))]
-        w = int(np.argmax([np.abs(p["modulated"] - p["original"]).max() for p in paths_xyz]))
-        name = self.ds.entries[refs[w]]["name"]
-        out["fig4_object_path"] = fig.plot_object_paths(paths_xyz[w], folder / "fig4_object_path.png",
-                                                        title=f"{name}: reference, modulated reference, executed")
-        frames, latents = fig.decoded_latents(td, w, channels=self.cfg.row_channels("ROT"),
-                                              config=ModulationConfig(**self.cfg.modulation))
-        obj = self.ds.entries[refs[w]]["object"]
-        out["fig5_latent"] = fig.plot_latent_decoding(load_encoder(SHIPPED_ENCODER)[0], latents, frames, obj,
-                                                      folder / "fig5_latent.png",
-                                                      original_latent=torch.tensor(encoder_latent(obj)))   # a copy: the cache is read-only
-        # Fig. 6: completion against the fraction of references distilled from
-        def point(values):
-            lo_hi = ci95(values)
-            return (float(np.mean(values)), *((max(lo_hi[0], 0.0), min(lo_hi[1], 100.0)) if lo_hi else (None, None)))
-
-        series = {"generalist (unseen trajectory, randomized)":
-                  [point([s["completion_pct"] for s in scaling[f]]) for f in scaling]}
-        out["fig6_scaling"] = fig.plot_data_scaling(list(scaling), series, folder / "fig6_scaling.png")
-        # Fig. 12: latent smoothness of the trackers on the observations the generalist met
-        actors = {row: Tracker.load(paths[row]).actor for row in ("tracker", "ppo", "il_rl")}
-        reads = dict.fromkeys(["observation", ("object", "latent"), *(k for a in actors.values() for k in a.in_keys)])
-        obs = torch.cat([t.reshape(-1).select(*reads)
-                         for t in self.evaluate(self.policy("tracker", paths), "unseen_trajectory", "nominal",
-                                                20_000 + seed, keep_rollouts=True)["rollouts"]])
-        pick = torch.randperm(obs.shape[0], generator=torch.Generator().manual_seed(seed))[: self.cfg.smoothness_samples]
-        rho = {row: latent_smoothness(actor, obs[pick], seed=seed) for row, actor in actors.items()}
-        plot_latent_smoothness({ROW_LABELS[k]: v for k, v in rho.items()}, folder / "fig12_smoothness.png")
-        out["fig12_smoothness"] = folder / "fig12_smoothness.png"
-        # which channels each modulator uses, on the randomized unseen-trajectory episodes
-        usage = {row: fig.channel_usage(self.evaluate(self.policy(row, paths), "unseen_trajectory", "randomized",
-                                                      20_000 + seed, keep_rollouts=True)["rollouts"],
-                                      self.cfg.row_channels(row))
-                 for row in MODULATOR_ROWS}
-        out["channel_usage"] = fig.plot_channel_usage(usage, folder / "channel_usage.png")
-        atomic_write_text(folder / "channel_usage.json", json.dumps(usage, indent=1))
-        atomic_write_text(folder / "smoothness.json",
-                          json.dumps({k: {m: v[m] for m in ("mean", "median", "p95", "max", "eps")}
-                                      for k, v in rho.items()}, indent=1))
-        return {k: str(v) for k, v in out.items()}
+        return pipeline_figures(self, table, scaling, paths, seed)
 
 
 def _seed_chain(args) -> tuple[dict, dict, dict]:
@@ -517,17 +428,6 @@ def _seed_chain(args) -> tuple[dict, dict, dict]:
     p = Pipeline(cfg, env_config)
     p.ds = p.dataset()
     return p.chain(seed)
-
-
-def _die_with_parent(parent: int) -> None:
-    """A seed worker ends when the pipeline process does (killed with ``kill -9``, say), so that a run
-    resumed later never trains a stage alongside an orphan writing into the same folder."""
-    def watch():
-        while os.getppid() == parent:
-            time.sleep(1.0)
-        os._exit(1)
-
-    threading.Thread(target=watch, daemon=True).start()
 
 
 #: the output kind of the pipeline's ``out`` (its marker, :mod:`adadex.io`)

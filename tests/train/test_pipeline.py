@@ -23,7 +23,8 @@ from adadex.eval.table1 import CONDITIONS, METRICS, ROWS, SPLITS
 from adadex.modules.tracker import Tracker
 from adadex.train.checkpoint import load_checkpoint
 from adadex.train.distill import DistillConfig, reference_subset
-from adadex.train.pipeline import PipelineConfig, run_stage, specialist_blocks
+from adadex.train.pipeline import PipelineConfig, specialist_blocks
+from adadex.train.stages import run_stage
 
 ROOT = Path(__file__).resolve().parents[2]
 FIGURES = ("ablation.png", "fig4_object_path.png", "fig5_latent.png", "fig6_scaling.png", "fig12_smoothness.png",

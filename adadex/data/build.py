@@ -194,6 +194,25 @@ def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfi
     object-aware retargeting (:mod:`adadex.data.object_contact`); ``None`` (default) retargets
     keypoints only. ``planned_grasp``: the hand holds the object with a pinch planned for it
     (:mod:`adadex.data.planned_grasp`) instead of the retargeted human grasp.
+
+    Args:
+        preset: a preset name (a key of ``PRESETS``, e.g. ``"tiny"``) or a :class:`Preset`.
+        out: the dataset folder to write.
+        seed: seeds the instruction plan, the synthesis and the splits (default 0).
+        noise: how imperfect the synthesized motion is (:class:`~adadex.data.synth.NoiseConfig`).
+        config: the feasibility filter's settings (:class:`~adadex.data.feasibility.FeasibilityConfig`).
+        progress: show progress bars (default True).
+        limit: keep only the first ``limit`` base instructions (default None: all).
+        force: replace whatever is at ``out`` (default False: only an existing dataset).
+        contact: object-aware retargeting settings, or None (above).
+        planned_grasp: hold the object with a planned pinch (above; default False).
+
+    Returns:
+        the :class:`BuildReport` (counts, rejections, timings and the path written).
+
+    Raises:
+        ConfigError: an unknown preset name.
+        RuntimeError: no reference passed the feasibility filter.
     """
     if isinstance(preset, str):
         if preset not in PRESETS:

@@ -100,8 +100,24 @@ def import_npz(path, *, object_name: str | None = None, instruction: str | None 
                config: feasibility.FeasibilityConfig = feasibility.FeasibilityConfig()) -> Reference:
     """Read, validate, resample, retarget and check one ``.npz`` (see the module docstring).
 
-    Raises :class:`ReferenceError` subclasses for malformed files and :class:`ImportRejected` when
-    the motion is not feasible for the robot.
+    Args:
+        path: the ``.npz`` file: ``keypoints`` (T, 21, 3) or (T, 1, 21, 3) in m, ``object_pose``
+            (T, 7), optionally ``fps``, ``object_name``, ``instruction``.
+        object_name: the object, overriding the file's (required if the file has none).
+        instruction: the instruction text, overriding the file's (default: the file's, else the
+            file name's stem).
+        group_id: the semantic group id of the reference (default 0).
+        scale: multiplies keypoint offsets from the wrist; ``"auto"`` (default) fits the robot's
+            hand length (see :meth:`~adadex.data.retarget.Retargeter.retarget`).
+        retargeter: the retargeter to use (default: a plain :class:`Retargeter`).
+        config: the feasibility check's settings.
+
+    Returns:
+        the :class:`Reference`, resampled to the control rate and named after the file.
+
+    Raises:
+        ReferenceError: (its subclasses) a malformed file.
+        ImportRejected: the motion is not feasible for the robot.
     """
     path = Path(path)
     if path.is_dir():

@@ -168,6 +168,19 @@ class Recording:
     recording copies and validates every field (:meth:`validate`) and fills the defaults of
     ``sequence_labels`` (``seq0, seq1, …``) and ``initial_qpos``. ``initial_qpos`` may be given as
     (22,) for all sequences.
+
+    Attributes:
+        time: (T,) sample times, s: uniform, strictly increasing, T ≥ 2.
+        joint_names: the J recorded joints (a subset of the robot's, any order, no duplicates).
+        command: (S, T, J) joint-position targets sent, rad (zero-order hold), within the limits.
+        joint_pos: (S, T, J) measured joint positions, rad.
+        joint_vel: optional (S, T, J) measured joint velocities, rad/s.
+        sequence_labels: S unique names (default ``seq0, seq1, …``).
+        initial_qpos: (S, 22) configuration at ``time[0]`` (the model's width for a user's model;
+            (22,) is broadcast); default: the first measured sample for recorded joints, the home
+            pose for the rest.
+        meta: free-form JSON object (how the data was made), normalised through JSON.
+        robot: the joint table of a user's model (None: adadex's robot).
     """
 
     time: np.ndarray
@@ -673,7 +686,14 @@ def _meta_from_file(arr: np.ndarray, path: Path) -> dict:
 
 def load_recording(path, *, robot=None) -> Recording:
     """Load a recording: ``.csv`` file or a directory of them via :func:`from_csv`, else ``.npz``.
-    ``robot``: the joint table of the user's model the recording was made on (None: adadex's)."""
+
+    Args:
+        path: a ``.csv`` file, a folder of them (one per sequence), or an ``.npz`` file.
+        robot: the joint table of the user's model the recording was made on (None: adadex's).
+
+    Returns:
+        the validated :class:`Recording`.
+    """
     path = Path(path)
     if path.is_dir() or path.suffix.lower() == ".csv":
         rec = from_csv(path) if robot is None else recording_csv.read_csv(

@@ -151,8 +151,23 @@ def _check_quats(q: np.ndarray, name: str, where: str) -> None:
 class Reference:
     """One hand–object reference; building it validates every field (see the module docstring).
 
-    ``meta`` holds JSON-serializable provenance (verb, parameters, paraphrase index, seed …).
     Use :meth:`from_joint_positions` to fill ``hand_link_pose`` by forward kinematics.
+
+    Attributes:
+        hand_joint_pos: (T, 22) robot joint positions in ``JOINT_NAMES`` order, rad; within the
+            joint limits (up to ``JOINT_LIMIT_TOLERANCE``).
+        hand_link_pose: (T, 5, 7) world poses of the palm and the 4 fingertips: position (m) +
+            w-first unit quaternion.
+        object_pose: (T, 7) the object's world pose, position (m) + w-first unit quaternion.
+        object_name: the object, a name of :data:`~adadex.sim.objects.REGISTRY`.
+        instruction: the instruction text.
+        group_id: the semantic group (a base instruction and its paraphrases share one).
+        fps: frames per second (default ``CONTROL_HZ``, one frame per control step).
+        human_keypoints: optional (T, 21, 3) human hand keypoints it was retargeted from, m.
+        retarget_residual: optional (T,) per-frame retargeting residual.
+        meta: JSON-serializable provenance (verb, parameters, paraphrase index, seed …).
+        name: the reference's name in a dataset (default "": unnamed; :func:`save_dataset` names it by
+            its index).
     """
 
     hand_joint_pos: np.ndarray
@@ -340,7 +355,16 @@ def check_splits(splits: dict, n: int) -> dict:
 
 
 def is_dataset(path) -> bool:
-    """True if ``path`` is a folder holding an adadex reference dataset (its ``index.json``)."""
+    """True if ``path`` is a folder holding an adadex reference dataset (its ``index.json``).
+
+    Args:
+        path: any path; a missing or unreadable one is not a dataset.
+
+    Examples:
+        >>> import tempfile
+        >>> is_dataset(tempfile.mkdtemp())
+        False
+    """
     path = Path(path)
     try:
         index = json.loads((path / "index.json").read_text(encoding="utf-8"))
@@ -358,6 +382,19 @@ def save_dataset(refs: Sequence[Reference], path, *, splits: dict | None = None,
     refuses instead). Anything else at ``path`` — a folder of other files, a file — is refused
     with :class:`~adadex.io.OutputExistsError` unless ``force=True``. ``info`` is stored in
     ``index.json`` (build parameters, rejection statistics …).
+
+    Args:
+        refs: the references (at least one; names unique, an unnamed one becomes ``ref<i>``).
+        path: the dataset folder to write.
+        splits: named splits, ``{name: {"train": [indices], "test": [indices]}}`` (checked
+            against ``len(refs)``); default none.
+        info: JSON-serializable build information for ``index.json``.
+        overwrite: replace an existing dataset at ``path`` (default True); False refuses with
+            :class:`~adadex.io.OutputExistsError`.
+        force: replace whatever else is at ``path`` (default False: refuse).
+
+    Returns:
+        ``path``.
     """
     path = Path(path)
     if not refs:
@@ -401,6 +438,11 @@ class ReferenceDataset(Sequence):
         frames: every frame of every reference as a memory-mapped TensorDict (for batched
             consumers such as the tracking environment, which index it by ``offset + t``).
         info: build information stored with the dataset.
+
+    Args:
+        path: the dataset folder (written by :func:`save_dataset`). A folder without
+            ``index.json``, of another format version, or with an unreadable index or splits
+            raises :class:`DatasetError`; the frames are mapped on first use.
     """
 
     def __init__(self, path):

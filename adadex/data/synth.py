@@ -76,7 +76,22 @@ _X_RANGE, _Y_RANGE = (0.32, 0.62), (-0.32, 0.32)
 
 @dataclass(frozen=True)
 class NoiseConfig:
-    """How imperfect the synthesized motion is (all zero = clean). Lengths in m, times in s."""
+    """How imperfect the synthesized motion is (all zero = clean). Lengths in m, times in s.
+
+    Attributes:
+        jitter: std of the per-frame Gaussian noise on keypoints and object position, m (default 0.002).
+        jitter_rot: per-frame object rotation noise, rad (default 0.01).
+        drift: amplitude of a slow random drift of the hand against the object, m (default 0.01).
+        penetration: fingertips end up to this deep inside the object, m (default 0.008).
+        contact_timing: std of the offset between the hand's grasp/release and the object's
+            motion, s (default 0.25).
+        proportion: relative std of per-finger bone lengths (embodiment bias; default 0.08).
+        hand_size: relative std of the overall hand size (default 0.05).
+
+    Examples:
+        >>> NoiseConfig.clean().jitter, NoiseConfig().jitter
+        (0.0, 0.002)
+    """
 
     jitter: float = 0.002           # per-frame Gaussian noise on keypoints and object position
     jitter_rot: float = 0.01        # per-frame object rotation noise, rad

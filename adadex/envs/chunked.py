@@ -46,7 +46,16 @@ _SET_PER_CHUNK = ("num_worlds", "split", "references", "draw", "seed")
 
 
 class RolloutChunk(NamedTuple):
-    """One chunk of :func:`chunked_rollouts`: which references it ran, with which seed, and its rollout."""
+    """One chunk of :func:`chunked_rollouts`: which references it ran, with which seed, and its rollout.
+
+    Attributes:
+        index: the chunk's number within the call, from 0.
+        references: the dataset indices its worlds tracked (world ``w`` tracked ``references[w]``).
+        seed: the seed its env was made with (:func:`chunk_seed`; None: fresh entropy).
+        rollout: the rollout, batch ``[len(references), config.window - 1]``.
+        env: the chunk's env (with the appended transform, if any); closed when the next chunk is
+            asked for.
+    """
 
     #: the chunk's number within the call, from 0
     index: int
@@ -63,7 +72,21 @@ class RolloutChunk(NamedTuple):
 def chunk_seed(seed: int | None, chunk: int) -> int | None:
     """The env seed of chunk ``chunk`` of a run seeded ``seed``: ``seed`` itself for the first (a run
     that fits one chunk draws as it always did), independent ones after it; ``None`` (fresh
-    entropy) stays ``None``."""
+    entropy) stays ``None``.
+
+    Args:
+        seed: the run's seed, or None.
+        chunk: the chunk's number, from 0.
+
+    Returns:
+        the chunk's env seed (derived from ``(seed, chunk)`` by ``numpy.random.SeedSequence``), or None.
+
+    Examples:
+        >>> chunk_seed(7, 0), chunk_seed(None, 3)
+        (7, None)
+        >>> chunk_seed(7, 1) == chunk_seed(7, 1) != chunk_seed(7, 2)
+        True
+    """
     if seed is None or chunk == 0:
         return seed
     return int(np.random.SeedSequence([int(seed), chunk]).generate_state(1)[0])

@@ -74,6 +74,22 @@ class Thresholds:
       is more than ``carry_motion`` from its start position, T_o ≤ ``object_position`` on at least
       ``carry_fraction`` of them (frames never reached count as failures); a trajectory whose
       reference object never moves that far is carried iff its object completion ≥ ``carry_fraction``.
+
+    Attributes:
+        position: bound of 0.5·T_o + 0.5·T_h, m (default 0.10).
+        rotation: bound of 0.5·R_o + 0.5·R_h, rad (default 60°).
+        finger: bound of E_finger, rad (default 40°).
+        object_position: bound of T_o alone, m (default 0.05).
+        carry_motion: how far the reference object must be from its start for a frame to count
+            in ``carried``, m (default 0.03).
+        carry_fraction: the fraction of those frames that must hold T_o ≤ ``object_position``,
+            in (0, 1] (default 0.8).
+
+    Every field must be positive (:class:`~adadex.errors.ConfigError` otherwise).
+
+    Examples:
+        >>> Thresholds().position, round(math.degrees(Thresholds().rotation))
+        (0.1, 60)
     """
 
     position: float = 0.10
@@ -94,7 +110,20 @@ class Thresholds:
 
 def frame_success(errors: dict, thresholds: Thresholds = Thresholds()):
     """Whether each frame meets the thresholds: 0.5·T_o + 0.5·T_h ≤ position,
-    0.5·R_o + 0.5·R_h ≤ rotation and E_finger ≤ finger (bool, the errors' shape; torch or numpy)."""
+    0.5·R_o + 0.5·R_h ≤ rotation and E_finger ≤ finger (bool, the errors' shape; torch or numpy).
+
+    Args:
+        errors: per-frame errors, at least ``"T_o"``, ``"T_h"`` (m), ``"R_o"``, ``"R_h"``,
+            ``"E_finger"`` (rad), arrays or tensors of one shape.
+        thresholds: the bounds (default :class:`Thresholds`, the paper's).
+
+    Examples:
+        >>> import numpy as np
+        >>> e = {"T_o": np.array([0.02, 0.3]), "T_h": np.array([0.02, 0.02]),
+        ...      "R_o": np.zeros(2), "R_h": np.zeros(2), "E_finger": np.zeros(2)}
+        >>> frame_success(e)
+        array([ True, False])
+    """
     th = thresholds
     return ((0.5 * errors["T_o"] + 0.5 * errors["T_h"] <= th.position)
             & (0.5 * errors["R_o"] + 0.5 * errors["R_h"] <= th.rotation) & (errors["E_finger"] <= th.finger))
@@ -102,5 +131,10 @@ def frame_success(errors: dict, thresholds: Thresholds = Thresholds()):
 
 def object_success(errors: dict, thresholds: Thresholds = Thresholds()):
     """The object-centric per-frame test: :func:`frame_success` and T_o ≤ ``object_position`` (bool,
-    the errors' shape; torch or numpy). Not the paper's; reported beside it (module docstring)."""
+    the errors' shape; torch or numpy). Not the paper's; reported beside it (module docstring).
+
+    Args:
+        errors: per-frame errors, as :func:`frame_success` takes them.
+        thresholds: the bounds (default :class:`Thresholds`).
+    """
     return frame_success(errors, thresholds) & (errors["T_o"] <= thresholds.object_position)

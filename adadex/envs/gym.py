@@ -28,7 +28,19 @@ from adadex.sim.robot import NUM_JOINTS
 
 
 class TrackingGymEnv(gymnasium.Env):
-    """One world of :class:`TrackingEnv` behind the gymnasium API (keyword arguments pass through)."""
+    """One world of :class:`TrackingEnv` behind the gymnasium API (keyword arguments pass through).
+
+    Observations are the flat (273,) float32 vector, actions (22,) float32 within
+    ±``config.max_action``; ``info`` carries the frame errors, the reference index and ``unstable``.
+
+    Args:
+        dataset: the reference dataset (as :class:`TrackingEnv` takes it).
+        split: ``(split name, part)`` the references are drawn from (default
+            ``("unseen_trajectory", "train")``).
+        config: the episode settings (:class:`TrackingConfig`).
+        **kwargs: :class:`TrackingEnv`'s other keyword arguments (``seed``, ``latent_fn``, ``patch`` …);
+            ``num_worlds`` is 1 and ``nthread`` 0.
+    """
 
     metadata = {"render_modes": []}
 

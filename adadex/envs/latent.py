@@ -71,7 +71,11 @@ def _latent(object_name: str) -> np.ndarray:
 
 def fixed_object_latent(object_name: str) -> np.ndarray:
     """(64,) float32, read-only: the stand-in latent of ``object_name``, used before/without a trained
-    encoder (see the module docstring)."""
+    encoder (see the module docstring).
+
+    Args:
+        object_name: a known object's name.
+    """
     return _latent(object_name)
 
 
@@ -83,6 +87,11 @@ class EncoderLatents:
     clouds sampled with a fixed seed) and read here on first use. Reading a table rather than
     running the network keeps the environment free of the model code (lower layers never import
     upper ones) and makes the latent of each object a fixed, inspectable number.
+
+    Args:
+        path: the ``latents.npz`` table (default: the shipped encoder's). Calling the instance with
+            an object name returns its latent; a table without that object raises
+            :class:`~adadex.errors.UnknownKeyError`.
     """
 
     def __init__(self, path=SHIPPED_LATENTS):
@@ -122,5 +131,9 @@ _shipped = EncoderLatents()
 
 
 def encoder_latent(object_name: str) -> np.ndarray:
-    """(64,) float32, read-only: ``object_name``'s latent from the shipped encoder (cached)."""
+    """(64,) float32, read-only: ``object_name``'s latent from the shipped encoder (cached).
+
+    Args:
+        object_name: a known object's name.
+    """
     return _shipped(object_name)

@@ -103,7 +103,19 @@ _TAILS = ((NUM_JOINTS,), (len(TRACKED_SITES), 7), (7,), (LATENT_DIM,), (len(REF_
 def flat_observation(joint_pos: torch.Tensor, link_pose: torch.Tensor, object_pose: torch.Tensor,
                      latent: torch.Tensor, ref_joint_pos: torch.Tensor, ref_object_pose: torch.Tensor) -> torch.Tensor:
     """(…, 273) from the structured entries (shapes in the module docstring; reference arrays
-    hold the frames at :data:`REF_OFFSETS`, the current one first); torch tensors or numpy arrays."""
+    hold the frames at :data:`REF_OFFSETS`, the current one first); torch tensors or numpy arrays.
+
+    Args:
+        joint_pos: (…, 22) joint positions, rad.
+        link_pose: (…, 5, 7) palm and fingertip poses (position m + wxyz quaternion).
+        object_pose: (…, 7) object pose.
+        latent: (…, 64) object latent.
+        ref_joint_pos: (…, 5, 22) reference joint positions at the offsets.
+        ref_object_pose: (…, 5, 7) reference object poses at the offsets.
+
+    Returns:
+        (…, 273) in the order of :data:`LAYOUT`. A wrong shape raises :class:`~adadex.errors.ArrayError`.
+    """
     lead = tuple(joint_pos.shape[:-1])
     for name, x, tail in (("joint_pos", joint_pos, _TAILS[0]), ("link_pose", link_pose, _TAILS[1]),
                           ("object_pose", object_pose, _TAILS[2]), ("latent", latent, _TAILS[3]),
@@ -125,6 +137,10 @@ def flat_observation(joint_pos: torch.Tensor, link_pose: torch.Tensor, object_po
 
 
 def flat_from_tensordict(td) -> torch.Tensor:
-    """:func:`flat_observation` of a TensorDict holding the structured keys."""
+    """:func:`flat_observation` of a TensorDict holding the structured keys.
+
+    Args:
+        td: a TensorDict with the structured entries (module docstring), e.g. the environment's output.
+    """
     return flat_observation(td.get(JOINT_POS), td.get(LINK_POSE), td.get(OBJECT_POSE), td.get(OBJECT_LATENT),
                             td.get(REF_JOINT_POS), td.get(REF_OBJECT_POSE))

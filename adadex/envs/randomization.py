@@ -79,6 +79,16 @@ class EffectRange:
     default, Table 3): the draw acts on top of the patched value — a scale multiplies it, an
     offset adds to it (:meth:`~adadex.sim.patch.ModelPatch.composed`). ``True``
     (:meth:`Randomization.from_patch`): the draw *is* the value and replaces the patch's.
+
+    Attributes:
+        effect: the effect's name (a model-stage effect of :mod:`adadex.sim.effects`; others raise
+            :class:`~adadex.sim.effects.EffectError`).
+        joints: the joints it is drawn on.
+        low: lower end of the range, broadcast to (len(joints), n_params), in the effect's units.
+        high: upper end, likewise; not below ``low``.
+        shared: one draw per world for every joint (default False: each joint and parameter
+            independently).
+        absolute: the draw replaces the patch's value (default False: it composes with it).
     """
 
     effect: str
@@ -286,7 +296,12 @@ class Randomization:
 
 class ModelRandomizer:
     """Writes one world's randomized object physics into a copy of its scene model (the robot's
-    physics is an effect patch, applied by the caller with the effects' code)."""
+    physics is an effect patch, applied by the caller with the effects' code).
+
+    Args:
+        model: a scene model holding the object (its body :data:`~adadex.sim.scene.OBJECT_BODY`);
+            the object's body and its colliding geoms are looked up once, for :meth:`apply`.
+    """
 
     def __init__(self, model: mujoco.MjModel):
         obj = model.body(OBJECT_BODY).id

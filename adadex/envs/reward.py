@@ -154,7 +154,24 @@ def tracking_reward(cfg: RewardConfig, *, joint_pos, link_pose, object_pose, ref
                     ref_object_pose, errors: dict | None = None) -> tuple:
     """(B,) reward and its terms from (B, 22) joints, (B, 5, 7) link poses, (B, 7) object poses and
     the reference at the same frame. ``errors`` (the frame's metric errors, if already computed)
-    saves recomputing the palm and object errors. Torch tensors or numpy arrays."""
+    saves recomputing the palm and object errors. Torch tensors or numpy arrays.
+
+    Args:
+        cfg: the reward's weights, clips and scales (:class:`RewardConfig`).
+        joint_pos: (B, 22) joint positions, rad.
+        link_pose: (B, 5, 7) palm and fingertip poses (position m + wxyz quaternion).
+        object_pose: (B, 7) object pose.
+        ref_joint_pos: (B, 22) the reference's joint positions at this frame.
+        ref_link_pose: (B, 5, 7) the reference's link poses.
+        ref_object_pose: (B, 7) the reference's object pose.
+        errors: the frame's errors (``"T_o"``, ``"R_o"``, ``"T_h"``, ``"R_h"``, ``"E_finger"``), or
+            None (default): computed here.
+
+    Returns:
+        ``(reward, terms)``: the (B,) reward and a dict of its (B,) unweighted terms
+        (``tracking``, ``proximity``, ``goal``, ``bonus``, ``success``, ``object_success``,
+        ``shaping``).
+    """
     xp = namespace(joint_pos)
     # Every distance the reward needs, in one norm over stacked (B, 12, 3) differences.
     palm, tips, obj = link_pose[:, 0, :3], link_pose[:, 1:, :3], object_pose[:, None, :3]

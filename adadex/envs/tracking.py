@@ -163,7 +163,14 @@ def _as_patch(patch, effects) -> ModelPatch:
 
 def episode_references(dataset: ReferenceDataset, split: tuple[str, str] | None, window: int = WINDOW_FRAMES
                        ) -> list[int]:
-    """Indices of the references in ``split`` (``None``: all) long enough for a ``window``-frame episode."""
+    """Indices of the references in ``split`` (``None``: all) long enough for a ``window``-frame episode.
+
+    Args:
+        dataset: the reference dataset.
+        split: ``(split name, part)``, e.g. ``("unseen_trajectory", "train")``; None: every reference.
+        window: the episode's length in frames (default ``WINDOW_FRAMES``); a reference qualifies
+            if this many frames follow its window start.
+    """
     idx = list(range(len(dataset))) if split is None else dataset.split(*split)
     return [i for i in idx if dataset.entries[i]["window_start"] is not None
             and dataset.entries[i]["window_start"] + window <= dataset.entries[i]["length"]]

@@ -153,7 +153,20 @@ def reference_motion(dataset: ReferenceDataset, references, steps: int) -> torch
 
 
 def format_summary(summary: dict) -> str:
-    """Three lines for a terminal: success both ways, the object-centric measures and the mean errors."""
+    """Three lines for a terminal: success both ways, the object-centric measures and the mean errors.
+
+    Args:
+        summary: a :func:`~adadex.eval.metrics.summarize` result (positions in cm, rotations in rad,
+            rates in %); the object-centric entries may be missing (shown as nan).
+
+    Examples:
+        >>> s = {"success_mean_error_pct": 50.0, "completion_pct": 62.5, "T_o": 4.0, "R_o": 0.3,
+        ...      "T_h": 3.0, "R_h": 0.2, "E_finger": 0.1}
+        >>> print(format_summary(s))
+        success: mean-error 50.0 %, completion 62.5 %
+        object-centric: object completion nan %, carried nan %
+        T_o 4.0 cm, R_o 0.30 rad, T_h 3.0 cm, R_h 0.20 rad, E_finger 0.100 rad
+    """
     return (f"success: mean-error {summary['success_mean_error_pct']:.1f} %, completion {summary['completion_pct']:.1f} %"
             f"\nobject-centric: object completion {summary.get('object_completion_pct', float('nan')):.1f} %, "
             f"carried {summary.get('carried_pct', float('nan')):.1f} %"

@@ -44,6 +44,7 @@ def latent_smoothness(policy, observations: TensorDictBase, *, eps: float = 0.05
         eps: the perturbation norm (latents live in (−1, 1)).
         perturbations: random directions per observation.
         seed: seeds the directions.
+        action_key: the policy's output compared (default ``"action"``).
 
     Returns ``{"rho": (N·P,) tensor, "mean", "median", "p95", "max", "eps"}``.
     """

@@ -76,11 +76,14 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
     """Per-trajectory means and both success measures from (B, T) per-frame errors.
 
     Args:
+        errors: ``{name: (B, T) tensor}`` per-frame errors for each of ``ERROR_NAMES`` (``T_o``,
+            ``T_h`` in m; ``R_o``, ``R_h``, ``E_finger`` in rad).
         valid: (B, T) bool, the frames each trajectory actually tracked (default: all).
         lengths: (B,) frames each trajectory should have tracked (default: its valid frames); a
             trajectory with fewer valid frames ended early.
         reference_motion: (B, T) the reference object's distance from its start position at each
             frame, in m (valid or not: it is the reference's); needed for ``carried``.
+        thresholds: the success thresholds (default :class:`~adadex.envs.frame_errors.Thresholds`).
 
     Returns (B,) tensors: the mean of each error (NaN for an empty trajectory), ``frames``,
     ``ended_early``, ``success_mean_error`` (bool), ``completion`` (fraction), ``empty`` (bool),
@@ -132,15 +135,30 @@ def with_units(values: dict, prefix: str = "") -> dict:
     unit is in the name already or that have none, as they are), each key prefixed with ``prefix``:
     the names of the training logs (``metrics.csv``, wandb).
 
-    >>> with_units({"T_o": 9.8, "R_h": 0.1, "completion_pct": 82.0}, "eval_")
-    {'eval_T_o_cm': 9.8, 'eval_R_h_rad': 0.1, 'eval_completion_pct': 82.0}
+    Args:
+        values: a summary (:func:`summarize`) or any dict keyed by metric names.
+        prefix: put before every key (default ``""``).
+
+    Examples:
+        >>> with_units({"T_o": 9.8, "R_h": 0.1, "completion_pct": 82.0}, "eval_")
+        {'eval_T_o_cm': 9.8, 'eval_R_h_rad': 0.1, 'eval_completion_pct': 82.0}
     """
     return {f"{prefix}{k}_{SUMMARY_UNITS[k]}" if k in SUMMARY_UNITS else f"{prefix}{k}": v for k, v in values.items()}
 
 
 def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
     """Over non-empty trajectories: mean errors (positions in cm, rotations in rad, fingers in rad)
-    and success rates in %, as the paper's tables report them."""
+    and success rates in %, as the paper's tables report them.
+
+    Args:
+        per_traj: a :func:`trajectory_metrics` (or :func:`from_rollout`) result.
+
+    Returns:
+        ``{"trajectories", "empty"}`` (counts), the mean of each error (``T_o``, ``T_h`` in cm;
+        ``R_o``, ``R_h``, ``E_finger`` in rad) and ``success_mean_error_pct``, ``completion_pct``,
+        ``object_completion_pct``, ``carried_pct`` (NaN without ``carried``); every mean is NaN
+        when no trajectory is non-empty.
+    """
     keep = ~per_traj["empty"]
     n = int(keep.sum())
     out = {"trajectories": n, "empty": int(per_traj["empty"].sum())}
@@ -192,6 +210,16 @@ def from_rollout(td, *, errors_key=("next", "privileged", "errors"), lengths: to
     ``reference_motion`` (the rollout's batch shape, m) is what ``carried`` needs; by default it is
     read from the rollout (:func:`reference_motion_from_rollout`), and ``carried`` is left out
     where that is not possible.
+
+    Args:
+        td: the rollout, batch shape ``[..., T]``, holding ``("next", "done")`` and the errors.
+        errors_key: where the per-frame errors are (default ``("next", "privileged", "errors")``).
+        lengths: frames each trajectory should have tracked (see :func:`trajectory_metrics`).
+        thresholds: the success thresholds.
+        reference_motion: the reference object's distance from its start, m, or None (above).
+
+    Returns:
+        :func:`trajectory_metrics`'s (B,) tensors, B the product of the leading dimensions.
     """
     if td.batch_dims < 2:
         raise ArrayError(f"expected a rollout of batch shape [..., T] with time last, got {list(td.batch_size)}")

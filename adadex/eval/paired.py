@@ -75,6 +75,8 @@ def bootstrap_mean(values, reference_ids, seed_ids=None, *, resamples: int = RES
         values: (N,) one value per episode.
         reference_ids: (N,) which reference each episode tracked (any hashable numbers or strings).
         seed_ids: (N,) which training seed it belongs to (the strata); ``None``: one seed.
+        resamples: bootstrap resamples (≥ 1; default :data:`RESAMPLES`, 2000).
+        confidence: the interval's coverage, in (0, 1) (default :data:`CONFIDENCE`, 0.95).
         seed: the resampling's random seed.
 
     Returns ``{"estimate", "ci95": [lo, hi], "episodes", "references": [per seed], "seeds",
@@ -109,7 +111,21 @@ def paired_bootstrap(per_episode_a, per_episode_b, reference_ids, seed_ids=None,
                      confidence: float = CONFIDENCE, seed: int = 0) -> dict:
     """A − B, episode by episode, with :func:`bootstrap_mean`'s interval: ``per_episode_a[i]`` and
     ``per_episode_b[i]`` must be the same reference (``reference_ids[i]``), seed and draw
-    (:func:`pair_episodes` lines two rows' ``per_episode`` records up)."""
+    (:func:`pair_episodes` lines two rows' ``per_episode`` records up).
+
+    Args:
+        per_episode_a: (N,) one value per episode of A.
+        per_episode_b: (N,) the same episodes' values of B (another shape raises
+            :class:`~adadex.errors.ArrayError`).
+        reference_ids: (N,) which reference each episode tracked.
+        seed_ids: (N,) which training seed it belongs to; ``None``: one seed.
+        resamples: bootstrap resamples (default 2000).
+        confidence: the interval's coverage, in (0, 1) (default 0.95).
+        seed: the resampling's random seed.
+
+    Returns:
+        :func:`bootstrap_mean`'s dict for the differences A − B.
+    """
     a, b = np.asarray(per_episode_a, dtype=np.float64), np.asarray(per_episode_b, dtype=np.float64)
     if a.shape != b.shape:
         raise ArrayError(f"paired_bootstrap: A and B must hold the same episodes, got shapes {a.shape} and {b.shape}")

@@ -85,8 +85,11 @@ def return_metric_spearman(rollouts, per_traj: dict | None = None, *, metrics: S
     rollout or a list of rollouts (one per chunk of an evaluation), as ``{metric: ρ, "episodes": n}``.
 
     Args:
+        rollouts: a rollout TensorDict or a list of them, holding ``("next", "reward")``.
         per_traj: the rollouts' :func:`~adadex.eval.metrics.from_rollout` results (concatenated in
             the same order) when already computed; otherwise computed here with ``from_rollout_kwargs``.
+        metrics: the per-trajectory metrics to correlate (default ``("completion", "object_completion")``).
+        **from_rollout_kwargs: passed to :func:`~adadex.eval.metrics.from_rollout`.
 
     Returns ``None`` when a rollout holds no rewards.
     """

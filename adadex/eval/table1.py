@@ -90,6 +90,8 @@ def aggregate(summaries: Mapping[tuple[str, str, str], Sequence[dict]],
     """``{(split, condition, row): [summary per seed]}`` → the table1.json structure (module docstring).
 
     Args:
+        summaries: ``{(split, condition, row): [summary per seed]}``, each a
+            :func:`~adadex.eval.metrics.summarize` result.
         episodes: ``{(split, condition, row): [per_episode per seed]}``, the seeds in the same order as
             in ``summaries`` (``None`` for a seed whose evaluation kept none); a row uses the bootstrap
             only when every one of its seeds has them, a difference only when both rows have them.
@@ -162,7 +164,12 @@ def _ordered(rows: Mapping) -> list[str]:
 def table_markdown(table: dict, *, title: str = "Table 1") -> str:
     """The table as Markdown: one block per split and condition, rows in :data:`ROWS` order, each
     cell the mean over seeds ± the half-width of its 95 % interval; below each block the rows'
-    differences to the tracker with their 95 % intervals ([lo, hi])."""
+    differences to the tracker with their 95 % intervals ([lo, hi]).
+
+    Args:
+        table: the :func:`aggregate` structure (table1.json).
+        title: the page's heading (default ``"Table 1"``).
+    """
     lines = [f"# {title}", "",
              "Success (%): mean-error / completion (the paper's metrics), then the object-centric object "
              "completion (frames within the paper's thresholds *and* T_o ≤ 5 cm) and carried (the object follows "

@@ -30,7 +30,11 @@ def _pct(s: dict, key: str) -> str:
 
 
 def results_table(results: dict[str, dict]) -> str:
-    """Markdown table, one row per named summary, in the given order."""
+    """Markdown table, one row per named summary, in the given order.
+
+    Args:
+        results: ``{name: summary}``, each a :func:`~adadex.eval.metrics.summarize` result.
+    """
     lines = ["| " + " | ".join(_COLUMNS) + " |", "|" + "---|" * len(_COLUMNS)]
     for name, s in results.items():
         lines.append(f"| {name} | {s['trajectories']} | {s['success_mean_error_pct']:.1f} / {s['completion_pct']:.1f} | "
@@ -40,7 +44,13 @@ def results_table(results: dict[str, dict]) -> str:
 
 
 def plot_results(results: dict[str, dict], path, title: str = "") -> None:
-    """Grouped bars of both success rates per named summary, saved as a PNG."""
+    """Grouped bars of both success rates per named summary, saved as a PNG.
+
+    Args:
+        results: ``{name: summary}``, each a :func:`~adadex.eval.metrics.summarize` result.
+        path: the PNG file to write (atomically).
+        title: the plot's title (default none).
+    """
     import matplotlib
 
     matplotlib.use("Agg")

@@ -68,7 +68,13 @@ class PalmShift:
     Shared by :class:`ObjectAnchor` and the modulator's compact channel
     (:class:`adadex.transforms.modulation.CompactModulation`). Holds no parameters.
 
-    >>> import torch
+    Args:
+        damping: the Gauss–Newton steps' damping λ (> 0; default 0.02): each solves
+            (J Jᵀ + λ² I) x = error.
+        iterations: Gauss–Newton steps (≥ 1; default 3).
+
+    Examples:
+        >>> import torch
     >>> dq = PalmShift()(torch.zeros(4, 6), torch.tensor([[0.05, 0.0, 0.0]]).expand(4, 3))
     >>> dq.shape, bool(dq.abs().max() > 0)
     (torch.Size([4, 6]), True)

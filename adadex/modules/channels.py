@@ -114,25 +114,29 @@ class Field:
 class Channel:
     """One modulation channel's record in :data:`CHANNELS` (see the module docstring).
 
-    * ``name`` — its letter in channel strings (``"R"``);
-    * ``title`` — what it modulates, in words;
-    * ``entries`` — ``((key, shape), …)``: its part of the modulator's action, in flat order, each in [−1, 1];
-    * ``state`` — ``((key, shape), …)``: entries it may carry from step to step (zero at reset);
-    * ``fields`` — its :class:`Field` s of :class:`ModulationConfig`;
-    * ``edits`` — ``"observation"`` (what the tracker reads: runs before the tracker on the inverse
-      path) or ``"action"`` (the tracker's output: runs after it);
-    * ``latch`` — for a channel whose action is a choice held for the episode (A, L, K): the name of
-      its config switch (one of its ``fields``) that latches the choice at the episode's first step;
-      ``""`` for a per-step channel;
-    * ``init_scale`` — the modulator's initial exploration scale (pre-tanh) on this channel's head:
-      sampling an untrained modulator must leave the tracker's success intact, so each channel's is
-      sized to what its edits cost (``python benchmarks/modulator_usage.py --init-check``: around
-      kinematic replay on the planned-grasp ``small`` dataset under Table 3, 188 paired episodes,
-      sampling at 0.5 cost R 18.0 and T 6.8 completion points, C at 0.1 cost 7.8; R 0.05 (+0.6),
-      T 0.2 (+1.0) and C 0.03 (+3.6) are within the ±4-point noise of 188 episodes, while R 0.2
-      (−6.4) and C 0.1 are not; docs/modulation.md); O keeps 0.5 (around kinematic replay it acts on
-      nothing; around the pipeline's generalist it changed nothing measurable at 0.5);
-    * :attr:`transform` — its transform class, bound by :mod:`adadex.transforms.modulation`.
+    Its transform class is :attr:`transform`, bound by :mod:`adadex.transforms.modulation`.
+
+    Attributes:
+        name: its letter in channel strings (``"R"``).
+        title: what it modulates, in words.
+        entries: ``((key, shape), …)``: its part of the modulator's action, in flat order, each in [−1, 1].
+        fields: its :class:`Field` s of :class:`ModulationConfig`.
+        edits: ``"observation"`` (what the tracker reads: runs before the tracker on the inverse
+            path) or ``"action"`` (the tracker's output: runs after it); others raise ``ValueError``.
+        state: ``((key, shape), …)``: entries it may carry from step to step (zero at reset;
+            default none).
+        init_scale: the modulator's initial exploration scale (pre-tanh) on this channel's head
+            (default 0.5): sampling an untrained modulator must leave the tracker's success intact,
+            so each channel's is sized to what its edits cost (``python
+            benchmarks/modulator_usage.py --init-check``: around kinematic replay on the
+            planned-grasp ``small`` dataset under Table 3, 188 paired episodes, sampling at 0.5 cost
+            R 18.0 and T 6.8 completion points, C at 0.1 cost 7.8; R 0.05 (+0.6), T 0.2 (+1.0) and C
+            0.03 (+3.6) are within the ±4-point noise of 188 episodes, while R 0.2 (−6.4) and C 0.1
+            are not; docs/modulation.md); O keeps 0.5 (around kinematic replay it acts on nothing;
+            around the pipeline's generalist it changed nothing measurable at 0.5).
+        latch: for a channel whose action is a choice held for the episode (A, L, K): the name of
+            its config switch (one of its ``fields``) that latches the choice at the episode's first
+            step; ``""`` (default) for a per-step channel.
     """
 
     name: str
@@ -262,7 +266,17 @@ def bind_transform(channel: str, cls: type) -> Channel:
 
 
 def parse_channels(channels: str | tuple | list) -> tuple[str, ...]:
-    """``"R+O+T"`` / ``"T+R"`` / ``"none"`` / ``""`` / ``("R", "T")`` → channels in canonical order (R, L, C, A, O, T, K)."""
+    """``"R+O+T"`` / ``"T+R"`` / ``"none"`` / ``""`` / ``("R", "T")`` → channels in canonical order (R, L, C, A, O, T, K).
+
+    Args:
+        channels: ``"+"``- (or ``","``-) joined channel letters, case-insensitive, or a sequence of
+            them; ``"none"`` or ``""``: no channel. An unknown or repeated channel raises
+            :class:`~adadex.errors.ConfigError`.
+
+    Examples:
+        >>> parse_channels("t+r"), parse_channels("none")
+        (('R', 'T'), ())
+    """
     if isinstance(channels, str):
         text = channels.strip()
         parts = [] if text.lower() in ("", "none") else [p.strip().upper() for p in text.replace(",", "+").split("+")]
@@ -278,7 +292,16 @@ def parse_channels(channels: str | tuple | list) -> tuple[str, ...]:
 
 
 class ModulationLayout:
-    """Where each active channel's entries sit in the modulator's flat action (see module docstring)."""
+    """Where each active channel's entries sit in the modulator's flat action (see module docstring).
+
+    Args:
+        channels: the active channels, as :func:`parse_channels` takes them (default ``"R+O+T"``).
+
+    Examples:
+        >>> layout = ModulationLayout("T+R")
+        >>> layout, layout.channel_sizes
+        (ModulationLayout('R+T', dim=134), [112, 22])
+    """
 
     def __init__(self, channels="R+O+T"):
         self.channels = parse_channels(channels)

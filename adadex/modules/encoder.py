@@ -82,6 +82,19 @@ def chamfer_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     found with ``torch.cdist`` without gradient and the distances recomputed for the matched pairs:
     same value and gradient as differentiating ``cdist(a, b).min(…)²`` (the min passes its gradient
     to the arg-min), at a fraction of the cost, since cdist's backward touches all N × M pairs.
+
+    Args:
+        a: (B, N, 3) clouds.
+        b: (B, M, 3) clouds, as many as ``a``; other shapes raise :class:`~adadex.errors.ArrayError`.
+
+    Returns:
+        (B,) the distance, in the clouds' unit squared.
+
+    Examples:
+        >>> a = torch.zeros(1, 2, 3)
+        >>> b = torch.tensor([[[0.0, 0.0, 1.0]]])
+        >>> chamfer_distance(a, a), chamfer_distance(a, b)
+        (tensor([0.]), tensor([1.]))
     """
     if a.dim() != 3 or b.dim() != 3 or a.shape[-1] != 3 or b.shape[-1] != 3 or a.shape[0] != b.shape[0]:
         raise ArrayError(f"chamfer_distance expects (B, N, 3) and (B, M, 3), got {tuple(a.shape)} and {tuple(b.shape)}")
@@ -99,8 +112,16 @@ def chamfer_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 @dataclass(frozen=True)
 class EncoderConfig:
-    """The point-cloud autoencoder's architecture. ``points``: input points per cloud in training and
-    for the env latent."""
+    """The point-cloud autoencoder's architecture.
+
+    Attributes:
+        points: input points per cloud in training and for the env latent (default 512).
+        decoded_points: points of a decoded cloud (default 512).
+        widths: the encoder's per-point MLP widths after the 3 inputs (default (64, 128, 256)).
+        decoder_widths: the decoder MLP's hidden widths (default (128, 256)).
+        latent_dim: size of the latent (default 64, the env's ``LATENT_DIM``).
+        unit_scale: model units per metre (default :data:`UNIT_SCALE`, 10: decimetres).
+    """
 
     points: int = 512
     decoded_points: int = 512
@@ -136,6 +157,15 @@ class PointCloudAutoencoder(nn.Module):
 
     No batch normalisation: a cloud's latent depends on that cloud alone, the same in training
     and evaluation.
+
+    Args:
+        config: the architecture (default :class:`EncoderConfig`).
+
+    Examples:
+        >>> import torch
+        >>> model = PointCloudAutoencoder()
+        >>> model.encode(torch.rand(2, 100, 3) * 0.05).shape
+        torch.Size([2, 64])
     """
 
     def __init__(self, config: EncoderConfig | None = None):
@@ -226,7 +256,13 @@ class PointCloudEncoder(TensorDictModule):
 @functools.lru_cache(maxsize=1024)
 def surface_points(name: str, points: int, seed: int) -> np.ndarray:
     """One object's surface sample (``points`` × 3, metres, read-only), cached: latents and
-    evaluations during training re-use the same clouds."""
+    evaluations during training re-use the same clouds.
+
+    Args:
+        name: a known object's name.
+        points: how many surface points.
+        seed: the sampling seed.
+    """
     pts = get_object(name).point_cloud(points, seed=seed)
     pts.setflags(write=False)
     return pts
@@ -246,7 +282,22 @@ class EncoderCheckpointError(AdadexError, ValueError):
 
 
 def save_encoder(path, model: PointCloudAutoencoder, meta: dict | None = None) -> Path:
-    """Write ``model`` (config, state_dict) and ``meta`` (JSON-like: seed, steps, metrics, objects) atomically."""
+    """Write ``model`` (config, state_dict) and ``meta`` (JSON-like: seed, steps, metrics, objects) atomically.
+
+    Args:
+        path: the checkpoint file to write.
+        model: the autoencoder.
+        meta: free-form information stored with it (default none).
+
+    Returns:
+        the path written.
+
+    Examples:
+        >>> import tempfile, os
+        >>> path = save_encoder(os.path.join(tempfile.mkdtemp(), "encoder.pt"), PointCloudAutoencoder(), {"steps": 0})
+        >>> load_encoder(path)[1]
+        {'steps': 0}
+    """
     payload = {"format": _FORMAT, "version": _VERSION, "config": asdict(model.config),
                "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()},
                "meta": dict(meta or {})}
@@ -258,6 +309,13 @@ def load_encoder(path) -> tuple[PointCloudAutoencoder, dict]:
 
     Raises ``FileNotFoundError`` for a missing file and :class:`EncoderCheckpointError` for anything
     that is not a complete checkpoint of this format; both name the file.
+
+    Args:
+        path: the checkpoint file.
+
+    Returns:
+        ``(model, meta)``: the :class:`PointCloudAutoencoder` on the CPU, in eval mode, and the
+        ``meta`` dict saved with it.
     """
     path = Path(path)
     if not path.is_file():
@@ -281,7 +339,12 @@ def load_encoder(path) -> tuple[PointCloudAutoencoder, dict]:
 @torch.no_grad()
 def object_latents(model: PointCloudAutoencoder, objects: Sequence[str] | None = None) -> dict[str, np.ndarray]:
     """{object: (64,) float32 latent} from each object's surface cloud (``config.points`` points,
-    :data:`LATENT_SEED`) — the table the environment reads (:class:`adadex.envs.latent.EncoderLatents`)."""
+    :data:`LATENT_SEED`) — the table the environment reads (:class:`adadex.envs.latent.EncoderLatents`).
+
+    Args:
+        model: the autoencoder (put in eval mode).
+        objects: object names (default: every known object).
+    """
     names = list(OBJECT_NAMES if objects is None else objects)
     clouds = torch.stack([torch.tensor(surface_points(n, model.config.points, LATENT_SEED)) for n in names])
     z = model.eval().encode(clouds).numpy().astype(np.float32)

@@ -29,6 +29,16 @@ class Normalizer(nn.Module):
     """``(x − loc) / scale``, clipped to ±``clip``; identity until :meth:`fit` sets the statistics.
 
     The statistics are buffers: they travel with ``state_dict`` and never receive gradients.
+
+    Args:
+        dim: the size of the last dimension it normalizes.
+        clip: the output's bound (default 10).
+        eps: a standard deviation at or below it gives scale 1 (default 1e-3).
+
+    Examples:
+        >>> norm = Normalizer(2).fit(torch.tensor([[0.0, 5.0], [2.0, 5.0]]))
+        >>> norm(torch.tensor([[1.0, 5.0]]))
+        tensor([[0., 0.]])
     """
 
     def __init__(self, dim: int, clip: float = 10.0, eps: float = 1e-3):
@@ -73,7 +83,18 @@ class GaussianHeads(nn.Module):
     list of indices of the output) are a fixed N(0, 1) that no parameter moves — entries the environment ignores there (a
     choice it latched earlier, e.g. channel A's reach after the episode's first step). Their samples
     then carry no parameter's log-probability, so PPO's ratio and gradient come only from the entries
-    that act, instead of from noise the environment throws away."""
+    that act, instead of from noise the environment throws away.
+
+    Args:
+        obs_dim: the observation's size (normalized by a :class:`Normalizer` first).
+        head_sizes: output entries of each head; loc and scale are (…, sum(head_sizes)).
+        hidden: the trunk's widths (its last is the heads' input).
+        init_gain: orthogonal-init gain of the heads' weights (default 0.01).
+        init_scale: initial exploration scale, one for all heads or one per head (default 1.0).
+        activation: the trunk's activation class (default ``nn.ELU``).
+        loc_bound: > 0: ``loc = b·tanh(loc/b)`` (default 0: unbounded).
+        latched: ``(i, entries)`` (above), or None.
+    """
 
     def __init__(self, obs_dim: int, head_sizes: Sequence[int], hidden: Sequence[int], *,
                  init_gain: float = 0.01, init_scale: float | Sequence[float] = 1.0, activation=nn.ELU,
@@ -135,7 +156,27 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
     saved before 2026-11-25 did. That is not the same for per-sample bounds: TorchRL 0.14 then also
     adds the bounds' centre ``(low + high) / 2`` to the pre-tanh mean, so a residual tracker's zero
     correction became ``residual·tanh(feed-forward)`` on top of the feed-forward (tested in
-    ``tests/modules/test_policy_modules.py``). Kept only so those checkpoints act as they were trained."""
+    ``tests/modules/test_policy_modules.py``). Kept only so those checkpoints act as they were trained.
+
+    Args:
+        obs_key: the key of the flat observation it reads.
+        obs_dim: the observation's size.
+        head_sizes: the action entries of each output head (the action's size is their sum).
+        low: the action's lower bound (fixed bounds; ignored for sampling when ``bounds`` is given,
+            but still the action spec's).
+        high: the action's upper bound, likewise.
+        hidden: the trunk's hidden widths (:class:`GaussianHeads`).
+        namespace: the key prefix of the distribution's entries.
+        action_key: the key it writes the action to (default ``"action"``).
+        init_scale: initial exploration scale, one for all heads or one per head (default 1.0).
+        bounds: a module writing per-sample bounds (above), or None.
+        loc_bound: bound of the pre-tanh mean (above; default 0: none).
+        torchrl_tanh_loc: bound it TorchRL's way instead (above; default False).
+        latched: ``(observation index, entries)`` fixed to N(0, 1) where that entry is > 0, or None.
+
+    Returns:
+        the ``ProbabilisticActor`` (TanhNormal, writing the log-prob; :class:`SamplingPolicy` samples it faster).
+    """
     net = GaussianHeads(obs_dim, head_sizes, hidden, init_scale=init_scale,
                         loc_bound=0.0 if torchrl_tanh_loc else loc_bound, latched=latched)
     loc, scale = (namespace, "loc"), (namespace, "scale")
@@ -201,15 +242,20 @@ class SamplingPolicy(TensorDictModuleBase):
     it and writes every key the actor writes; any other exploration type runs the actor itself. It
     holds the actor (its parameters), so a collector's weight updates reach both paths.
 
-    >>> import torch
-    >>> from tensordict import TensorDict
-    >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
-    >>> actor = make_actor("obs", 4, [2], -1.0, 1.0, [8], namespace="p")
-    >>> td = TensorDict({"obs": torch.zeros(3, 4)}, batch_size=[3])
-    >>> with set_exploration_type(ExplorationType.RANDOM):
-    ...     out = SamplingPolicy(actor)(td)
-    >>> out["action"].shape, out["action_log_prob"].shape
-    (torch.Size([3, 2]), torch.Size([3]))
+    Args:
+        actor: an actor built by :func:`make_actor` (another raises
+            :class:`~adadex.errors.ConfigTypeError`).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.envs.utils import ExplorationType, set_exploration_type
+        >>> actor = make_actor("obs", 4, [2], -1.0, 1.0, [8], namespace="p")
+        >>> td = TensorDict({"obs": torch.zeros(3, 4)}, batch_size=[3])
+        >>> with set_exploration_type(ExplorationType.RANDOM):
+        ...     out = SamplingPolicy(actor)(td)
+        >>> out["action"].shape, out["action_log_prob"].shape
+        (torch.Size([3, 2]), torch.Size([3]))
     """
 
     def __init__(self, actor: ProbabilisticActor):
@@ -243,7 +289,16 @@ class SamplingPolicy(TensorDictModuleBase):
 
 
 def make_critic(obs_key, obs_dim: int, hidden: Sequence[int], *, value_key="state_value") -> ValueOperator:
-    """A value network reading ``obs_key`` (flat) and writing ``value_key``."""
+    """A value network reading ``obs_key`` (flat) and writing ``value_key``.
+
+    A :class:`Normalizer`, then an ELU MLP to one output.
+
+    Args:
+        obs_key: the key of the flat observation it reads.
+        obs_dim: the observation's size.
+        hidden: the MLP's hidden widths.
+        value_key: the key it writes (default ``"state_value"``).
+    """
     net = nn.Sequential(Normalizer(obs_dim), MLP(in_features=obs_dim, out_features=1, num_cells=list(hidden),
                                                  activation_class=nn.ELU))
     return ValueOperator(net, in_keys=[obs_key], out_keys=[value_key])
@@ -251,7 +306,14 @@ def make_critic(obs_key, obs_dim: int, hidden: Sequence[int], *, value_key="stat
 
 class ActorCritic(nn.Module):
     """An ``actor`` + ``critic`` pair with a ``config`` dict that rebuilds it: forward = the actor,
-    :meth:`freeze`, and checkpoints (``save`` / ``load``, atomic, refusing another kind's file)."""
+    :meth:`freeze`, and checkpoints (``save`` / ``load``, atomic, refusing another kind's file).
+
+    A base class: a subclass sets ``actor``, ``critic``, ``config`` and its ``kind``.
+
+    Args:
+        *args: ``nn.Module``'s (none).
+        **kwargs: ``nn.Module``'s (none).
+    """
 
     kind = "actor_critic"
     config: dict
@@ -321,7 +383,12 @@ class ActorCritic(nn.Module):
 
 
 def fit_normalizers(module: nn.Module, observations: torch.Tensor) -> None:
-    """Fit every :class:`Normalizer` inside ``module`` (actor and critic) to sampled observations."""
+    """Fit every :class:`Normalizer` inside ``module`` (actor and critic) to sampled observations.
+
+    Args:
+        module: a module holding normalizers (e.g. an :class:`ActorCritic`).
+        observations: (…, obs_dim) samples, at least 2 and finite.
+    """
     for m in module.modules():
         if isinstance(m, Normalizer):
             m.fit(observations)

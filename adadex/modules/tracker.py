@@ -54,7 +54,13 @@ class ReplayBounds(nn.Module):
     feed-forward + r), the feed-forward being kinematic replay's action: the reference joints at t+1
     (read from the flat observation, so a modulated reference moves it too) minus the current joint
     targets; with an ``anchor`` (:class:`~adadex.modules.anchor.ObjectAnchor`), of the reference
-    shifted onto the object where it started the episode."""
+    shifted onto the object where it started the episode.
+
+    Args:
+        residual: the half-width ``r`` of the bounds around the feed-forward, rad.
+        anchor: the object anchor shifting the replayed reference (None: plain replay). With one,
+            ``forward`` needs the object's and the reference object's start poses.
+    """
 
     def __init__(self, residual: float, anchor: ObjectAnchor | None = None):
         super().__init__()

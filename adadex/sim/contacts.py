@@ -28,7 +28,18 @@ def body_contact_forces(model: mujoco.MjModel, data: mujoco.MjData, body: int | 
     """Normal force (N) on ``body`` from each geom touching it in ``data``'s current contacts.
 
     Keys are the other geoms' names (``geom<id>`` for unnamed ones); geoms of ``body`` itself never
-    appear. Raises ``ValueError`` for a body name the model does not have.
+    appear.
+
+    Args:
+        model: the compiled model.
+        data: its data, after a step or ``mj_forward`` (the contacts are read, not recomputed).
+        body: the body, by name or id.
+
+    Returns:
+        ``{geom name: normal force in N}``, summed over that geom's contacts with ``body``.
+
+    Raises:
+        ConfigError: (a ``ValueError``) a body name the model does not have, or an id out of range.
     """
     if isinstance(body, str):
         bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)

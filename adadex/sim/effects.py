@@ -781,7 +781,21 @@ EFFECT_NAMES: tuple[str, ...] = tuple(n for n in EFFECTS if n not in SCALE_EFFEC
 
 
 def get_effect(name: str) -> Effect:
-    """The effect called ``name``; :class:`EffectError` with suggestions otherwise."""
+    """The effect called ``name``; :class:`EffectError` with suggestions otherwise.
+
+    Args:
+        name: an effect's name (a key of :data:`EFFECTS`, e.g. ``"kp_scale"``).
+
+    Returns:
+        the :class:`Effect`.
+
+    Raises:
+        EffectError: no effect has that name (the message suggests close names).
+
+    Examples:
+        >>> get_effect("kp_scale").name
+        'kp_scale'
+    """
     try:
         return EFFECTS[name]
     except KeyError:

@@ -220,7 +220,26 @@ def plan_pinch(model: mujoco.MjModel, triangles: np.ndarray, object_pose, approa
 def scripted_grasp_lift(object_name: str = "cube_050", *, lift: float = 0.10, hold_s: float = 3.0,
                         squeeze: float = SQUEEZE, nthread: int = 0, model=None, axis: str = "x") -> GraspResult:
     """Run the scripted grasp on ``object_name`` resting at the default spot, squeezing along ``axis``
-    (``"x"``: away from the robot, or ``"y"``: across); see module docstring."""
+    (``"x"``: away from the robot, or ``"y"``: across); see module docstring.
+
+    The plan: settle above the object, descend, close, squeeze, lift, hold (``hold_s``), stepped in
+    one world at the control rate.
+
+    Args:
+        object_name: the object (default ``"cube_050"``), resting at :data:`OBJECT_HOME_XY`.
+        lift: how far the palm rises in the lift phase, m (default 0.10).
+        hold_s: duration of the final hold, s (default 3.0).
+        squeeze: how far the fingertips close past the object's surface, m (default
+            :data:`SQUEEZE`, 0.012).
+        nthread: threads of the :class:`BatchedSim` rollout pool (default 0: the calling thread).
+        model: the scene model to use (default: :func:`build_scene_model` of ``object_name``); it
+            must hold that object.
+        axis: the pinch direction, ``"x"`` or ``"y"`` (default ``"x"``); others raise
+            :class:`~adadex.errors.ConfigError`.
+
+    Returns:
+        a :class:`GraspResult` (lift achieved, slip in the palm frame, per-step traces).
+    """
     from adadex.sim import objects
 
     if axis not in PINCH_AXES:

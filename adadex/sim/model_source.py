@@ -145,7 +145,12 @@ class RobotTable:
 
 @dataclass(frozen=True)
 class ModelSource:
-    """The built-in scene (``path=None``) or a user's MJCF file; see the module docstring."""
+    """The built-in scene (``path=None``) or a user's MJCF file; see the module docstring.
+
+    Attributes:
+        path: the MJCF file (stored resolved; :class:`ModelSourceError` if it is not a file), or
+            None (default): the built-in robot and table.
+    """
 
     path: Path | None = None
 
@@ -227,7 +232,14 @@ def builtin_robot() -> RobotTable:
 def export_world(path: str | os.PathLike) -> Path:
     """Write the built-in nominal world — robot, table and physics options, no object — as MJCF,
     atomically. ``ModelSource(path)`` replays exactly as the built-in scene does (recordings whose
-    period is a multiple of the physics step, such as 60 Hz, bit for bit; tested)."""
+    period is a multiple of the physics step, such as 60 Hz, bit for bit; tested).
+
+    Args:
+        path: the MJCF file to write.
+
+    Returns:
+        the path written.
+    """
     from adadex.io import atomic_write_text
 
     spec = ModelSource().spec()

@@ -158,9 +158,21 @@ class EffectInstance:
 
 @dataclass(frozen=True)
 class ModelPatch:
-    """An ordered set of effects; the same (effect, joint) pair may appear only once. ``robot``: the
-    joint table of the user model the patch belongs to (None: the model of the effects — a user
-    model's effects carry its table — else the built-in robot)."""
+    """An ordered set of effects; the same (effect, joint) pair may appear only once.
+
+    Attributes:
+        effects: the effects (:class:`EffectInstance`), applied in order. Each is rebound to the
+            patch's ``robot``; an (effect, joint) pair given twice raises :class:`PatchError`.
+        robot: the joint table of the user model the patch belongs to (None: the model of the
+            effects — a user model's effects carry its table — else the built-in robot). Effects
+            of two different models raise :class:`PatchError`. Not part of equality.
+
+    Examples:
+        >>> len(ModelPatch())
+        0
+        >>> ModelPatch().model_id == BUILTIN_ID
+        True
+    """
 
     effects: tuple[EffectInstance, ...] = ()
     robot: object = field(default=None, compare=False, repr=False)
@@ -380,6 +392,16 @@ def patched_scene(object_name: str | None = None, patch: ModelPatch | None = Non
     cache (:data:`SCENE_CACHE_SIZE`): two patches with the same effects and values share a model,
     whatever file they came from. The returned model is shared — treat it as read-only and
     ``copy.copy`` it before editing parameters (per-world randomization, fitting do).
+
+    Args:
+        object_name: the object on the table; None (default): no object.
+        patch: the effects to apply (None: none, the nominal scene).
+        uniform_layout: pad the object's geoms to the shared layout (see ``build_scene_spec``).
+        object_scale: uniform scale factor of the object (default 1.0).
+        options: the solver settings (:class:`~adadex.sim.scene.PhysicsOptions`).
+
+    Returns:
+        the compiled, shared ``mujoco.MjModel``.
     """
     key = (patch or ModelPatch()).content_key()
     return _compiled_scene(object_name, key, bool(uniform_layout), float(object_scale), options)

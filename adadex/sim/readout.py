@@ -46,7 +46,18 @@ CTRL_SPEC = int(mujoco.mjtState.mjSTATE_CTRL)
 
 @dataclass
 class SimReadout:
-    """What one control step returns, all arrays with the batch dimension first."""
+    """What one control step returns, all arrays with the batch dimension first.
+
+    Attributes:
+        time: (B,) simulated time of each world, s.
+        joint_pos: (B, 22) joint positions, rad.
+        joint_vel: (B, 22) joint velocities, rad/s.
+        link_pose: (B, 5, 7) palm and the 4 fingertips: world position (m) + wxyz quaternion.
+        object_pose: (B, 7) object position (m) + wxyz quaternion; zeros when the scene has no object.
+        object_vel: (B, 6) the object's linear (world frame, m/s) and angular (rad/s) velocity; zeros
+            without an object.
+        unstable: (B,) bool, True where a world's simulation became unstable (diverged).
+    """
 
     time: np.ndarray          # (B,)
     joint_pos: np.ndarray     # (B, 22)

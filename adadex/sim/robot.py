@@ -364,7 +364,14 @@ def robot_mjcf_path() -> Path:
 
 
 def export_mjcf(path: str | os.PathLike = ROBOT_MJCF) -> Path:
-    """Write the builder's robot to ``path`` as MJCF, atomically (temp file + rename)."""
+    """Write the builder's robot to ``path`` as MJCF, atomically (temp file + rename).
+
+    Args:
+        path: the file to write (default :data:`ROBOT_MJCF`, the packaged ``robot/robot.xml`` asset).
+
+    Returns:
+        the path written.
+    """
     from adadex.io import atomic_write_text
 
     spec = build_robot_spec()

@@ -61,7 +61,26 @@ CONTACT_SOLIMP = (0.95, 0.99, 0.001, 0.5, 2.0)
 
 @dataclass(frozen=True)
 class PhysicsOptions:
-    """Solver settings shared by every scene; change them in one place."""
+    """Solver settings shared by every scene; change them in one place.
+
+    :func:`apply_physics_options` sets them on a spec; the contacts' ``solref`` time constant is
+    twice ``timestep``.
+
+    Attributes:
+        timestep: physics step, s (default :data:`PHYSICS_TIMESTEP`, 1/120 s).
+        integrator: MuJoCo ``mjtIntegrator`` value (default implicitfast).
+        cone: MuJoCo friction cone, ``mjtCone`` value (default elliptic).
+        impratio: ratio of frictional to normal constraint impedance (default 10).
+        iterations: maximum main-solver iterations (default 50).
+        ls_iterations: maximum line-search iterations (default 20).
+        noslip_iterations: no-slip solver iterations (default 0: off).
+
+    Examples:
+        >>> PhysicsOptions().timestep == 1 / 120
+        True
+        >>> PhysicsOptions(iterations=100).iterations
+        100
+    """
 
     timestep: float = PHYSICS_TIMESTEP
     integrator: int = int(mujoco.mjtIntegrator.mjINT_IMPLICITFAST)
@@ -99,6 +118,19 @@ def build_scene_spec(object_name: str | None = "box_00", *,
     so scenes of any two objects share one structure (``MjModel.signature``) and one
     ``BatchedSim`` can step worlds holding different objects in a single rollout call.
     ``object_scale`` scales the object uniformly (it still rests on the table).
+
+    Args:
+        object_name: the object (a name of :mod:`adadex.sim.objects`; default ``"box_00"``); None:
+            robot and table only.
+        object_xy: where the object rests on the table, world x, y in m (default
+            :data:`OBJECT_HOME_XY`, (0.45, 0.0)).
+        options: the solver settings (:class:`PhysicsOptions`).
+        uniform_layout: pad the object's geoms to a shared layout (above).
+        object_scale: uniform scale factor of the object (default 1.0).
+
+    Returns:
+        the uncompiled ``mujoco.MjSpec``, with a ``home`` keyframe (robot at its home pose, object
+        at rest).
     """
     spec = build_robot_spec()
     spec.modelname = f"adadex_scene_{object_name or 'empty'}"
@@ -134,12 +166,28 @@ def build_scene_spec(object_name: str | None = "box_00", *,
 
 
 def build_scene_model(object_name: str | None = "box_00", **kwargs) -> mujoco.MjModel:
-    """Compile :func:`build_scene_spec`."""
+    """Compile :func:`build_scene_spec`.
+
+    Args:
+        object_name: the object on the table (default ``"box_00"``); None: no object.
+        **kwargs: :func:`build_scene_spec`'s keyword arguments (``object_xy``, ``options``,
+            ``uniform_layout``, ``object_scale``).
+
+    Returns:
+        the compiled ``mujoco.MjModel``.
+    """
     return build_scene_spec(object_name, **kwargs).compile()
 
 
 def home_state(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
-    """``(qpos, ctrl)`` of the ``home`` keyframe of a scene model."""
+    """``(qpos, ctrl)`` of the ``home`` keyframe of a scene model.
+
+    Args:
+        model: a scene model built by :func:`build_scene_spec` (it has a ``home`` key).
+
+    Returns:
+        copies of the keyframe's ``qpos`` and ``ctrl``.
+    """
     key = model.key("home")
     return key.qpos.copy(), key.ctrl.copy()
 

@@ -89,7 +89,23 @@ def save_checkpoint(out, *, module: torch.nn.Module, optimizer: torch.optim.Opti
 
 
 def load_checkpoint(out) -> dict | None:
-    """The checkpoint in ``out``, or ``None`` when there is none yet."""
+    """The checkpoint in ``out``, or ``None`` when there is none yet.
+
+    Args:
+        out: the run folder.
+
+    Returns:
+        the checkpoint's dict (loaded on the CPU, tensors and plain data only), or None.
+
+    Raises:
+        CheckpointError: a file that is not a readable adadex training checkpoint, or one holding
+            Python objects beyond tensors and plain data.
+
+    Examples:
+        >>> import tempfile
+        >>> load_checkpoint(tempfile.mkdtemp()) is None
+        True
+    """
     path = Path(out) / CHECKPOINT
     if not path.is_file():
         return None

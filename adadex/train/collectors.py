@@ -95,6 +95,13 @@ def local_collector(create_env_fn, policy, *, frames_per_batch: int, total_frame
     settings take about 0.3 ms off each step of 64 worlds (measured, paired batches), 2 % of a step.
     The policy is not given the env's transforms (``auto_register_policy_transforms=False``): the
     policies here read the env's entries as they are.
+
+    Args:
+        create_env_fn: a zero-argument env factory (e.g. a :class:`TrackingEnvFactory`); its
+            ``device`` attribute, if any, is the env's device (default CPU).
+        policy: the policy the collector runs.
+        frames_per_batch: frames per batch.
+        total_frames: frames to collect.
     """
     return Collector(create_env_fn, policy, frames_per_batch=frames_per_batch, total_frames=total_frames,
                      track_traj_ids=False, auto_register_policy_transforms=False,
@@ -103,7 +110,19 @@ def local_collector(create_env_fn, policy, *, frames_per_batch: int, total_frame
 
 def make_collector(factory: TrackingEnvFactory, policy, cfg: CollectorConfig, *, frames_per_batch: int,
                    total_frames: int):
-    """A TorchRL collector of ``frames_per_batch`` frames per batch (all workers together)."""
+    """A TorchRL collector of ``frames_per_batch`` frames per batch (all workers together).
+
+    One worker: :func:`local_collector`; several: a ``MultiSyncCollector`` of worker processes (or
+    Ray actors with ``cfg.backend == "ray"``), the factory carrying its compiled scenes.
+
+    Args:
+        factory: the env factory (one worker's; :meth:`~TrackingEnvFactory.for_workers` seeds the rest).
+        policy: the policy the collector runs.
+        cfg: the collector settings (``workers``, ``backend``, ``start_method``).
+        frames_per_batch: frames per batch; a multiple of ``num_worlds × workers`` (else
+            :class:`~adadex.errors.ConfigError`).
+        total_frames: frames to collect, rounded up to whole batches.
+    """
     per_step = factory.num_worlds * cfg.workers
     if frames_per_batch % per_step:
         raise ConfigError(f"frames_per_batch={frames_per_batch} must be a multiple of worlds × workers = {per_step} "

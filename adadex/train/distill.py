@@ -61,7 +61,30 @@ TRACKER = "tracker.pt"
 
 @dataclass
 class DistillConfig:
-    """A behaviour-cloning run: where the rollouts are, where results go, the learner's settings."""
+    """A behaviour-cloning run: where the rollouts are, where results go, the learner's settings.
+
+    Attributes:
+        rollouts: a teacher-rollouts folder (:mod:`adadex.train.rollouts`).
+        out: the run folder (student, checkpoint, metrics).
+        steps: Adam steps (default 5000).
+        batch_size: buffer rows per step (default 1024).
+        lr: Adam's learning rate (default 3e-4).
+        seed: seeds torch, numpy and the buffer's sampling (default 0).
+        resume: continue from the checkpoint in ``out`` (default False).
+        checkpoint_every: steps between checkpoints (default 500; a kill loses at most this many).
+        log_every: steps between metrics rows (default 50).
+        hidden: the student's hidden widths (default (256, 256, 128)); its ``residual`` and
+            ``max_action`` are the teachers'.
+        max_grad_norm: gradient-norm clip (default 1.0).
+        normalizer_samples: buffer rows the observation normalizers are fitted on (default 200 000).
+        probe_samples: fixed buffer rows the logged ``probe_loss`` is measured on (default 8192).
+        fraction: < 1: learn from the rollouts of only this fraction of the stored references (a
+            seeded draw, at least one) — the data-scaling study (paper Fig. 6); default 1.0.
+        threads: torch threads for the updates (0: all cores; default 1, see
+            :mod:`adadex.train.threads`).
+        wandb: also log to wandb (default True; offline unless ``WANDB_MODE`` says otherwise).
+        progress: show a progress bar (default True).
+    """
 
     rollouts: str                          # a teacher-rollouts folder (adadex.train.rollouts)
     out: str
@@ -161,7 +184,15 @@ def imitation_loss(tracker: Tracker, data, piece: int = 8192) -> float:
 
 
 class Distiller:
-    """A behaviour-cloning run (see the module docstring); :meth:`train` runs it."""
+    """A behaviour-cloning run (see the module docstring); :meth:`train` runs it.
+
+    Building it opens the rollouts (:func:`~adadex.train.rollouts.load_rollouts`), seeds torch and
+    numpy with ``cfg.seed`` and makes the student :class:`Tracker` with the teachers' settings.
+
+    Args:
+        cfg: the run's settings.
+        run_name: the name in the logs and the progress bar (default ``"distill"``).
+    """
 
     def __init__(self, cfg: DistillConfig, run_name: str = "distill"):
         self.cfg, self.run_name = cfg, run_name
@@ -271,6 +302,13 @@ class Distiller:
 
 
 def distill(cfg: DistillConfig, **kwargs) -> dict:
-    """Run :class:`Distiller` on ``cfg``; returns the student's path and counters."""
+    """Run :class:`Distiller` on ``cfg``; returns the student's path and counters.
+
+    Runs with ``cfg.threads`` torch threads (0: every core).
+
+    Args:
+        cfg: the run's settings.
+        **kwargs: :class:`Distiller`'s keyword arguments (``run_name``).
+    """
     with torch_threads(cfg.threads or os.cpu_count() or 1):
         return Distiller(cfg, **kwargs).train()

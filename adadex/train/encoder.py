@@ -91,6 +91,12 @@ def evaluate_encoder(model: PointCloudAutoencoder, objects: Sequence[str] | None
     training objects are not measured on the exact points they were trained on. ``chamfer_cm2`` is
     :func:`chamfer_distance` between the cloud and its reconstruction in cm²; ``rms_mm`` its RMS
     nearest-neighbour distance in mm. Default objects: all 80.
+
+    Args:
+        model: the autoencoder (left in its training mode afterwards).
+        objects: the objects to measure (default: all).
+        points: points per cloud (default: the model's ``config.points``).
+        seed: the surface sampling seed (default :data:`EVAL_SEED`).
     """
     objects = tuple(objects) if objects is not None else OBJECT_NAMES
     clouds = surface_clouds(objects, points or model.config.points, seed)
@@ -169,6 +175,16 @@ def train_encoder(objects: Sequence[str] | None = None, *, steps: int = TrainSet
     cm²), ``"evals"`` (mean train / held-out Chamfer at step 0, every ``eval_every`` steps and at the
     end), ``"initial"`` / ``"final"`` (:func:`summarize_evaluation`), ``"per_object"``
     (:func:`evaluate_encoder` at the end), ``"seconds"`` and ``"meta"`` (what :func:`save_encoder` stores).
+
+    Args:
+        objects: training objects (above).
+        steps: optimizer steps (default 3000).
+        batch_size: objects per step (default 16).
+        points: points per cloud, the model's input size (``EncoderConfig.points``; default 512).
+        lr: the initial learning rate (default 1e-3).
+        seed: seeds the weights and every draw (default 0).
+        progress: show a progress bar (default True).
+        eval_every: evaluate every this many steps (default None: ``max(steps // 10, 50)``).
     """
     from adadex.progress import progress_bar
 

@@ -25,7 +25,27 @@ from adadex.transforms.modulation import modulation
 
 @dataclass(frozen=True)
 class TrackingEnvFactory:
-    """Builds ``TrackingEnv(dataset, references=…, num_worlds=…, seed=…)``; see the module docstring."""
+    """Builds ``TrackingEnv(dataset, references=…, num_worlds=…, seed=…)``; see the module docstring.
+
+    Calling it returns the env, with each episode's return summed into ``("next", "episode_reward")``.
+
+    Attributes:
+        dataset: the reference dataset folder.
+        references: the dataset indices its worlds draw from.
+        num_worlds: worlds stepped together (default 64).
+        seed: the env seed (:meth:`for_workers` gives each worker its own).
+        randomize: the per-world randomization (Table 3), or None: the nominal env.
+        config: the episode settings (:class:`~adadex.envs.tracking.TrackingConfig`).
+        nthread: the physics rollout's threads (default 2).
+        patch: an effect patch (:class:`~adadex.sim.patch.ModelPatch`) on the robot, or None.
+        scenes: compiled scenes carried to the workers (:meth:`with_scenes`); None: compiled by the env.
+        transform: a picklable callable returning a transform appended after the env (e.g.
+            :class:`ModulatedEnv`), or None.
+        transforms: picklable zero-argument callables, each returning a transform appended last, after
+            ``transform`` and ``RewardSum`` (a user's own: ``PPOTrainer(env_transforms=…)``).
+        backend: the physics backend (:data:`adadex.sim.batched.BACKENDS`; config ``sim.backend``;
+            default ``"rollout"``).
+    """
 
     dataset: str
     references: tuple[int, ...]
@@ -81,7 +101,14 @@ class TrackingEnvFactory:
 class ModulatedEnv:
     """Picklable ``modulation(channels, tracker, config, view)`` factory: each worker loads the frozen
     tracker from its checkpoint and builds the modulation transform (paper Sec. 3.2); ``history``
-    (not None) adds the modulator's view with that many previous frames."""
+    (not None) adds the modulator's view with that many previous frames.
+
+    Attributes:
+        tracker: the frozen tracker's checkpoint path.
+        channels: the active channels (default ``"R+O+T"``).
+        config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`).
+        history: previous frames in the modulator's view, or None (default): no view.
+    """
 
     tracker: str
     channels: str = "R+O+T"

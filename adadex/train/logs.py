@@ -91,7 +91,16 @@ def _number(value: str) -> bool:
 def read_metrics(path, keep_until: int, *, every: int = 1) -> tuple[list[dict], str | None]:
     """The rows of the metrics file ``path`` to continue from the checkpoint at iteration ``keep_until``
     (see the module docstring), and the warning to print (``None`` when the file is whole). Raises
-    :class:`MetricsFileError` for a file that is not a metrics file."""
+    :class:`MetricsFileError` for a file that is not a metrics file.
+
+    Args:
+        path: the ``metrics.csv`` file.
+        keep_until: the checkpoint's iteration: rows past it are dropped.
+        every: the iterations between logged rows (default 1), to find missing ones.
+
+    Returns:
+        ``(rows, warning)``: the kept rows (dicts of numbers) and the warning line, or None.
+    """
     path = Path(path)
     try:
         with path.open(newline="", encoding="utf-8", errors="replace") as f:
@@ -143,7 +152,16 @@ class RunLog:
     ``keep_until``: the checkpoint's iteration on resume (``metrics.csv`` is checked against it: rows past it
     dropped; damaged rows and missing iterations reported in one warning line, the intact rows kept; a file
     that is not a metrics file refused with :class:`MetricsFileError`), ``None`` or negative for a fresh run
-    (the file is started anew, and wandb gets a new run id; a resume reuses the stored one)."""
+    (the file is started anew, and wandb gets a new run id; a resume reuses the stored one).
+
+    Args:
+        out: the run folder (``metrics.csv``, ``logs/`` and wandb's files go there).
+        name: the experiment name in the loggers.
+        config: the run's settings (logged to wandb; its ``log_every`` tells :func:`read_metrics`
+            the rows' spacing).
+        wandb: also log to wandb (default True; offline unless ``WANDB_MODE`` says otherwise).
+        keep_until: the checkpoint's iteration when resuming (above), or None.
+    """
 
     def __init__(self, out, *, name: str, config: dict, wandb: bool = True, keep_until: int | None = None):
         self.path = Path(out) / METRICS

@@ -78,7 +78,52 @@ PPO_DEFAULTS = {"update_threads": 1, "desired_kl": 0.0}
 
 @dataclass
 class PipelineConfig:
-    """Everything the pipeline runs with; ``recipes/pipeline.yaml`` and its presets fill it."""
+    """Everything the pipeline runs with; ``recipes/pipeline.yaml`` and its presets fill it.
+
+    Attributes:
+        out: the pipeline's folder (every stage's run, the table and the figures).
+        dataset: a reference dataset folder; None (default): ``out/data``, built from
+            ``dataset_preset`` when missing.
+        dataset_preset: the preset built when ``dataset`` is None (default ``"small"``).
+        dataset_seed: the seed of that build (default 0).
+        dataset_planned_grasp: the built dataset holds the object with a pinch planned for the hand
+            (:mod:`adadex.data.planned_grasp`), so its references carry what they grasp (default True).
+        seeds: training seeds: the whole chain runs once per seed (default (0, 1)).
+        seed_workers: seeds trained side by side, each chain in its own process (default 1).
+        specialists: specialists, each on a block of the semantic groups (default 4).
+        worlds: worlds per env (default 64).
+        window: frames per episode, in every training stage, the teacher rollouts and the evaluations
+            (``TrackingConfig.window``; only references that long take part).
+        env_threads: the physics rollout's threads per env (default 2).
+        workers: collector worker processes (default 1).
+        specialist_frames: PPO frames per specialist (default 250 000).
+        modulator_frames: PPO frames per modulator (default 250 000).
+        ppo_frames: PPO frames of the baselines (vanilla PPO, IL+RL), which see all training
+            references (default 500 000).
+        ppo: ``PPOConfig`` overrides (``frames_per_batch``, ``lr``, …), on top of :data:`PPO_DEFAULTS`.
+        policy: ``PolicyConfig`` overrides of the trackers trained, on top of :data:`POLICY_DEFAULTS`.
+        rollout_episodes: randomized teacher episodes per reference (default 4).
+        rollout_criterion: which teacher episodes are kept (default ``"mean_error"``; see
+            :mod:`adadex.train.rollouts`).
+        distill_steps: the distillation's Adam steps (default 3000).
+        distill_batch: the distillation's batch size (default 1024).
+        imitation_coef: IL+RL's imitation weight (default 1.0).
+        modulator: ``ModulatorSettings`` fields (``hidden``, ``init_scale``, ``inputs``, …).
+        reference_channel: the reference channel of the R rows (R, RT, ROT): ``"R"`` (default) —
+            the full per-frame residuals (112 numbers); ``"C"`` — the compact edit, a palm offset
+            through the arm Jacobian and a closure per finger (7 numbers,
+            :class:`adadex.transforms.modulation.CompactModulation`).
+        modulation: ``ModulationConfig`` overrides (default ``{"persistent": True}``).
+        eval_repeats: randomized evaluation: episodes per test reference (default 4).
+        randomization: ``Randomization`` fields to change from Table 3 (e.g. ``{"object_xy_std":
+            0.02}``), for every training stage, the teacher rollouts and the "randomized"
+            evaluations alike.
+        scaling_fractions: the reference fractions of the data-scaling study, each in (0, 1]
+            (default (0.125, 0.25, 0.5, 1.0)).
+        smoothness_samples: observations ρ is measured on (Fig. 12; default 512).
+        wandb: also log to wandb (default True).
+        progress: show progress bars (default True).
+    """
 
     out: str
     #: a reference dataset folder; ``None``: ``out/data``, built from ``dataset_preset`` when missing
@@ -447,6 +492,15 @@ def check_pipeline_out(out, *, force: bool = False, ignore=()) -> Path:
 
 
 def run_pipeline(cfg: PipelineConfig, **kwargs) -> dict:
-    """Run every stage (skipping finished ones) and write the table and figures; see the module docstring."""
+    """Run every stage (skipping finished ones) and write the table and figures; see the module docstring.
+
+    Args:
+        cfg: the pipeline's settings.
+        **kwargs: :class:`Pipeline`'s keyword arguments (``env_config``: the episode settings,
+            default ``TrackingConfig()``).
+
+    Returns:
+        :meth:`Pipeline.run`'s result dict.
+    """
     return Pipeline(cfg, **kwargs).run()
 

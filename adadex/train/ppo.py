@@ -97,7 +97,14 @@ def training_references(cfg: TrainConfig, dataset: ReferenceDataset, window: int
 
 def default_loss(ppo: PPOConfig) -> Callable[..., LossModule]:
     """The loss factory a run uses unless given one: ``(actor, critic) ->`` TorchRL's ``ClipPPOLoss``
-    with ``ppo.clip_epsilon``, ``ppo.entropy_coef``, ``ppo.critic_coef`` and normalized advantages."""
+    with ``ppo.clip_epsilon``, ``ppo.entropy_coef``, ``ppo.critic_coef`` and normalized advantages.
+
+    Args:
+        ppo: the PPO settings (:class:`~adadex.train.config.PPOConfig`).
+
+    Returns:
+        a ``functools.partial`` of ``ClipPPOLoss``: call it with ``(actor, critic)``.
+    """
     return functools.partial(ClipPPOLoss, clip_epsilon=ppo.clip_epsilon, entropy_coeff=ppo.entropy_coef,
                              critic_coeff=ppo.critic_coef, normalize_advantage=True)
 
@@ -544,5 +551,14 @@ class PPOTrainer:
 
 def train(cfg: TrainConfig, **kwargs) -> dict:
     """Run :class:`PPOTrainer` on ``cfg`` (``kwargs``: its keyword arguments — ``policy``, ``loss``,
-    ``env_transforms``, …); returns the policy path, counters and final evaluation."""
+    ``env_transforms``, …); returns the policy path, counters and final evaluation.
+
+    Args:
+        cfg: the run's settings (:class:`~adadex.train.config.TrainConfig`).
+        **kwargs: :class:`PPOTrainer`'s keyword arguments (``env_config``, ``run_name``,
+            ``teacher``, ``policy``, ``loss``, ``env_transforms``).
+
+    Returns:
+        :meth:`PPOTrainer.train`'s result dict.
+    """
     return PPOTrainer(cfg, **kwargs).train()

@@ -154,8 +154,13 @@ def teacher_rollouts(teachers: Mapping, dataset, out, *, episodes_per_reference:
         seed: env seed of the first chunk (chunk ``k`` uses ``seed + k``).
         max_worlds: worlds stepped together.
         criterion: ``"mean_error"`` or ``"completion>=x"`` (:func:`success_criterion`).
+        thresholds: the success thresholds the criterion uses.
+        config: the episode settings (:class:`TrackingConfig`).
         keys: observation entries stored per step (the flat ``"observation"`` and every entry a teacher's
             actor reads, always).
+        nthread: the physics rollout's threads (default 2).
+        force: replace whatever is at ``out`` (default False).
+        progress: show a progress bar (default True).
 
     Returns the content of ``rollouts.json`` (a dict). Raises :class:`NoSuccessfulRollouts` when no
     episode succeeded (``out`` is then left as it was).
@@ -280,7 +285,14 @@ def rollouts_info(path) -> dict:
 
 def load_rollouts(path) -> TensorDictReplayBuffer:
     """The buffer of a rollouts folder, memory-mapped in place (nothing is copied; treat it as read-only),
-    with a sampler without replacement: ``buffer.sample(batch_size)``."""
+    with a sampler without replacement: ``buffer.sample(batch_size)``.
+
+    Args:
+        path: the rollouts folder written by :func:`teacher_rollouts`.
+
+    Raises:
+        RolloutsError: a missing, incomplete or damaged buffer.
+    """
     path = Path(path)
     info = rollouts_info(path)
     folder = path / BUFFER

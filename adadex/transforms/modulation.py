@@ -130,6 +130,10 @@ class ChannelTransform(CarriedState, Transform):
     A channel that carries state from step to step (R's persistent reference edit) returns its
     shapes in :meth:`state_shapes` and the next step's state in :meth:`next_state`; the policy
     graph of :func:`adadex.transforms.policy.make_policy` carries it with a primer.
+
+    Args:
+        config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`).
+        edited_keys: the entries it edits for the env's side (given by the subclass).
     """
 
     channel: Channel
@@ -313,7 +317,21 @@ def read_ahead(frames: torch.Tensor, lead: torch.Tensor) -> torch.Tensor:
     """The visible reference frames (…, 5, D) at offsets :data:`REF_OFFSETS` read ``lead`` (…, D)
     control steps later (≥ 0): each frame at offset o becomes the reference at o + lead, linear between
     the visible frames (exact where o + lead ≤ 2, where kinematic replay and a servo's delay read) and
-    held at the last visible frame (t+12) beyond it."""
+    held at the last visible frame (t+12) beyond it.
+
+    Args:
+        frames: (…, 5, D) the visible frames, at offsets 0, 1, 2, 4, 12.
+        lead: (…, D) control steps ahead, per entry (≥ 0).
+
+    Returns:
+        (…, 5, D) the frames read ahead.
+
+    Examples:
+        >>> import torch
+        >>> frames = torch.tensor([0.0, 1.0, 2.0, 4.0, 12.0])[:, None]    # value = the frame's offset
+        >>> read_ahead(frames, torch.tensor([3.0]))[:, 0]                 # o + 3, held at 12
+        tensor([ 3.,  4.,  5.,  7., 12.])
+    """
     grid = _VISIBLE.to(frames)
     at = (grid[:, None] + lead[..., None, :]).clamp(max=float(grid[-1]))             # (…, 5, D)
     i = (torch.searchsorted(grid, at.contiguous(), right=True) - 1).clamp(0, len(grid) - 2)
@@ -339,10 +357,16 @@ class ReferenceLead(LatchedChoice, ChannelTransform, channel="L"):
     hand, latched flag), as channel A's reach: a delay is the robot's, not the moment's. The reward
     scores the original reference.
 
-    >>> import torch
-    >>> frames = torch.arange(5.0)[:, None] * torch.ones(5, 22)      # joint value = the visible frame's index
-    >>> read_ahead(frames, torch.full((22,), 0.5))[:3, 0]            # offsets 0, 1, 2 → 0.5, 1.5, 2.25
-    tensor([0.5000, 1.5000, 2.2500])
+    Args:
+        config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`);
+            this one reads ``max_lead`` (control steps) and
+            ``lead_latched``.
+
+    Examples:
+        >>> import torch
+        >>> frames = torch.arange(5.0)[:, None] * torch.ones(5, 22)      # joint value = the visible frame's index
+        >>> read_ahead(frames, torch.full((22,), 0.5))[:3, 0]            # offsets 0, 1, 2 → 0.5, 1.5, 2.25
+        tensor([0.5000, 1.5000, 2.2500])
     """
 
     def __init__(self, config: ModulationConfig = ModulationConfig()):
@@ -389,6 +413,11 @@ class CompactModulation(ChannelTransform, channel="C"):
     modulator with the anchor prior (``Modulator(prior="anchor")``) asks for the anchor's shift plus
     its correction, and the anchor follows objects displaced past ``λ_palm`` (Table 3's N(0, 5 cm)
     puts about 9 % of the objects more than 10 cm off on an axis).
+
+    Args:
+        config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`);
+            this one reads ``lambda_palm`` (m) and ``lambda_grip``
+            (rad).
     """
 
     entry_bounds = {PALM: 2.0}
@@ -418,7 +447,18 @@ def move_visible_reference(td: TensorDictBase, palm_shift, palm: torch.Tensor,
     """Add ``edit`` (…, 5, 22) to the visible reference joints (offsets 0, 1, 2, 4, 12) with their arm
     joints replaced by the change that moves each frame's palm by ``palm`` (…, 3) (m, base frame)
     without turning it (``palm_shift``: a :class:`adadex.modules.anchor.PalmShift`); reassembles the
-    273-D observation. Channels C and A move the reference this way."""
+    273-D observation. Channels C and A move the reference this way.
+
+    Args:
+        td: the tensordict holding the reference (``REF_JOINT_POS``), edited in place.
+        palm_shift: the :class:`~adadex.modules.anchor.PalmShift` solving the arm joints.
+        palm: (…, 3) the palm's shift, m, base frame (zero rows are left unsolved).
+        edit: (…, 5, 22) added to the joints (its arm columns replaced where the palm moves), or
+            None (default): zeros.
+
+    Returns:
+        ``td``.
+    """
     ref = td.get(REF_JOINT_POS)                           # (…, 5, 22)
     lead, k = ref.shape[:-2], ref.shape[-2]
     edit = ref.new_zeros(ref.shape) if edit is None else edit
@@ -452,6 +492,11 @@ class AnchorReach(LatchedChoice, ChannelTransform, channel="A"):
     holds for the episode: the carried state ``("modulation", "reach_state")`` = (w, latched), zero at
     reset; later steps' reach entries are ignored, so the first step's sample is the exploration and
     the decision (and the modulator's view shows the latched w).
+
+    Args:
+        config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`);
+            this one reads ``reach_latched``; the anchor's own
+            settings are :data:`~adadex.modules.modulator.PRIOR_ANCHOR`.
     """
 
     def __init__(self, config: ModulationConfig = ModulationConfig()):
@@ -480,7 +525,12 @@ class AnchorReach(LatchedChoice, ChannelTransform, channel="A"):
 
 
 class LatentModulation(ChannelTransform, channel="O"):
-    """Channel O: the object latent the tracker sees becomes f̃ = clip(f + λ_latent · a, −1, 1)."""
+    """Channel O: the object latent the tracker sees becomes f̃ = clip(f + λ_latent · a, −1, 1).
+
+    Args:
+        config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`);
+            this one reads ``lambda_latent`` (λ_latent).
+    """
 
     def __init__(self, config: ModulationConfig = ModulationConfig()):
         super().__init__(config, (OBJECT_LATENT, OBSERVATION))
@@ -496,7 +546,13 @@ class LatentModulation(ChannelTransform, channel="O"):
 
 
 class ActionModulation(ChannelTransform, channel="T"):
-    """Channel T: a bounded residual on the action, action + bound · clip(Δa, −1, 1)."""
+    """Channel T: a bounded residual on the action, action + bound · clip(Δa, −1, 1).
+
+    Args:
+        config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`);
+            this one reads ``action_bound`` (the bound, rad).
+        action_key: the tracker's action entry it edits (default ``"action"``).
+    """
 
     def __init__(self, config: ModulationConfig = ModulationConfig(), action_key="action"):
         super().__init__(config, (action_key,))
@@ -524,6 +580,12 @@ class GainModulation(LatchedChoice, ChannelTransform, channel="K"):
     view learned from scratch. With ``gain_latched`` (default) the gains chosen at an episode's first
     step hold for the episode (carried state ``("modulation", "gain_state")``: arm, hand, latched
     flag), as channel L's lead.
+
+    Args:
+        config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`);
+            this one reads ``max_gain``, ``gain_bound`` (rad)
+            and ``gain_latched``.
+        action_key: the tracker's action entry it edits (default ``"action"``).
     """
 
     def __init__(self, config: ModulationConfig = ModulationConfig(), action_key="action"):
@@ -550,6 +612,7 @@ class TrackerInTheLoop(Transform):
     Args:
         tracker: a :class:`adadex.modules.tracker.Tracker` or any module writing ``"action"``
             from ``"observation"``.
+        action_key: the env's action entry it writes (default ``"action"``).
     """
 
     def __init__(self, tracker, action_key="action"):
@@ -575,7 +638,12 @@ class TrackerInTheLoop(Transform):
 
 class FlatModulationAction(Transform):
     """The outer action: one flat ``"action"`` in [−1, 1]^D, split into the channels' entries
-    (:class:`adadex.modules.channels.ModulationLayout`). Outermost transform of :func:`modulation`."""
+    (:class:`adadex.modules.channels.ModulationLayout`). Outermost transform of :func:`modulation`.
+
+    Args:
+        layout: the active channels' layout (where each entry sits in the flat action).
+        action_key: the outer action's key (default ``"action"``).
+    """
 
     def __init__(self, layout: ModulationLayout, action_key="action"):
         super().__init__(in_keys=[], out_keys=[], in_keys_inv=[key for key, _, _ in layout.segments],
@@ -612,6 +680,9 @@ class ModulatorView(CarriedState, Transform):
     It follows the channels' state protocol (:class:`CarriedState`), so
     :func:`adadex.transforms.policy.make_policy` carries the same state on a plain env through its
     primer. Outermost in :func:`modulation`: on the forward path it runs after R has shown its edit.
+
+    Args:
+        layout: the modulator's view layout (:attr:`~adadex.modules.modulator.Modulator.view`).
     """
 
     def __init__(self, layout: ViewLayout):
@@ -637,7 +708,12 @@ class ModulatorView(CarriedState, Transform):
 
 def channel_transforms(channels, config: ModulationConfig = ModulationConfig()) -> list[ChannelTransform]:
     """The channel transforms for ``channels``, in inverse-path order: the channels that edit the
-    tracker's observation, then those that edit its action, each group in registry order (R, L, C, A, O then T, K)."""
+    tracker's observation, then those that edit its action, each group in registry order (R, L, C, A, O then T, K).
+
+    Args:
+        channels: the active channels, as :func:`~adadex.modules.channels.parse_channels` takes them.
+        config: the settings each transform is built with (``cls(config)``).
+    """
     records = ModulationLayout(channels).records
     return [c.transform(config) for edits in ("observation", "action") for c in records if c.edits == edits]
 
@@ -651,6 +727,18 @@ def modulation(channels="R+O+T", tracker=None, config: ModulationConfig = Modula
     → env. Every subset of channels works, ``"none"`` included (the outer action is then empty and
     the env runs the tracker alone). ``view`` (a modulator's :attr:`~adadex.modules.modulator.Modulator.view`)
     adds :class:`ModulatorView`, which writes what that modulator reads.
+
+    Args:
+        channels: the active channels, as :func:`~adadex.modules.channels.parse_channels` takes
+            them (default ``"R+O+T"``).
+        tracker: the frozen tracker run inside (:class:`TrackerInTheLoop`); required (None raises
+            ``ValueError``).
+        config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`).
+        view: the modulator's view layout, or None (default): no :class:`ModulatorView`. It must be
+            for the same channels (``ValueError`` otherwise).
+
+    Returns:
+        a ``Compose`` of the transforms, in the order the inverse path needs.
 
     Example: the README's policy graph in miniature (the tiny dataset, two worlds, untrained nets).
 

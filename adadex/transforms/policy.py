@@ -172,7 +172,16 @@ class _TrackerStage(TensorDictModuleBase):
 
 
 class ModulatedPolicy(TensorDictSequential):
-    """The graph built by :func:`make_policy` (a ``TensorDictSequential``)."""
+    """The graph built by :func:`make_policy` (a ``TensorDictSequential``).
+
+    Args:
+        *modules: the graph's modules, in order.
+        layout: the modulator's action layout.
+        state_shapes: ``{key: shape}`` of the state the policy carries from step to step (empty:
+            none; :meth:`primer` makes the env carry it).
+        points: the :class:`~adadex.transforms.object_points.ObjectPoints` settings when the
+            point-cloud encoder is in the graph, else None.
+    """
 
     def __init__(self, *modules, layout: ModulationLayout, state_shapes: dict, points: dict | None = None):
         super().__init__(*modules)

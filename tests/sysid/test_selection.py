@@ -12,12 +12,17 @@ import pytest
 
 from adadex.sim.effects import get_effect
 from adadex.sim.patch import ModelPatch
+from adadex.sim.robot import GAINS
 from adadex.sysid.compare import heldout_mask, noise_floor
 from adadex.sysid.diagnose import MIN_EXPLAINED, Candidate, Diagnosis, _prune, _Setting, diagnose, on_bound
 from adadex.sysid.replay import Replayer
 from tests.sysid import hidden
 
 FRICTION = 1.5
+#: what the library's ``coulomb_friction`` (added to the model's own friction loss) should find: the edit
+#: sets arm_j3's friction loss to FRICTION, the built-in shoulder's own is 0.2 N·m. (Before the windowed
+#: friction fit, 2026-11-27, a local minimum of the free replay, 1.47, passed a check against FRICTION.)
+ADDED = FRICTION - GAINS["arm_shoulder"].frictionloss
 
 
 @pytest.fixture(scope="module")
@@ -67,7 +72,7 @@ def test_hidden_friction_is_the_only_explanation_and_nothing_below_five_percent_
     d = friction_diagnosis
     assert d.verdict == "explained", d.findings
     assert [(h["effect"], h["joints"]) for h in d.selected] == [("coulomb_friction", ["arm_j3"])], d.selected
-    np.testing.assert_allclose(d.selected[0]["params"]["friction"], FRICTION, rtol=0.1)
+    np.testing.assert_allclose(d.selected[0]["params"]["friction"], ADDED, rtol=0.1)
     assert d.suggestions == []
     for h in d.hypotheses:
         assert h["heldout_error_reduction"] >= MIN_EXPLAINED, h

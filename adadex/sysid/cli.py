@@ -275,14 +275,14 @@ def _cmd_report(a) -> int:
     _check_out(a, "report")
     pd = None
     if a.pd:
-        from tqdm import tqdm
+        from adadex.progress import progress_bar
 
         from adadex.sysid.fit import identify_pd, sequences_moving
         from adadex.sysid.replay import Replayer
 
         rep = Replayer(rec, nthread=a.threads)
         pd = [identify_pd(rep, j, sequences_moving(rec, j), method=m)
-              for j in tqdm(rec.joint_names, desc="kp/kd fits", unit="joint") for m in ("cma", "lsq")]
+              for j in progress_bar(rec.joint_names, desc="kp/kd fits", unit="joint") for m in ("cma", "lsq")]
     with output_file(a.out, "report", force=a.force):
         path = write_report(rec, _load_patch(a.patch, a.model), a.out, diagnosis=d, nthread=a.threads, pd_results=pd)
     print(f"wrote {path}")

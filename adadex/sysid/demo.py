@@ -15,10 +15,9 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from tqdm import tqdm
-
 from adadex.data.recording import load_recording
 from adadex.io import output_folder
+from adadex.progress import progress_bar
 from adadex.sysid.compare import compare, localize
 from adadex.sysid.diagnose import diagnose
 from adadex.sysid.fit import identify_pd, sequences_moving
@@ -79,7 +78,7 @@ def _run(recording, out: Path, tmp: Path, nthread: int, model) -> dict:
     print("\n6. the paper's identification for comparison: per-joint kp/kd scales, CMA-ES vs least squares, "
           f"on the joints where the model fails ({', '.join(pd_joints) or 'none'})")
     pd = []
-    for joint in tqdm(pd_joints, desc="kp/kd fits", unit="joint"):
+    for joint in progress_bar(pd_joints, desc="kp/kd fits", unit="joint"):
         for method in ("cma", "lsq"):
             pd.append(identify_pd(rep, joint, sequences_moving(rec, joint), method=method, max_evals=120))
     for r in pd:

@@ -83,10 +83,10 @@ from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize_scalar
-from tqdm import tqdm
 
 from adadex.errors import AdadexError
 from adadex.io import atomic_write_text
+from adadex.progress import progress_bar
 from adadex.sim.effects import EFFECT_NAMES, get_effect, robot_ids
 from adadex.sim.patch import EffectInstance, ModelPatch
 from adadex.sysid.compare import FAIL_ABS, FAIL_RATIO, compare, heldout_mask, localize, noise_floor
@@ -310,7 +310,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     first_rounds: dict[str, list[Candidate]] = {}
     selected_per_joint: dict[str, list[Candidate]] = {}
     explained: dict[str, float] = {}
-    bar = tqdm(total=len(failing) * len(candidates), desc="diagnosing", unit="fit", disable=not progress)
+    bar = progress_bar(total=len(failing) * len(candidates), desc="diagnosing", unit="fit", disable=not progress)
     # Sources first: the worst joint (relative to its noise) is fitted first, then what is left is
     # localized again on the model with its effects, so a joint that only failed because another
     # one moved it differently is not given an explanation of its own.

@@ -249,7 +249,9 @@ def export_world(path: str | os.PathLike) -> Path:
 
 
 #: Per MJCF element, attribute → (compiled-model array, id kind): MuJoCo writes 6 significant digits,
-#: so these are rewritten from the compiled model at full precision (``repr``).
+#: so these are rewritten from the compiled model at full precision (``repr``). An attribute whose
+#: values span several arrays names them in order (a joint's ``damping`` is its linear damping, then
+#: its polynomial terms, ``dof_dampingpoly``); a value no array holds is kept as MuJoCo wrote it.
 _EXACT = {
     "body": {"pos": ("body_pos", "body"), "quat": ("body_quat", "body")},
     "inertial": {"pos": ("body_ipos", "parent"), "quat": ("body_iquat", "parent"), "mass": ("body_mass", "parent"),
@@ -259,7 +261,7 @@ _EXACT = {
              "solimp": ("geom_solimp", "geom")},
     "joint": {"range": ("jnt_range", "joint"), "actuatorfrcrange": ("jnt_actfrcrange", "joint"),
               "axis": ("jnt_axis", "joint"), "pos": ("jnt_pos", "joint"), "armature": ("dof_armature", "dof"),
-              "damping": ("dof_damping", "dof"), "frictionloss": ("dof_frictionloss", "dof")},
+              "damping": (("dof_damping", "dof_dampingpoly"), "dof"), "frictionloss": ("dof_frictionloss", "dof")},
     "site": {"size": ("site_size", "site"), "pos": ("site_pos", "site"), "quat": ("site_quat", "site")},
     "general": {"ctrlrange": ("actuator_ctrlrange", "actuator"), "forcerange": ("actuator_forcerange", "actuator"),
                 "gainprm": ("actuator_gainprm", "actuator"), "biasprm": ("actuator_biasprm", "actuator")},
@@ -292,8 +294,10 @@ def _full_precision(xml: str, m: mujoco.MjModel) -> str:
             if attr not in el.attrib or i < 0:
                 continue
             row = i if kind != "dof" else int(m.jnt_dofadr[i])
-            n = len(el.get(attr).split())
-            el.set(attr, " ".join(repr(float(v)) for v in np.ravel(getattr(m, field)[row])[:n]))
+            written = el.get(attr).split()
+            fields = (field,) if isinstance(field, str) else field
+            exact = np.concatenate([np.ravel(getattr(m, f)[row]) for f in fields if hasattr(m, f)])
+            el.set(attr, " ".join([repr(float(v)) for v in exact[:len(written)]] + written[len(exact):]))
     ET.indent(root, space="  ")
     return ET.tostring(root, encoding="unicode") + "\n"
 

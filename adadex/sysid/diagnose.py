@@ -829,8 +829,12 @@ def _place_loads(setting: _Setting, base: ModelPatch, masses: dict, robot) -> di
     A = np.stack([np.ones(5), steps, steps ** 2], axis=1)
     for k in list(masses)[:2]:
         m0, sigma = masses[k], float(eff.nominal_values([k], robot)[0, 1])
+        (mlo, slo), (mhi, shi) = (b[0] for b in eff.bounds([k], robot))
+        # the probes stay inside the bounds (a mass searched up to its bound is probed below it)
+        dm, do = LOAD_PROBE[0] * m0, min(LOAD_PROBE[1] * sigma, shi / 2.0, -slo / 2.0)
+        m0 = float(min(max(m0, mlo + 2.0 * dm), mhi - 2.0 * dm))
         c0 = np.sum(blocks(k, m0, 0.0) ** 2, axis=(1, 2))
-        for dm, do in ((LOAD_PROBE[0] * m0, 0.0), (0.0, LOAD_PROBE[1] * sigma)):
+        for dm, do in ((dm, 0.0), (0.0, do)):
             Y = np.stack([c0 if i == 0 else np.sum(blocks(k, m0 + i * dm, i * do) ** 2, axis=(1, 2)) for i in steps])
             bent = np.abs(Y - A @ np.linalg.lstsq(A, Y, rcond=None)[0]).max(axis=0)
             span = Y.max(axis=0) - Y.min(axis=0)

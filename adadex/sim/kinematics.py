@@ -70,7 +70,7 @@ class RevoluteChainJacobian:
 
     ``SerialChain.jacobian`` walks every frame of the chain, fixed ones included, one batched 4×4
     product per frame; on the arm's palm chain (9 frames, 6 joints) that took 0.96–1.7 ms per call of
-    64 configurations on one thread (this one: 0.46 ms; measured 2026-11-27), and the object anchor
+    64 configurations on one thread (this one: 0.46 ms), and the object anchor
     calls it three times a policy step. Folded, ``T(q) = C₀·R₀(q₀)·C₁·R₁(q₁)⋯R₅(q₅)·C_e``, with every ``Cⱼ`` read once from
     the chain's own forward kinematics at ``q = 0``, so this adds no geometry of its own: it computes
     the same quantities as ``SerialChain.jacobian(q, ret_eef_pose=True)`` (tested to 1e-5).

@@ -32,7 +32,7 @@ from adadex.sim.effects import get_effect
 from adadex.sim.patch import EffectInstance, ModelPatch
 
 #: Effects located on the windowed (multiple-shooting) cost before a polish on the free-replay cost: those
-#: whose free-replay cost is not a smooth function of their value. Measured 2026-11-27 on the 32-sequence
+#: whose free-replay cost is not a smooth function of their value. Measured on the 32-sequence
 #: excitation of arm_j3 and arm_j5 (noise 2e-4 rad): Coulomb friction of 0.5 N·m on arm_j3 has a
 #: free-replay cost whose minimum is 0.005 N·m wide, with local minima 2–12 % away (the grid and Brent
 #: stopped at 0.688). ``backlash`` (0.005 rad on arm_j3, 0.002 rad on arm_j5) was fitted to −0.05 % and

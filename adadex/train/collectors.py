@@ -40,7 +40,7 @@ WORKER_PRELOAD = ("torch", "tensordict", "torchrl.collectors", "torchrl.envs", "
 #: that, for a weight transfer). TorchRL's own 60 s (``torchrl.weight_update._ray._DIST_TIMEOUT``, read
 #: when the group is made) also covers starting the Ray worker process of its rendezvous actor, which
 #: imports torch and TorchRL: on 2 cores under 3 × load that took over 60 s and the first weight sync
-#: failed (``DistStoreError: wait timeout after 60000ms``, measured 2026-11-27).
+#: failed (``DistStoreError: wait timeout after 60000ms``).
 RAY_SYNC_TIMEOUT = timedelta(minutes=10)
 
 

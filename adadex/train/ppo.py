@@ -425,7 +425,7 @@ class PPOTrainer:
         steps without a logged teacher action do not count.
 
         In radians, not in units of the policy's scale: a scale-free form (the teacher's action before
-        the tanh, over the detached σ) tried on 2026-11-25 pulled ~10³ × harder and made IL+RL worse
+        the tanh, over the detached σ) tried once pulled ~10³ × harder and made IL+RL worse
         as it trained (Table 1 settings, 2 seeds: the training batches' frame success fell from 75–78 % to
         44–48 % by 300–380 k frames, where vanilla PPO held 77–79 %). The teacher's action
         at a time index comes from another episode — another object displacement, so another anchored

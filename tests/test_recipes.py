@@ -33,3 +33,30 @@ def test_evaluate_recipe_refuses_channels_without_a_modulator(tiny_dataset, tmp_
              f"out={tmp_path}/x", cwd=tmp_path)
     assert r.returncode != 0 and "needs a modulator" in r.stderr
     assert not (tmp_path / "x" / "result.json").exists()
+
+
+def test_a_recipe_trains_a_policy_it_composed(tiny_dataset, tmp_path):
+    """recipes/train_custom_policy.py: the user's critic, TorchRL's KL-penalty loss and a StepCounter,
+    trained with the training recipes' keys, without library changes; its checkpoint loads as that class."""
+    import importlib.util
+
+    import torch
+
+    out = tmp_path / "custom"
+    r = _run(ROOT / "recipes/train_custom_policy.py", f"dataset={tiny_dataset}", "build_preset=null",
+             "total_frames=512", "ppo.frames_per_batch=256", "ppo.minibatch_size=128", "ppo.epochs=1",
+             "ppo.update_threads=1", "collector.worlds=8", "collector.env_threads=1", "policy.hidden=[32,32]",
+             "eval_max_references=0", "wandb=false", "progress=false", f"out={out}", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    spec = importlib.util.spec_from_file_location("custom_recipe", ROOT / "recipes/train_custom_policy.py")
+    recipe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(recipe)
+    policy = recipe.ReplayResidualOwnCritic.load(out / "custom_policy.pt")
+    assert isinstance(policy.critic.module[0], torch.nn.LayerNorm)          # the recipe's own critic
+    with (out / "metrics.csv").open() as f:
+        header = f.readline().strip().split(",")
+    assert "loss_objective" in header and "kl" in header, header             # KLPENPPOLoss's KL term
+    assert "clip_fraction" not in header, header                               # ClipPPOLoss's, not written
+    r2 = _run(ROOT / "recipes/train_custom_policy.py", f"dataset={tiny_dataset}", "build_preset=null",
+              "criticc=1", f"out={tmp_path / 'x'}", cwd=tmp_path)
+    assert r2.returncode == 2 and "criticc" in r2.stderr and not (tmp_path / "x").exists()

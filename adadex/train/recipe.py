@@ -279,19 +279,21 @@ def claim_recipe_out(cfg, kind: str) -> Path:
     return mark_output_dir(check_recipe_out(cfg, kind), kind)
 
 
-def run(cfg: Mapping, *, name: str, prog: str | None = None) -> dict:
+def run(cfg: Mapping, *, name: str, prog: str | None = None, **trainer) -> dict:
     """Check the keys and the output folder, build the dataset if missing (``build_preset``), train,
-    print and return the final evaluation.
+    print and return the final evaluation. ``trainer``: :class:`~adadex.train.ppo.PPOTrainer`'s own
+    modules — ``policy``, ``loss``, ``env_transforms`` — for a recipe that trains a policy it composed
+    (``recipes/train_custom_policy.py``).
 
     Bad input — an unknown key, an ``out`` that holds someone else's files or a run not to be replaced,
     a missing dataset or checkpoint, a bad setting, an unknown group — is one line on stderr and exit
     code 2, no traceback; anything else is reported as a bug, exit code 1
     (:func:`adadex.errors.report_error`)."""
     with exit_on_error(prog or f"recipes/{Path(sys.argv[0]).name}"):
-        return _run(cfg, name)
+        return _run(cfg, name, trainer)
 
 
-def _run(cfg: Mapping, name: str) -> dict:
+def _run(cfg: Mapping, name: str, trainer: dict) -> dict:
     from adadex.train.checkpoint import TRAINING_RUN, start_run
     from adadex.train.ppo import train
 
@@ -312,7 +314,7 @@ def _run(cfg: Mapping, name: str) -> dict:
     dataset_at(tc.dataset, preset=cfg.get("build_preset"), setting="dataset", seed=tc.seed,
                hint="set build_preset to build one")
     start_run(tc.out, TRAINING_RUN, fresh=blob is None)
-    result = train(tc, run_name=name)
+    result = train(tc, run_name=name, **trainer)
     print(f"{name}: {result['frames']} frames, {result['iterations']} iterations -> {result['policy']}")
     print(json.dumps(result["eval"], indent=1))
     return result["eval"]

@@ -23,12 +23,12 @@ from adadex.train.recipe import check_keys, hydra_files, recipe_main
 
 def keys() -> dict:
     """What the recipe accepts: PipelineConfig's fields (with the nested configs'), ``preset``, ``force``."""
-    from adadex.train.config import ModulatorSettings, PolicyConfig, PPOConfig
+    from adadex.train.config import ModulatorSettings, PolicyConfig, PPOConfig, SimConfig
     from adadex.train.pipeline import PipelineConfig
     from adadex.train.recipe import dataclass_keys, modulation_keys
 
     return dataclass_keys(PipelineConfig, ppo=dataclass_keys(PPOConfig, drop=("total_frames",)),
-                          policy=dataclass_keys(PolicyConfig),
+                          policy=dataclass_keys(PolicyConfig), sim=dataclass_keys(SimConfig),
                           modulator=dataclass_keys(ModulatorSettings, drop=("tracker", "channels", "modulation")),
                           modulation=modulation_keys(), preset=None, force=None)
 

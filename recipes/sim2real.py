@@ -57,7 +57,7 @@ def guard(cfg) -> None:
     """What is checked before any work: the preset, the hidden robot, the tracker, then ``out``."""
     from adadex.train.sim2real import HiddenRobot, check_out, preset
 
-    preset(str(cfg.preset))
+    preset(str(cfg.preset), backend=cfg.backend, device=cfg.device)
     HiddenRobot(cfg.real)
     if str(cfg.tracker) != "replay" and not Path(str(cfg.tracker)).is_file():
         raise FileNotFoundError(f"tracker={cfg.tracker}: no such checkpoint file")
@@ -74,7 +74,8 @@ def main(argv: list[str] | None = None) -> dict:
                               seed=int(cfg.seed), dataset=cfg.dataset, oracle=bool(cfg.oracle), force=bool(cfg.force),
                               progress=bool(cfg.progress), threads=int(cfg.threads), channels=cfg.channels,
                               frames=cfg.frames, eval_repeats=cfg.eval_repeats,
-                              frames_per_batch=cfg.frames_per_batch, gamma=cfg.gamma, lmbda=cfg.lmbda)
+                              frames_per_batch=cfg.frames_per_batch, gamma=cfg.gamma, lmbda=cfg.lmbda,
+                              backend=cfg.backend, device=cfg.device)
     print()
     print(format_table(result))
     print(f"minutes per stage: {result['stage_minutes']}")

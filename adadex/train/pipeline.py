@@ -55,8 +55,8 @@ from adadex.envs.randomization import Randomization
 from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import ConfigError, check_number, from_known_keys
 from adadex.io import atomic_write_text, check_output_dir, mark_output_dir
-from adadex.train.config import (CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, TrainConfig,
-                                 randomization_with)
+from adadex.train.config import (CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, SimConfig,
+                                 TrainConfig, randomization_with)
 from adadex.train.stages import STAGE, run_in_processes, run_stage
 #: modulator rows of the table → the channel set each trains
 MODULATOR_ROWS = {"R": "R", "RT": "R+T", "ROT": "R+O+T", "O": "O"}
@@ -102,6 +102,8 @@ class PipelineConfig:
             references (default 500 000).
         ppo: ``PPOConfig`` overrides (``frames_per_batch``, ``lr``, …), on top of :data:`PPO_DEFAULTS`.
         policy: ``PolicyConfig`` overrides of the trackers trained, on top of :data:`POLICY_DEFAULTS`.
+        sim: ``SimConfig`` fields of every env of the chain (``{"backend": "warp"}``: MuJoCo Warp for
+            training, teacher rollouts and evaluations; default: ``mujoco.rollout`` on the CPU).
         rollout_episodes: randomized teacher episodes per reference (default 4).
         rollout_criterion: which teacher episodes are kept (default ``"mean_error"``; see
             :mod:`adadex.train.rollouts`).
@@ -152,6 +154,9 @@ class PipelineConfig:
     ppo: dict = field(default_factory=dict)
     #: PolicyConfig overrides of the trackers trained, on top of :data:`POLICY_DEFAULTS`
     policy: dict = field(default_factory=dict)
+    #: SimConfig fields of every env of the chain — training, teacher rollouts, evaluations
+    #: (``sim.backend=warp`` with ``ppo.device=cuda``: the whole pipeline on a GPU)
+    sim: dict = field(default_factory=dict)
     rollout_episodes: int = 4                # randomized teacher episodes per reference
     rollout_criterion: str = "mean_error"    # which teacher episodes are kept (see adadex.train.rollouts)
     distill_steps: int = 3000
@@ -191,7 +196,8 @@ class PipelineConfig:
             check_number("PipelineConfig.scaling_fractions[…]", f, high=1.0, strict_low=True)
         self.policy = {**POLICY_DEFAULTS, **(self.policy or {})}
         self.ppo = {**PPO_DEFAULTS, **(self.ppo or {})}
-        for name, cls in (("ppo", PPOConfig), ("policy", PolicyConfig)):
+        self.sim = dict(self.sim or {})
+        for name, cls in (("ppo", PPOConfig), ("policy", PolicyConfig), ("sim", SimConfig)):
             cls(**getattr(self, name))       # a bad key or value fails here, before any stage runs
         self.randomization = dict(self.randomization or {})
         self.randomization_config()
@@ -201,6 +207,11 @@ class PipelineConfig:
     def row_channels(self, row: str) -> str:
         """The channels a modulator row trains: :data:`MODULATOR_ROWS` with ``reference_channel`` for R."""
         return "+".join(self.reference_channel if c == "R" else c for c in MODULATOR_ROWS[row].split("+"))
+
+    @property
+    def backend(self) -> str:
+        """The physics backend of every env of the chain (``sim.backend``)."""
+        return SimConfig(**self.sim).backend
 
     def randomization_config(self) -> Randomization:
         """Table 3 with this pipeline's ``randomization`` changes (checked as a training run checks them)."""
@@ -235,6 +246,8 @@ class Pipeline:
         windows)."""
         if self.env_config.window != WINDOW_FRAMES:
             settings = {**settings, "window": self.env_config.window}
+        if self.cfg.backend != SimConfig().backend:      # other physics: never the default backend's stage
+            settings = {**settings, "sim_backend": self.cfg.backend}
         return run_stage(folder, settings, fn, label=label, log=self.log)
 
     def log(self, msg: str) -> None:
@@ -265,7 +278,7 @@ class Pipeline:
                            ppo=PPOConfig(**{**c.ppo, "total_frames": frames}),
                            collector=CollectorConfig(workers=c.workers, worlds=c.worlds, env_threads=c.env_threads),
                            policy=PolicyConfig(**c.policy), randomization=dict(c.randomization), wandb=c.wandb,
-                           progress=c.progress, **kw)
+                           sim=SimConfig(**c.sim), progress=c.progress, **kw)
 
     def _ppo(self, tc: TrainConfig, label: str, teacher=None) -> dict:
         from adadex.train.ppo import PPOTrainer
@@ -313,7 +326,8 @@ class Pipeline:
             info = teacher_rollouts(teachers, self.ds, out / "data", episodes_per_reference=c.rollout_episodes,
                                     seed=env_seed, max_worlds=c.worlds, criterion=c.rollout_criterion,
                                     randomize=c.randomization_config(),
-                                    config=self.env_config, nthread=c.env_threads, progress=c.progress)
+                                    config=self.env_config, nthread=c.env_threads, progress=c.progress,
+                                    backend=c.backend)
             return {k: info[k] for k in ("episodes_tried", "episodes_kept", "success_pct", "frames")}
 
         self._stage(out, settings, fit, label=f"seed {seed} teacher rollouts")
@@ -382,7 +396,7 @@ class Pipeline:
         return evaluate(policy, self.ds, split=None, references=refs * (self.cfg.eval_repeats if randomized else 1),
                         max_worlds=self.cfg.worlds, env_transform=policy.primer, config=self.env_config,
                         randomize=self.cfg.randomization_config() if randomized else None, seed=eval_seed, progress=False,
-                        nthread=self.cfg.env_threads, keep_rollouts=keep_rollouts)
+                        nthread=self.cfg.env_threads, keep_rollouts=keep_rollouts, backend=self.cfg.backend)
 
     def evaluations(self, seed: int, root: Path, paths: dict) -> dict:
         """Every row on both splits, nominal and randomized; the same environment seed, references and

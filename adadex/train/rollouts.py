@@ -139,7 +139,7 @@ def teacher_rollouts(teachers: Mapping, dataset, out, *, episodes_per_reference:
                      randomize: Randomization | bool | None = True, seed: int = 0, max_worlds: int = 64,
                      criterion: str = "mean_error", thresholds: Thresholds = Thresholds(),
                      config: TrackingConfig = TrackingConfig(), keys: Sequence = DEFAULT_KEYS, nthread: int = 2,
-                     force: bool = False, progress: bool = True) -> dict:
+                     force: bool = False, progress: bool = True, backend: str = "rollout") -> dict:
     """Roll out each teacher on its references; store the successful trajectories' steps in ``out``.
 
     Args:
@@ -161,6 +161,7 @@ def teacher_rollouts(teachers: Mapping, dataset, out, *, episodes_per_reference:
         nthread: the physics rollout's threads (default 2).
         force: replace whatever is at ``out`` (default False).
         progress: show a progress bar (default True).
+        backend: the envs' physics (``"rollout"``, default, or ``"warp"``: :class:`~adadex.train.config.SimConfig`).
 
     Returns the content of ``rollouts.json`` (a dict). Raises :class:`NoSuccessfulRollouts` when no
     episode succeeded (``out`` is then left as it was).
@@ -201,7 +202,8 @@ def teacher_rollouts(teachers: Mapping, dataset, out, *, episodes_per_reference:
             tried_t = kept_t = 0
             for c in chunked_rollouts(tracker.actor, ds, _episode_list(refs, episodes_per_reference),
                                       max_worlds=max_worlds, seed=seed + chunk_index, derive_seed=_consecutive_seeds,
-                                      config=config, bar=bar, randomize=randomize, nthread=nthread):
+                                      config=config, bar=bar, randomize=randomize, nthread=nthread,
+                                      backend=backend):
                 chunk, td = c.references, c.rollout
                 chunk_index += 1
                 metrics = from_rollout(td, lengths=torch.full((len(chunk),), steps), thresholds=thresholds)

@@ -104,6 +104,10 @@ class Sim2RealPreset:
     noise: float = 2e-4             # sensor noise of the recording, rad
     #: the effects ``adadex sysid diagnose`` screens (None: every effect it knows)
     candidates: tuple[str, ...] | None = None
+    #: the physics of the training and evaluation envs (``SimConfig.backend``: ``"rollout"`` or ``"warp"``)
+    #: and where the PPO updates run (``PPOConfig.device``); the workbench's replays stay on the CPU
+    backend: str = "rollout"
+    device: str = "cpu"
 
 
 PRESETS = {
@@ -123,9 +127,23 @@ PRESETS = {
 
 def preset(name: str, **changes) -> Sim2RealPreset:
     """The preset ``name`` with ``changes`` (fields whose value is not None)."""
+    from adadex.train.config import SimConfig
+
     if name not in PRESETS:
         raise ConfigError(f"preset={name}: no such preset; known: {', '.join(PRESETS)}")
-    return dataclasses.replace(PRESETS[name], **{k: v for k, v in changes.items() if v is not None})
+    p = dataclasses.replace(PRESETS[name], **{k: v for k, v in changes.items() if v is not None})
+    # a bad backend or device is refused before any work, named as the recipe's keys
+    for key, check in (("backend", lambda: SimConfig(backend=p.backend)), ("device", lambda: _ppo_config(p))):
+        try:
+            check()
+        except ConfigError as e:
+            raise ConfigError(f"{key}={getattr(p, key)}: {str(e).split(', got')[0].split(') ')[-1]}") from None
+    if p.device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device={p.device}: torch sees no CUDA device here")
+    return p
 
 
 # ----------------------------------------------------------------------------------------------
@@ -256,7 +274,7 @@ def _ppo_config(p: Sim2RealPreset):
 
     return PPOConfig(total_frames=p.frames, frames_per_batch=p.frames_per_batch, minibatch_size=p.minibatch_size,
                      epochs=p.epochs, desired_kl=0.0, update_threads=1,    # as the pipeline trains modulators
-                     gamma=p.gamma, lmbda=p.lmbda)
+                     gamma=p.gamma, lmbda=p.lmbda, device=p.device)
 
 
 def fingerprint(module) -> str:
@@ -278,14 +296,15 @@ def _train(folder, *, dataset, p: Sim2RealPreset, randomization, seed: int, name
     the same ``inputs`` (plus the shared settings) is kept, a killed one continues, other inputs start over."""
     from adadex.envs.tracking import TrackingConfig
     from adadex.io import atomic_write_text
-    from adadex.train.config import CollectorConfig, TrainConfig
+    from adadex.train.config import CollectorConfig, SimConfig, TrainConfig
 
     folder = Path(folder)
     ppo = _ppo_config(p)
     inputs = {**inputs, "randomization": randomization.as_dict(), "window": p.window, "seed": seed,
               "reward": dict(p.reward), "hidden": list(p.hidden),
               "ppo": {k: getattr(ppo, k) for k in ("total_frames", "frames_per_batch", "minibatch_size", "epochs",
-                                                   "gamma", "lmbda")}}
+                                                   "gamma", "lmbda")},
+              **({"sim_backend": p.backend} if p.backend != SimConfig().backend else {})}
     stamp = folder.with_name(f"{folder.name}.inputs.json")      # beside the run: the trainer guards its folder
     same = stamp.is_file() and json.loads(stamp.read_text(encoding="utf-8")) == json.loads(json.dumps(inputs))
     if folder.exists() and not same:
@@ -293,7 +312,7 @@ def _train(folder, *, dataset, p: Sim2RealPreset, randomization, seed: int, name
     tc = TrainConfig(dataset=str(dataset), out=str(folder), seed=seed, resume=(folder / "checkpoint.pt").is_file(),
                      split=(p.split, "train"), ppo=ppo, collector=CollectorConfig(worlds=p.worlds),
                      modulator=modulator, reward=dict(p.reward), eval_max_references=0, wandb=False,
-                     progress=progress)
+                     sim=SimConfig(backend=p.backend), progress=progress)
     folder.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(stamp, json.dumps(inputs))
     trainer = _trainer_class()(tc, randomization, env_config=TrackingConfig(window=p.window), run_name=name,
@@ -667,7 +686,7 @@ def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "smal
     # 4. evaluate: every row on the same episodes and draws
     episodes = refs * p.eval_repeats
     kw = dict(max_worlds=64, config=TrackingConfig(window=p.window),
-              randomize=Randomization(), seed=20_000 + seed, progress=progress, nthread=threads)
+              randomize=Randomization(), seed=20_000 + seed, progress=progress, nthread=threads, backend=p.backend)
     from adadex.eval.evaluate import evaluate
 
     torch.manual_seed(seed)

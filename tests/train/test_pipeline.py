@@ -186,6 +186,22 @@ def test_pipeline_trackers_are_unanchored_unless_asked(tiny_dataset, tmp_path):
         assert pipe._train_config(tmp_path / "run", 0, 1000).policy.anchor == anchor
 
 
+def test_sim_backend_reaches_every_training_run_and_keys_the_stages(tiny_dataset, tmp_path):
+    """``sim.backend=warp``: every training run's config carries it, and a stage run on one backend is
+    not reused on the other (the default backend's stages keep their settings as before)."""
+    from adadex.train import pipeline as pipeline_module
+
+    pipe = pipeline_module.Pipeline(PipelineConfig(out=str(tmp_path), sim={"backend": "warp"}))
+    pipe.ds = ReferenceDataset(tiny_dataset)
+    assert pipe.cfg.backend == "warp" and pipe._train_config(tmp_path / "run", 0, 1000).sim.backend == "warp"
+    stored = pipeline_module.Pipeline(PipelineConfig(out=str(tmp_path)))
+    stored._stage(tmp_path / "st", {"a": 1}, lambda: {"r": 1}, label="st")
+    with pytest.raises(ConfigError, match="sim_backend"):
+        pipe._stage(tmp_path / "st", {"a": 1}, lambda: {"r": 2}, label="st")
+    with pytest.raises(ConfigError, match="sim.backend"):
+        PipelineConfig(out=str(tmp_path), sim={"backend": "gpu"})
+
+
 def test_run_stage_stores_skips_and_refuses_changed_settings(tmp_path):
     calls = []
     fn = lambda: calls.append(1) or {"x": (1, 2)}         # noqa: E731

@@ -162,6 +162,7 @@ def test_refusals(tmp_path):
         "unknown key": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o4'}", "frame=3"], tmp_path / "o4"),
         "unknown preset": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o5'}", "preset=huge"], tmp_path / "o5"),
         "missing tracker": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o6'}", "tracker=nope.pt"], tmp_path / "o6"),
+        "bad backend": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o7'}", "backend=gpu"], tmp_path / "o7"),
     }
     r = run_recipes(cases, ROOT, "offline")
     assert "no such patch file" in refused(r["missing real"], "real=")
@@ -171,4 +172,5 @@ def test_refusals(tmp_path):
     refused(r["unknown key"], "frame")
     refused(r["unknown preset"], "preset=huge", "tiny")
     refused(r["missing tracker"], "tracker=nope.pt")
+    refused(r["bad backend"], "backend=gpu", "rollout")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine", "notes.json"]      # nothing made

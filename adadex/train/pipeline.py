@@ -478,7 +478,7 @@ class Pipeline:
         """``out/figures/`` (:func:`adadex.train.pipeline_figures.pipeline_figures`)."""
         from adadex.train.pipeline_figures import pipeline_figures
 
-        return pipeline_figures(self, table, scaling, paths, seed)
+        return pipeline_figures(self, table, scaling, paths, seed, MODULATOR_ROWS)
 
 
 def _seed_chain(args) -> tuple[dict, dict, dict]:

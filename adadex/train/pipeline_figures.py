@@ -19,13 +19,13 @@ from adadex.io import atomic_write_text
 from adadex.modules.channels import ModulationConfig
 from adadex.modules.encoder import load_encoder
 from adadex.modules.tracker import Tracker
-from adadex.train.pipeline import MODULATOR_ROWS
 
 
-def pipeline_figures(p, table: dict, scaling: dict, paths: dict, seed: int) -> dict[str, str]:
+def pipeline_figures(p, table: dict, scaling: dict, paths: dict, seed: int, modulator_rows) -> dict[str, str]:
     """The figures of pipeline ``p`` (a :class:`~adadex.train.pipeline.Pipeline` after its run) from
-    ``table`` (``table1.json``'s content), ``scaling`` (Fig. 6's summaries by fraction, one per seed) and
-    ``paths`` (seed ``seed``'s policy checkpoints by row); returns ``{figure: file}``."""
+    ``table`` (``table1.json``'s content), ``scaling`` (Fig. 6's summaries by fraction, one per seed),
+    ``paths`` (seed ``seed``'s policy checkpoints by row) and ``modulator_rows`` (the modulator rows
+    whose channel use is plotted); returns ``{figure: file}``."""
     folder = p.out / "figures"
     out = {"ablation": fig.plot_ablation(table, folder / "ablation.png")}
     # Fig. 4 and 5: the R+O+T policy of the first seed on the unseen-trajectory test references
@@ -66,7 +66,7 @@ def pipeline_figures(p, table: dict, scaling: dict, paths: dict, seed: int) -> d
     usage = {row: fig.channel_usage(p.evaluate(p.policy(row, paths), "unseen_trajectory", "randomized",
                                                   20_000 + seed, keep_rollouts=True)["rollouts"],
                                   p.cfg.row_channels(row))
-             for row in MODULATOR_ROWS}
+             for row in modulator_rows}
     out["channel_usage"] = fig.plot_channel_usage(usage, folder / "channel_usage.png")
     atomic_write_text(folder / "channel_usage.json", json.dumps(usage, indent=1))
     atomic_write_text(folder / "smoothness.json",

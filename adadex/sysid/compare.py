@@ -33,7 +33,28 @@ FAIL_ABS = 2e-3
 
 @dataclass(kw_only=True)
 class Comparison:
-    """Model vs measurement for one recording under one patch (arrays are (S, T, J))."""
+    """Model vs measurement for one recording under one patch (arrays are (S, T, J)).
+
+    Built by :func:`compare`. ``measured``, ``command`` and ``joint_names`` are the recording's;
+    ``error`` is ``simulated − measured``, rad; :meth:`rms` (optionally over ``axis`` and where
+    ``mask``), :meth:`rms_per_joint`, :meth:`rms_per_sequence_joint` and :meth:`noise_floor`
+    (:func:`noise_floor`) summarize it, and :meth:`summary` gives them as a JSON-ready dict.
+
+    Attributes:
+        recording: the :class:`~adadex.data.recording.Recording` compared with.
+        patch: the :class:`~adadex.sim.patch.ModelPatch` the model was replayed under.
+        simulated: (S, T, J) the model's joint positions, rad, on the recording's sequences, samples
+            and joints.
+
+    >>> import numpy as np
+    >>> from adadex.sim.patch import ModelPatch
+    >>> from adadex.sysid.excite import design_excitation
+    >>> plan = design_excitation(["arm_j3"], freqs=(1.0,), amps=(0.5,), poses=("loaded",), kinds=("sine",))
+    >>> noisy = plan.command + np.random.default_rng(0).normal(0.0, 1e-3, plan.command.shape)
+    >>> cmp = Comparison(recording=plan.to_recording(noisy), patch=ModelPatch(), simulated=plan.command)
+    >>> cmp.error.shape, bool(abs(cmp.rms() - 1e-3) < 2e-4)      # a model right up to the sensor noise
+    ((1, 181, 1), True)
+    """
 
     recording: object
     patch: ModelPatch
@@ -107,7 +128,19 @@ def heldout_mask(recording) -> np.ndarray:
 
 
 def compare(recording, patch: ModelPatch | None = None, *, replayer=None, nthread: int = 2) -> Comparison:
-    """Replay ``recording`` under ``patch`` (default: the nominal model)."""
+    """Replay ``recording`` under ``patch`` (default: the nominal model).
+
+    Args:
+        recording: the :class:`~adadex.data.recording.Recording` to replay and compare with.
+        patch: the effects to add to the model (:class:`~adadex.sim.patch.ModelPatch`); None (default):
+            none, the nominal model of the recording's robot.
+        replayer: a :class:`~adadex.sysid.replay.Replayer` of this recording to reuse (it keeps the
+            models it compiled, so several comparisons replay faster); None (default): a new one.
+        nthread: threads of the new replayer's rollout pool (default 2; unused with ``replayer``).
+
+    Returns:
+        the :class:`Comparison` of the replayed and the measured positions.
+    """
     from adadex.sysid.replay import Replayer
 
     rep = replayer if replayer is not None else Replayer(recording, nthread=nthread)
@@ -154,7 +187,38 @@ def _group_rms(err2: np.ndarray, keys: list, j: int, seq_mask: np.ndarray) -> di
 
 
 def localize(cmp: Comparison, *, window_s: float = 0.25, top_windows: int = 5) -> Localization:
-    """Rank joints, split errors by regime, find the worst windows; see the module docstring."""
+    """Rank joints, split errors by regime, find the worst windows; see the module docstring.
+
+    A joint fails when its RMS error on the sequences that move it (all of them, if none does) exceeds
+    :data:`FAIL_RATIO` × its noise floor and :data:`FAIL_ABS` rad. Errors near velocity reversals are
+    those within :data:`REVERSAL_WINDOW_S` of a sign change of the commanded velocity.
+
+    Args:
+        cmp: the :class:`Comparison` to judge; the recording's ``meta["sequences"]`` (as
+            :func:`~adadex.sysid.excite.design_excitation` writes them) say which joint, frequency,
+            amplitude and pose each sequence has; without them every sequence counts for every joint
+            and the error is not split by frequency, amplitude or pose.
+        window_s: the length of the sliding window the worst windows are found with, s (default 0.25).
+        top_windows: how many worst windows to keep, over all failing joints (default 5).
+
+    Returns:
+        a :class:`Localization`: ``failing_joints``; ``joints``, one dict per joint ranked by error over
+        noise (RMS and noise floor, rad; the error by frequency, amplitude and pose; near reversals and
+        elsewhere); ``worst_windows`` (joint, sequence, ``t_start``/``t_end`` in s, RMS in rad, worst
+        first, one per failing joint); and the findings in sentences (``.text``).
+
+    >>> import numpy as np
+    >>> from adadex.sim.patch import ModelPatch
+    >>> from adadex.sysid.excite import design_excitation
+    >>> plan = design_excitation(["arm_j3"], freqs=(1.0,), amps=(0.5,), poses=("loaded",), kinds=("sine",))
+    >>> noisy = plan.command + np.random.default_rng(0).normal(0.0, 1e-3, plan.command.shape)
+    >>> rec = plan.to_recording(noisy)
+    >>> localize(Comparison(recording=rec, patch=ModelPatch(), simulated=plan.command)).failing_joints
+    []
+    >>> loc = localize(Comparison(recording=rec, patch=ModelPatch(), simulated=plan.command + 0.02))
+    >>> loc.failing_joints, loc.text.splitlines()[0]                 # 0.02 rad off: ≈ 20 × the noise
+    (['arm_j3'], 'The model fails on 1 of 1 joints: arm_j3.')
+    """
     rec = cmp.recording
     names = cmp.joint_names
     err2 = cmp.error ** 2

@@ -33,7 +33,24 @@ def run_demo(recording, out="adadex_demo", nthread: int = 2, model=None, force: 
     """Walk the loop on ``recording`` (a path; ``adadex sysid demo`` passes the shipped demo recording),
     writing the diagnosis, the patch and the report under ``out``. The caller names the recording, so
     this module needs nothing from the CLI (which imports it). ``out`` is replaced only when it is an
-    earlier demo output (its marker) or with ``force``; checked before any work."""
+    earlier demo output (its marker) or with ``force``; checked before any work.
+
+    Each step's results are printed as it goes.
+
+    Args:
+        recording: the recording's path (an ``.npz`` file, a ``.csv`` file or a folder of them;
+            :func:`~adadex.data.recording.load_recording`).
+        out: the output folder (default ``"adadex_demo"``), written as one unit:
+            ``diagnosis/diagnosis.json``, ``patch.json`` (the selected effects) and ``report.html``
+            (:func:`~adadex.sysid.report.write_report`).
+        nthread: threads of the replays' rollout pools (default 2).
+        model: the user's MJCF file the recording was made on; None (default): adadex's robot.
+        force: replace an existing ``out`` that is not an earlier demo output (default False).
+
+    Returns:
+        a dict: ``verdict`` (the diagnosis'), ``stages`` (the error stages,
+        :meth:`~adadex.sysid.report.Stages.to_dict`) and ``seconds`` (the loop's wall time, s).
+    """
     out = Path(out)
     with output_folder(out, DEMO_KIND, force=force) as tmp:
         result = _run(recording, out, tmp, nthread, model)

@@ -136,7 +136,46 @@ class Candidate:
 class Diagnosis:
     """What :func:`diagnose` found: the verdict, the baseline error, the hypotheses tried, the effects
     selected (:meth:`patch` turns them into a :class:`~adadex.sim.patch.ModelPatch`), the fraction of
-    the error they explain and the findings in words; :meth:`to_dict` is what ``diagnosis.json`` holds."""
+    the error they explain and the findings in words; :meth:`to_dict` is what ``diagnosis.json`` holds.
+
+    :meth:`save` writes ``diagnosis.json`` into a folder and :meth:`load` reads it back
+    (:class:`DiagnosisError` for a missing or unreadable file).
+
+    Attributes:
+        verdict: ``"nothing_missing"``, ``"explained"`` or ``"unexplained"`` (see the module docstring).
+        baseline_error: the nominal model's error, rad: ``overall_rms_rad``, and ``per_joint_rms_rad``
+            and ``noise_floor_rad`` by joint name.
+        hypotheses: every first-round candidate that explains at least :data:`MIN_EXPLAINED` of its
+            joint's excess error, best score first, each a dict with ``effect``, ``joints`` (one),
+            ``params`` and ``ci95`` (by parameter name: a value, and a ``[lo, hi]`` 95 % interval, per
+            joint), ``train_error_reduction`` and ``heldout_error_reduction`` (fractions of the excess
+            error; the held-out one ``None`` when scored on training sequences), ``score``,
+            ``alternatives`` (look-alike effects) and ``scored_on`` (``"heldout"`` or ``"train"``).
+        selected: the effects chosen, one dict per effect over all the joints it was chosen on:
+            ``effect``, ``joints``, ``params`` and ``ci95`` (by parameter name, one entry per joint),
+            ``heldout_error_reduction``, ``identifiable`` and ``scored_on`` (one per joint),
+            ``alternatives`` and ``unit`` (the first parameter's).
+        explained_fraction: by failing joint, the fraction of its held-out excess error the selected
+            effects remove, in [0, 1] (empty when nothing is missing).
+        findings: the findings in sentences: the localization's, then what the diagnosis found (a load,
+            knock-on joints, suggestions), ending with one per failing joint (and, when unexplained,
+            one naming the joints left unexplained).
+        wall_time_s: the diagnosis' wall time, s.
+        train_only_joints: the failing joints with too few sequences to hold any out, scored on their
+            training sequences only (default ``[]``).
+        model: the id of the model the diagnosis replayed on (default ``"builtin"``).
+        stage_times_s: wall time per stage, s (``localize``, ``load``, ``fit``, ``relocalize``,
+            ``joint_refit_and_scoring``; default ``{}``).
+        suggestions: effects the data point to but cannot pin down (their value sits on a bound), each
+            a dict like a selected effect's with the ``excite`` command that would identify it and its
+            ``finding``; never selected (default ``[]``).
+
+    >>> d = Diagnosis(verdict="explained", baseline_error={}, hypotheses=[], explained_fraction={"arm_j3": 0.9},
+    ...               findings=[], wall_time_s=0.0, selected=[{"effect": "damping", "joints": ["arm_j3"],
+    ...               "params": {"damping": [2.0]}, "ci95": {"damping": [[1.8, 2.2]]}}])
+    >>> d.patch().describe()
+    'damping(damping) arm_j3: 2'
+    """
 
     verdict: str
     baseline_error: dict
@@ -278,7 +317,39 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
              joints=None, max_effects_per_joint: int = 2, min_gain: float = 0.1, tie: float = 0.03,
              explained_at: float = 0.8, refine_top: int = 4, refine_passes: int = 1, nthread: int = 2,
              progress: bool = True) -> Diagnosis:
-    """Diagnose ``recording``; see the module docstring. ``joints`` overrides the failing-joint search."""
+    """Diagnose ``recording``; see the module docstring. ``joints`` overrides the failing-joint search.
+
+    Args:
+        recording: the :class:`~adadex.data.recording.Recording` to explain. Its ``meta["sequences"]``
+            (as :func:`~adadex.sysid.excite.design_excitation` writes them) say which joint each
+            sequence moves; without them every sequence counts for every joint.
+        base_patch: the model to start from, a :class:`~adadex.sim.patch.ModelPatch` the candidates are
+            fitted on top of (not part of the selection); None (default): the nominal model.
+        candidates: the names of the effects to screen (default :data:`~adadex.sim.effects.EFFECT_NAMES`,
+            all of them); the load steps need ``"payload_mass"`` among them.
+        joints: the recorded joints to fit (a name or a list), instead of those that fail; each is
+            fitted on its own (no load first, no re-localization, coupled fit or shared load). None
+            (default): the failing joints. A name not recorded raises before any work.
+        max_effects_per_joint: at most this many effects are selected on one joint (default 2).
+        min_gain: a further effect on a joint is added only when its score (the held-out excess error
+            it removes beyond the effects already chosen, minus the complexity penalty) reaches this
+            fraction (default 0.1); the first needs a score of at least 0.
+        tie: candidates whose held-out reduction is within this fraction of the best's (3 × this for
+            its known look-alikes) are reported as its alternatives (default 0.03); it is also the
+            margin the shared-effect-and-load step must win by.
+        explained_at: the verdict is ``"explained"`` when every failing joint's held-out excess error
+            falls by at least this fraction (default 0.8); a load found first carries the failing
+            joints it explains this well.
+        refine_top: how many candidates per joint, the best on the coarse grid, are refined precisely;
+            the others keep their best grid value (default 4).
+        refine_passes: passes of the joint refit of all selected values together, when more than one
+            effect is selected (default 1).
+        nthread: threads of the :class:`~adadex.sysid.replay.Replayer`'s rollout pool (default 2).
+        progress: show a progress bar, one step per candidate fit (default True).
+
+    Returns:
+        the :class:`Diagnosis`.
+    """
     if joints is not None:             # before any work: recorded joints, the first that is not named
         joints = [recording.joint_names[j] for j in recording._select_joints(joints)]
     t0 = time.perf_counter()

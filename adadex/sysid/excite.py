@@ -50,7 +50,25 @@ class ExcitationError(AdadexError, ValueError):
 
 @dataclass(frozen=True, kw_only=True)
 class ExcitationPlan:
-    """Commands to send: ``command`` (S, T, J) for ``joint_names`` at ``time`` (T,), from ``initial_qpos``."""
+    """Commands to send: ``command`` (S, T, J) for ``joint_names`` at ``time`` (T,), from ``initial_qpos``.
+
+    Built by :func:`design_excitation`; :meth:`save` writes it as a recording file marked as a plan,
+    :meth:`load` / :meth:`from_recording` read one back, and :meth:`to_recording` pairs it with measured
+    positions. ``sequence_labels`` are the sequences' ``"label"`` entries.
+
+    Attributes:
+        time: (T,) sample times, s, from 0 at a uniform rate.
+        joint_names: the J commanded joints (the columns of ``command``), in order.
+        command: (S, T, J) joint-position targets, rad: one row of S per sequence.
+        initial_qpos: (S, 22) the full configuration each sequence starts from, rad (the model's width
+            for a user's model): its pose, including the joints that are not commanded.
+        sequences: per sequence, a dict with ``label`` (``"joint/pose/kind/f<freq>/a<fraction>"``),
+            ``joint`` (the one joint it moves), ``pose``, ``kind``, ``freq`` (Hz) and ``amp`` (the
+            amplitude, rad); a plan read from a recording without them has only ``label``. Default
+            ``()``.
+        robot: the joint table of the user's model the plan is for
+            (:class:`~adadex.sim.model_source.RobotTable`); None (default): adadex's robot.
+    """
 
     time: np.ndarray
     joint_names: tuple[str, ...]
@@ -122,7 +140,35 @@ def design_excitation(joints, *, freqs=(0.5, 1.5, 3.0), amps=(0.25, 1.0), poses=
 
     ``amps`` are fractions of the joint's largest in-limit amplitude at the pose (capped at
     ``max_amp`` rad); sine sequences cover every (freq, amp, pose), chirp and multisine one per pose
-    at the largest amplitude with ``freqs[-1]`` as the top frequency.
+    at the largest amplitude with ``max(freqs)`` as their base frequency ``f``: the chirp sweeps
+    linearly from f/8 to 2f, the multisine sums components at f/2, f, …, 5f/2.
+
+    Args:
+        joints: the names of the joints to excite, one at a time (at least one; an unknown name raises
+            :class:`~adadex.sim.robot.UnknownJointError`). They are the plan's columns, in this order.
+        freqs: the sine frequencies, Hz, each in (0, ``rate``/4] (default ``(0.5, 1.5, 3.0)``).
+        amps: amplitudes as fractions in (0, 1] of the joint's largest amplitude about the pose that
+            stays 0.05 rad inside its limits, capped at ``max_amp`` (default ``(0.25, 1.0)``).
+        poses: the poses the sweeps start from: ``"loaded"`` (forearm horizontal, the shoulder and elbow
+            hold the arm's weight) and/or ``"unloaded"`` (arm straight up), :data:`BASE_POSES` (the
+            default: both). On a user's model the only pose is ``"home"``, and the default becomes
+            ``("home",)``.
+        kinds: the waveforms, of :data:`KINDS` (default all three): ``"sine"`` (one sequence per
+            freq × amp), ``"chirp"`` and ``"multisine"`` (one each, see above). Other names are ignored.
+        duration: the length of each sequence, s (> 0.5: twice the 0.25 s starting ramp; default 3).
+        rate: the command rate, Hz (> 0; default 60): ``round(duration · rate) + 1`` samples.
+        max_amp: the largest amplitude of any sequence, rad (default 0.6).
+        robot: the joint table of the user's model to excite
+            (:class:`~adadex.sim.model_source.RobotTable`: its joints, limits and home pose); None
+            (default) or the built-in table: adadex's robot.
+
+    Returns:
+        the :class:`ExcitationPlan`: for each joint, pose and kind (in that order) its sequences, one
+        joint moving in each; bad values raise :class:`ExcitationError`.
+
+    >>> plan = design_excitation(["arm_j3"], freqs=(1.0,), amps=(0.5, 1.0), poses=("loaded",))
+    >>> plan.command.shape, plan.sequence_labels[-1]          # 2 sines, a chirp, a multisine; 3 s at 60 Hz
+    ((4, 181, 1), 'arm_j3/loaded/multisine/f1/a1')
     """
     joints = list(joints)
     if not joints:
@@ -178,7 +224,22 @@ def design_excitation(joints, *, freqs=(0.5, 1.5, 3.0), amps=(0.25, 1.0), poses=
 
 def simulate_recording(plan: ExcitationPlan, patch: ModelPatch | None = None, *, noise: float = 0.0,
                        seed: int = 0, nthread: int = 2):
-    """Replay ``plan`` on the model + ``patch`` and add N(0, noise²) sensor noise (rad), seeded."""
+    """Replay ``plan`` on the model + ``patch`` and add N(0, noise²) sensor noise (rad), seeded.
+
+    Args:
+        plan: the commands to replay (:class:`ExcitationPlan`), on ``plan.robot``'s model.
+        patch: the hidden effects, the "truth" (:class:`~adadex.sim.patch.ModelPatch`); None (default):
+            none, the nominal model. It is not written into the recording.
+        noise: the standard deviation of the Gaussian noise added to every measured position, rad
+            (finite, ≥ 0; default 0: none).
+        seed: the noise's random seed (``numpy.random.default_rng``; default 0).
+        nthread: threads of the :class:`~adadex.sysid.replay.Replayer`'s rollout pool (default 2).
+
+    Returns:
+        a :class:`~adadex.data.recording.Recording` of the plan's commands and the simulated, noisy
+        positions; its ``meta`` holds the plan's ``sequences``, ``simulated``, ``noise_rad``, ``seed``
+        and the ``model`` id.
+    """
     from adadex.sysid.replay import Replayer
 
     if not (isinstance(noise, (int, float, np.floating, np.integer)) and np.isfinite(noise) and noise >= 0):

@@ -304,6 +304,22 @@ def fit_patch(recording, additions, *, base_patch: ModelPatch | None = None, nth
     Every joint's value is fitted on the sequences that move it. Returns the fitted effects only
     (not ``base_patch``), each with its 95 % interval (``ci95``), so
     :meth:`adadex.envs.randomization.Randomization.from_patch` can randomize around the fit.
+
+    Args:
+        recording: the :class:`~adadex.data.recording.Recording` to fit; its ``meta["sequences"]`` say
+            which sequences move each joint (all of them, where it does not say).
+        additions: ``(effect, joints)`` pairs: an effect's name (of
+            :data:`~adadex.sim.effects.EFFECT_NAMES`) and the non-empty list of recorded joints to fit it
+            on, each joint's value on its own (:meth:`JointFitter.fit`: its first parameter; the others
+            keep their absent values). An unknown effect or joint raises
+            :class:`~adadex.sim.effects.EffectError`.
+        base_patch: the model the additions are fitted on top of (:class:`~adadex.sim.patch.ModelPatch`);
+            None (default): the nominal model.
+        nthread: threads of the :class:`~adadex.sysid.replay.Replayer`'s rollout pool (default 2).
+
+    Returns:
+        a :class:`~adadex.sim.patch.ModelPatch` of one effect per addition, in order, with ``values``
+        (joints, parameters) and ``ci95`` (joints, parameters, 2) in the effect's units.
     """
     from adadex.sim.effects import EffectError
     from adadex.sysid.replay import Replayer
@@ -336,6 +352,23 @@ def identify_pd(replayer, joint: str, seqs, *, method: str = "cma", seed: int = 
 
     The starting model (kp, kd scales 1) is scored as well and kept when the optimizer ends worse
     (``progress`` is then False): the result is never worse than the nominal ``mse_nominal``.
+
+    Args:
+        replayer: the :class:`~adadex.sysid.replay.Replayer` of the recording.
+        joint: the recorded joint whose kp and kd scales are fitted, on its own error only.
+        seqs: the indices of the sequences to fit on (e.g. :func:`sequences_moving`).
+        method: ``"cma"`` (default) or ``"lsq"``; another raises ``ValueError``.
+        seed: CMA-ES's random seed (default 0); ``"lsq"`` is deterministic.
+        base_patch: the model the gains are fitted on top of (:class:`~adadex.sim.patch.ModelPatch`);
+            None (default): the nominal model.
+        max_evals: CMA-ES's budget of cost evaluations, 8 per generation (default 150); ``"lsq"`` runs
+            at most 40 iterations instead.
+
+    Returns:
+        a dict: ``joint``, ``method``, ``kp_scale`` and ``kd_scale`` (× nominal, within the effects'
+        bounds), ``mse`` and ``mse_nominal`` (the fitted and the nominal model's mean squared error of
+        ``joint`` on ``seqs``, rad²), ``progress``, ``evaluations`` (replays of ``seqs``) and
+        ``seconds`` (wall time, s).
     """
     import io
     import time

@@ -56,6 +56,8 @@ class Replayer(RolloutPool):
     Args:
         recording: a :class:`adadex.data.recording.Recording`.
         nthread: threads of the rollout pool.
+        preroll_s: how long, s, the robot holds the first command before ``time[0]``, so every sequence
+            starts at rest at the model's own equilibrium (default :data:`PREROLL_S`).
         model: the model to replay on (default: the recording's model, the built-in scene unless the
             recording was loaded with a user model's joint table).
     """

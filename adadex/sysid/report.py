@@ -113,7 +113,26 @@ code{background:#f3f3f3;padding:1px 4px}"""
 def write_report(recording, patch: ModelPatch, out, *, diagnosis=None, title: str = "adadex: model vs measurement",
                  stages: Stages | None = None, nthread: int = 2, max_overlays: int = 6,
                  pd_results: list[dict] | None = None) -> Path:
-    """Write the HTML report atomically; returns its path."""
+    """Write the HTML report atomically; returns its path.
+
+    Args:
+        recording: the :class:`~adadex.data.recording.Recording` the report is about.
+        patch: the :class:`~adadex.sim.patch.ModelPatch` whose effects are added one at a time
+            (:func:`error_stages`); the report names it.
+        out: the HTML file to write (its folders are created; an existing file is replaced).
+        diagnosis: a :class:`~adadex.sysid.diagnose.Diagnosis` to show (its verdict, its 15 best
+            hypotheses and its closing findings); None (default): none.
+        title: the page's title and heading.
+        stages: the :func:`error_stages` of ``recording`` and ``patch``, when already computed; None
+            (default): computed here (one replay of the recording per stage).
+        nthread: threads of the replay's rollout pool when ``stages`` is None (default 2).
+        max_overlays: at most this many joints get an overlay plot (command, measured, model before and
+            after), the failing ones first, each on its worst own sequence (default 6).
+        pd_results: :func:`~adadex.sysid.fit.identify_pd` results to tabulate; None (default): no table.
+
+    Returns:
+        the path of the written file (``out``).
+    """
     st = stages if stages is not None else error_stages(recording, patch, nthread=nthread)
     base, final = st.comparisons[0], st.comparisons[-1]
     loc = localize(base)

@@ -108,6 +108,10 @@ class ExcitationPlan:
         return cls.from_recording(load_recording(path, robot=robot))
 
 
+#: the highest frequency of each waveform, in units of its ``freq`` (:func:`_waveform`)
+_TOP_HARMONIC = {"sine": 1.0, "chirp": 2.0, "multisine": 2.5}
+
+
 def _ramp(t: np.ndarray) -> np.ndarray:
     return np.where(t < RAMP_S, 0.5 * (1 - np.cos(np.pi * np.clip(t / RAMP_S, 0, 1))), 1.0)
 
@@ -192,8 +196,17 @@ def design_excitation(joints, *, freqs=(0.5, 1.5, 3.0), amps=(0.25, 1.0), poses=
         raise ExcitationError(f"freqs and amps need at least one value each, got freqs={list(freqs)}, amps={list(amps)}")
     if rate <= 0 or duration <= 2 * RAMP_S:
         raise ExcitationError(f"rate must be > 0 and duration > {2 * RAMP_S} s (got rate={rate}, duration={duration})")
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown or not kinds:
+        raise ExcitationError(f"kinds: unknown excitation kind {unknown[0]!r}; choose from {', '.join(KINDS)}"
+                              if unknown else f"kinds: none given; choose from {', '.join(KINDS)}")
     if any(f <= 0 or f > rate / 4 for f in freqs):
         raise ExcitationError(f"frequencies must lie in (0, rate/4 = {rate / 4}] Hz, got {list(freqs)}")
+    top = max(freqs) * max(_TOP_HARMONIC[k] for k in kinds)
+    if top >= rate / 2:
+        raise ExcitationError(f"freqs: the {max(kinds, key=_TOP_HARMONIC.get)} at {max(freqs):g} Hz reaches "
+                              f"{top:g} Hz, at or above the Nyquist frequency rate/2 = {rate / 2:g} Hz; "
+                              f"lower freqs or raise rate")
     if any(not 0 < a <= 1 for a in amps):
         raise ExcitationError(f"amps are fractions of the in-limit amplitude, in (0, 1], got {list(amps)}")
     t = np.arange(int(round(duration * rate)) + 1) / rate

@@ -147,3 +147,18 @@ def test_nothing_missing_diagnosis_has_its_fields_and_accepting_it_adds_nothing(
     (d / "bad" / "diagnosis.json").write_text(json.dumps(dict(diag, model=["builtin"])))
     assert main(["sysid", "fit", str(d / "rec.npz"), "--accept", str(d / "bad"), "--out", str(d / "p3.json")]) == 2
     assert "not a readable diagnosis" in capsys.readouterr().err
+
+
+def test_an_excitation_with_an_unknown_kind_or_above_nyquist_is_refused():
+    """Unknown waveforms were dropped silently (or failed inside numpy), and a multisine's top component
+    (2.5 f) could pass the Nyquist frequency unnoticed."""
+    from adadex.sysid.excite import ExcitationError, design_excitation
+
+    with pytest.raises(ExcitationError, match=r"kinds: unknown excitation kind 'sweep'; choose from sine"):
+        design_excitation(["if_pip"], kinds=("sine", "sweep"))
+    with pytest.raises(ExcitationError, match="kinds: none given"):
+        design_excitation(["if_pip"], kinds=())
+    with pytest.raises(ExcitationError, match=r"multisine at 15 Hz reaches 37.5 Hz.*rate/2 = 30 Hz"):
+        design_excitation(["if_pip"], freqs=(15.0,), rate=60.0)
+    plan = design_excitation(["if_pip"], freqs=(15.0,), kinds=("sine",), rate=60.0)     # a sine at 15 Hz is fine
+    assert len(plan.sequences) == 2 * 2                      # both poses × the two default amplitudes

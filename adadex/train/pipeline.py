@@ -14,6 +14,7 @@ Per training seed (``seed_<s>/`` under ``out``):
 ``scaling/frac_<f>``       generalists distilled from a fraction of the references (Fig. 6)
 ``eval/<split>/<cond>/``   one ``<row>/stage.json`` per row: the evaluation summary, per-reference and
                            per-episode results, and the return–completion rank correlation
+``eval/teachers/spec_<k>`` the generalist against specialist k on k's own training references, paired
 =========================  ==========================================================================
 
 then, over all seeds, ``table1.json`` (``{split: {condition: {row: {metric: mean, metric_ci95:
@@ -22,7 +23,9 @@ bootstrapped over test references pooled across seeds, differences paired per ep
 of a seed meets the same draws; :mod:`adadex.eval.table1`), ``table1.md`` and ``figures/``: the
 ablation bars, Fig. 4 (original, modulated and executed object path), Fig. 5 (the modulated latent
 decoded against the object), Fig. 6 (data scaling), Fig. 12 (latent smoothness ρ), and how much each
-modulator uses each of its channels (``channel_usage.png`` / ``.json``: mean |action| per entry).
+modulator uses each of its channels (``channel_usage.png`` / ``.json``: mean |action| per entry), and
+``generalist_vs_teachers.json``: per seed, how much of each specialist's completion the distilled
+generalist kept on that specialist's references.
 
 **Seeds side by side.** ``seed_workers=2`` runs each seed's chain in its own process (the table
 and figures are made in the main one). On 2 cores this fills the core that one seed leaves idle while it
@@ -421,6 +424,34 @@ class Pipeline:
                         folder, settings, run, label=f"seed {seed} evaluate {row} on {split}, {condition}")
         return results
 
+    def teacher_check(self, seed: int, root: Path, teachers: dict, tracker: str) -> list[dict]:
+        """The distilled generalist against each teacher on the teacher's own training references
+        (randomized, the same draws for both, so their episodes pair up): one stage per specialist,
+        ``{"teacher", "references", "teacher_completion_pct", "generalist_completion_pct",
+        "generalist_minus_teacher", "generalist_minus_teacher_ci95"}`` each — how much distillation
+        kept of what each specialist learned."""
+        from adadex.eval.paired import paired_bootstrap
+
+        out = []
+        for k, (path, refs) in enumerate(teachers.items()):
+            folder = root / "eval" / "teachers" / f"spec_{k}"
+
+            def run(path=path, refs=refs):
+                r = {row: self.evaluate(self.policy(row, {row: p}), "unseen_trajectory", "randomized", 30_000 + seed,
+                                        references=list(refs))
+                     for row, p in (("teacher", path), ("tracker", tracker))}
+                a, b = (np.asarray(r[row]["per_episode"]["completion"]) * 100 for row in ("tracker", "teacher"))
+                d = paired_bootstrap(a, b, np.asarray(r["teacher"]["per_episode"]["reference"]), seed=seed)
+                return {"teacher": path, "references": len(refs),
+                        "teacher_completion_pct": r["teacher"]["summary"]["completion_pct"],
+                        "generalist_completion_pct": r["tracker"]["summary"]["completion_pct"],
+                        "generalist_minus_teacher": d["estimate"], "generalist_minus_teacher_ci95": d["ci95"]}
+
+            out.append(self._stage(folder, {"teacher": path, "tracker": tracker, "repeats": self.cfg.eval_repeats,
+                                            "seed": seed}, run,
+                                   label=f"seed {seed} generalist against teacher {k + 1} on its references"))
+        return out
+
     def scaling(self, seed: int, root: Path, rollouts: str, tracker: str) -> dict:
         """Fig. 6: generalists distilled from fractions of the references, on the unseen-trajectory
         test split under randomization (fraction 1 is the generalist itself)."""
@@ -435,15 +466,17 @@ class Pipeline:
         return out
 
     # -- all of it ------------------------------------------------------------------------------
-    def chain(self, seed: int) -> tuple[dict, dict, dict]:
+    def chain(self, seed: int) -> tuple[dict, dict, dict, list]:
         """One training seed, start to end: (policy paths by row, evaluation results by (split,
-        condition, row) as :meth:`evaluations` returns them, Fig. 6 summaries by fraction)."""
+        condition, row) as :meth:`evaluations` returns them, Fig. 6 summaries by fraction, the
+        generalist against its teachers as :meth:`teacher_check` returns it)."""
         root = self.out / f"seed_{seed}"
         teachers = self.specialists(seed, root)
         rollouts = self.rollouts(seed, root, teachers)
         tracker = self.distill(seed, root / "generalist", rollouts)
         paths = {"tracker": tracker, **self.modulators(seed, root, tracker), **self.baselines(seed, root, rollouts)}
-        return paths, self.evaluations(seed, root, paths), self.scaling(seed, root, rollouts, tracker)
+        return (paths, self.evaluations(seed, root, paths), self.scaling(seed, root, rollouts, tracker),
+                self.teacher_check(seed, root, teachers, tracker))
 
     def run(self) -> dict:
         from adadex.eval.table1 import aggregate, table_markdown
@@ -459,8 +492,10 @@ class Pipeline:
         episodes: dict = {}        # per key, one per_episode record (or None: an older stage) per seed, in seed order
         scaling: dict = {}
         paths_by_seed = {}
-        for seed, (paths, evaluations, fractions) in zip(seeds, chains):
+        distilled = {}             # per seed: the generalist against each of its teachers
+        for seed, (paths, evaluations, fractions, checks) in zip(seeds, chains):
             paths_by_seed[seed] = paths
+            distilled[str(seed)] = checks
             for key, r in evaluations.items():
                 summaries.setdefault(key, []).append(r["summary"])
                 episodes.setdefault(key, []).append(r.get("per_episode"))
@@ -469,6 +504,10 @@ class Pipeline:
         table = aggregate(summaries, episodes)
         atomic_write_text(self.out / "table1.json", json.dumps(table, indent=1))
         atomic_write_text(self.out / "table1.md", table_markdown(table) + "\n")
+        atomic_write_text(self.out / "generalist_vs_teachers.json", json.dumps(distilled, indent=1))
+        for seed, checks in distilled.items():
+            self.log(f"seed {seed}: generalist − teacher on each teacher's references (completion points): "
+                     + ", ".join(f"{c['generalist_minus_teacher']:+.1f}" for c in checks))
         figures = self.figures(table, scaling, paths_by_seed[self.cfg.seeds[0]], self.cfg.seeds[0])
         wall = time.perf_counter() - t0
         self.log(f"table1: {self.out / 'table1.md'} ({wall:.0f} s)")
@@ -481,7 +520,7 @@ class Pipeline:
         return pipeline_figures(self, table, scaling, paths, seed, MODULATOR_ROWS)
 
 
-def _seed_chain(args) -> tuple[dict, dict, dict]:
+def _seed_chain(args) -> tuple[dict, dict, dict, list]:
     """:meth:`Pipeline.chain` in a worker process (``seed_workers`` > 1); the dataset exists by then."""
     cfg, env_config, seed = args
     p = Pipeline(cfg, env_config)

@@ -99,6 +99,14 @@ def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
     # the IL+RL baseline trained with the imitation term, vanilla PPO without
     il = (seed0 / "baselines" / "il_rl" / "metrics.csv").read_text().splitlines()[0]
     assert "loss_imitation" in il and "loss_imitation" not in (seed0 / "baselines" / "ppo" / "metrics.csv").read_text()
+    # the generalist checked against each teacher on the teacher's own references, paired
+    checks = json.loads((out / "generalist_vs_teachers.json").read_text())
+    assert set(checks) == {"0", "1"} and len(checks["0"]) == 2            # the tiny preset's 2 specialists
+    for c in checks["0"]:
+        assert 0 <= c["teacher_completion_pct"] <= 100 and 0 <= c["generalist_completion_pct"] <= 100
+        lo, hi = c["generalist_minus_teacher_ci95"]
+        assert lo <= c["generalist_minus_teacher"] <= hi
+    assert "generalist − teacher" in r.stdout
     # seeds differ: the two generalists are not the same network
     a, b = (Tracker.load(out / f"seed_{s}" / "generalist" / "tracker.pt") for s in (0, 1))
     assert any(not torch.equal(p, q) for p, q in zip(a.parameters(), b.parameters()))

@@ -7,7 +7,8 @@ and paired with the run's ``tracker_real`` row.
     python recipes/sim2real.py real=assets/gaps/payload_soft_arm.json out=runs/s2r_s0 preset=small seed=0
     python benchmarks/sim2real_finetune_settings.py runs/s2r_s0 [--out FILE] [--force]
 
-The fine-tune trains in ``RUN_ft_tracker_settings/`` beside the run (a finished one is kept). Prints the
+The fine-tune trains in ``RUN/train/finetuned_identified_tracker_settings/``, inside the run's own
+output (a finished one is kept). Prints the
 row's completion, its paired difference to ``tracker_real`` and the share of the gap it recovers; writes
 the JSON (default ``benchmarks/results/sim2real_finetune_settings.json``). Like the oracle row, it reads
 the hidden robot's patch for the evaluation rollouts (as ``HiddenRobot.evaluate`` does).
@@ -48,12 +49,16 @@ def main(argv=None) -> dict:
     from adadex.train import sim2real as s2r
     from adadex.transforms.policy import make_policy
 
+    from adadex.io import output_kind
+
+    if output_kind(a.run) != s2r.SIM2REAL_RUN:             # it trains inside the run's folder: only a run's
+        raise SystemExit(f"benchmarks/sim2real_finetune_settings.py: error: {a.run}: not a recipes/sim2real.py output")
     res = json.loads(f.read_text())
     seed = int(res["seed"])
     p_ = dataclasses.replace(s2r.preset(res["preset"]), **TRACKER_PPO)
     patch = ModelPatch.load(a.run / "sysid" / "patch.json")
     randomization = Randomization.from_patch(patch) if len(patch.active()) else Randomization()
-    ck = s2r.finetune_tracker(a.run.parent / f"{a.run.name}_ft_tracker_settings", dataset=res["dataset"],
+    ck = s2r.finetune_tracker(a.run / "train" / "finetuned_identified_tracker_settings", dataset=res["dataset"],
                               tracker="replay" if res["tracker"] == "replay" else str(a.run / "tracker.pt"), p=p_,
                               randomization=randomization, seed=seed, name="ft_tracker_settings", progress=False)
     ds = ReferenceDataset(res["dataset"])

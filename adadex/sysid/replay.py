@@ -145,15 +145,7 @@ class Replayer(RolloutPool):
         P = self.preroll_steps
         ctrl = np.concatenate([np.repeat(cmd[:, :1], P, axis=1), np.repeat(cmd[:, :-1], self.k, axis=1)], axis=1)
         jnt, _, act = robot_ids(model, np.arange(self.robot.num_joints))
-        if not np.array_equal(act, np.arange(model.nu)):
-            full_ctrl = np.zeros(ctrl.shape[:2] + (model.nu,))
-            full_ctrl[..., act] = ctrl
-            ctrl = full_ctrl
-        ctrl = np.ascontiguousarray(ctrl)
-        n = P + self.num_steps
-        state = np.empty((S, n, init.shape[1]))
-        self._pool.rollout([model] * S, datas, init, ctrl, control_spec=CTRL_SPEC, skip_checks=True,
-                           nstep=n, state=state, sensordata=np.empty((S, n, model.nsensordata)))
+        state = self._rollout(model, datas, init, ctrl, act)
         cols = 1 + model.jnt_qposadr[jnt]          # a FULLPHYSICS state is time, qpos, qvel, …
         qpos = np.empty((S, T, len(jnt)))
         qpos[:, 0] = state[:, P - 1, cols] if P else init[:, cols]

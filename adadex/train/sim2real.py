@@ -137,7 +137,7 @@ def preset(name: str, **changes) -> Sim2RealPreset:
         try:
             check()
         except ConfigError as e:
-            raise ConfigError(f"{key}={getattr(p, key)}: {str(e).split(', got')[0].split(') ')[-1]}") from None
+            raise ConfigError(f"{key}={getattr(p, key)}: {e}") from None
     if p.device.startswith("cuda"):
         import torch
 

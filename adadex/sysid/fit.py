@@ -105,7 +105,7 @@ class JointFitter:
     def window_mse(self, patch: ModelPatch) -> float:
         """The windowed cost: the mean squared error of the windows but the :data:`WINDOW_TRIM` worst."""
         w = np.nanmean(self.window_errors(patch) ** 2, axis=1)
-        return float(np.mean(np.sort(w)[:max(1, w.size - int(WINDOW_TRIM * w.size))]))
+        return float(np.mean(w[_kept_windows(w)]))
 
     def mse_per_sequence(self, patch: ModelPatch) -> np.ndarray:
         r = self.residual(patch).reshape(len(self.seqs), -1)
@@ -239,8 +239,7 @@ class JointFitter:
             return (x, x)
         if windowed:
             rows = self.window_errors(self.patch_with(effect, x))
-            w = np.nanmean(rows ** 2, axis=1)
-            keep = np.argsort(w)[:max(1, w.size - int(WINDOW_TRIM * w.size))]
+            keep = _kept_windows(np.nanmean(rows ** 2, axis=1))
             valid = np.isfinite(rows[keep])
 
             def residual(patch):
@@ -275,6 +274,11 @@ class CoupledFitter(JointFitter):
 
     def _errors(self, sim: np.ndarray) -> np.ndarray:
         return (sim[..., self.cols] - self.measured) * self.scale
+
+
+def _kept_windows(mse: np.ndarray) -> np.ndarray:
+    """Indices of the windows the windowed cost keeps: all but the :data:`WINDOW_TRIM` worst, best first."""
+    return np.argsort(mse)[:max(1, mse.size - int(WINDOW_TRIM * mse.size))]
 
 
 def _compass(cost, x: float, c: float, lo: float, hi: float, h: float, h_min: float) -> tuple[float, float]:

@@ -17,9 +17,10 @@ from omegaconf import DictConfig, OmegaConf
 from adadex.errors import exit_on_error
 from adadex.train.checkpoint import DISTILLATION_RUN, check_run, start_run
 from adadex.train.distill import DistillConfig, distill
-from adadex.train.recipe import check_keys, dataclass_keys, hydra_files, recipe_main
+from adadex.train.recipe import check_keys, hydra_files, recipe_main
+from adadex.train.schema import keys
 
-KEYS = dataclass_keys(DistillConfig, force=None)
+KEYS = keys("adadex_distill")      # DistillConfig's fields and force
 
 
 def _config(cfg) -> tuple[DistillConfig, bool]:

@@ -35,7 +35,6 @@ from adadex.train.recipe import (
     check_keys,
     check_recipe_out,
     claim_recipe_out,
-    modulation_keys,
     recipe_main,
     yaml_keys,
 )
@@ -79,6 +78,7 @@ def check_settings(cfg) -> None:
     except ValueError as e:
         raise ConfigError(f"channels={cfg.channels}: {e}") from None
     check_number("max_worlds", cfg.max_worlds, low=1, integer=True)
+    _env(cfg)                                   # env, reward, randomization
     if (Path(str(cfg.dataset)) / "index.json").is_file():
         try:
             ReferenceDataset(cfg.dataset).split(str(cfg.split), str(cfg.part))
@@ -102,6 +102,19 @@ def _modules(cfg):
     return tracker, _load(Modulator, cfg.modulator, "modulator")
 
 
+def _env(cfg):
+    """The episodes' :class:`TrackingConfig` (``env``, ``reward``) and the randomization (Table 3 with the
+    ``randomization`` changes when ``randomize``, else None); a bad setting is a :class:`ConfigError`."""
+    from adadex.train.config import randomization_with
+    from adadex.train.schema import RANDOMIZATION_CODE_ONLY, changes, env_settings
+
+    c = OmegaConf.to_container(cfg, resolve=True)
+    env = env_settings(c.get("env"), c.get("reward"), "evaluate")
+    rnd = randomization_with(changes(Randomization, c.get("randomization"), "evaluate.randomization",
+                                     drop=RANDOMIZATION_CODE_ONLY), "evaluate.randomization")
+    return env, (rnd if cfg.randomize else None)
+
+
 def guard(cfg) -> None:
     """What is checked before Hydra starts: the settings (:func:`check_settings`), then ``out``."""
     check_settings(cfg)
@@ -109,8 +122,12 @@ def guard(cfg) -> None:
 
 
 def keys() -> dict:
-    """What the recipe accepts: evaluate.yaml's keys, ModulationConfig's fields under ``modulation``."""
-    return yaml_keys(Path(__file__).with_name("evaluate.yaml"), modulation=modulation_keys())
+    """What the recipe accepts: evaluate.yaml's keys and the fields of its groups (``modulation``,
+    ``env``, ``reward``, ``randomization``)."""
+    from adadex.train.schema import keys as node_keys
+
+    return yaml_keys(Path(__file__).with_name("evaluate.yaml"),
+                     **{g: node_keys(f"adadex_{g}") for g in ("modulation", "env", "reward", "randomization")})
 
 
 @hydra.main(config_path=".", config_name="evaluate", version_base="1.3")
@@ -131,8 +148,9 @@ def _evaluate(cfg: DictConfig) -> dict:
     dataset = _dataset(cfg)
     policy = make_policy(tracker, modulator, channels=cfg.channels,
                          config=ModulationConfig(**OmegaConf.to_container(cfg.modulation)))
+    env, randomize = _env(cfg)
     res = evaluate(policy, dataset, split=(cfg.split, cfg.part), max_worlds=int(cfg.max_worlds),
-                   env_transform=policy.primer, randomize=Randomization() if cfg.randomize else None,
+                   env_transform=policy.primer, randomize=randomize, config=env,
                    seed=int(cfg.seed), keep_rollouts=bool(cfg.smoothness))
     out = Path(cfg.out)
     result = {"config": OmegaConf.to_container(cfg, resolve=True), "summary": res["summary"],

@@ -2,6 +2,7 @@
 
     python recipes/pipeline.py preset=small out=runs/table1     # 2 seeds; wall time measured in README
     python recipes/pipeline.py preset=tiny out=/tmp/t1          # every stage at toy size, minutes
+    python recipes/pipeline.py preset=small out=runs/t1 modulator.ppo.total_frames=500000 env.window=120
 
 Runs specialists → teacher rollouts → distillation → modulators (R, R+T, R+O+T, O) → baselines
 (vanilla PPO, IL+RL) → evaluation on both splits, nominal and randomized, once per training seed, and
@@ -18,19 +19,16 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from adadex.errors import exit_on_error
+from adadex.train import schema
 from adadex.train.recipe import check_keys, hydra_files, recipe_main
+
+schema.register()                    # the adadex_pipeline node that pipeline.yaml's defaults list names
 
 
 def keys() -> dict:
-    """What the recipe accepts: PipelineConfig's fields (with the nested configs'), ``preset``, ``force``."""
-    from adadex.train.config import ModulatorSettings, PolicyConfig, PPOConfig, SimConfig
-    from adadex.train.pipeline import PipelineConfig
-    from adadex.train.recipe import dataclass_keys, modulation_keys
-
-    return dataclass_keys(PipelineConfig, ppo=dataclass_keys(PPOConfig, drop=("total_frames",)),
-                          policy=dataclass_keys(PolicyConfig), sim=dataclass_keys(SimConfig),
-                          modulator=dataclass_keys(ModulatorSettings, drop=("tracker", "channels", "modulation")),
-                          modulation=modulation_keys(), preset=None, force=None)
+    """What the recipe accepts: PipelineConfig's fields and its groups' (the ``adadex_pipeline`` node's
+    keys, ``force`` among them) and ``preset``."""
+    return {**schema.keys("adadex_pipeline"), "preset": None}
 
 
 def _config(cfg):

@@ -2,7 +2,7 @@
 train_custom_policy.yaml. Copy this file and change the module and the loss below; nothing in the
 library needs editing.
 
-    python recipes/train_custom_policy.py dataset=data/small_pg split=unseen_trajectory out=runs/custom
+    python recipes/train_custom_policy.py dataset=data/small_pg out=runs/custom
 
 What is composed here: adadex's residual tracker actor (kinematic replay plus a learned correction,
 ``PolicyConfig.tracker``), a critic of its own (a LayerNorm in front of a Tanh MLP, reading the raw

@@ -1,11 +1,11 @@
 """Train the vanilla-PPO baseline on all training references of a split — see train_ppo.yaml.
 
-    python recipes/train_ppo.py dataset=data/small split=unseen_trajectory out=runs/ppo total_frames=1000000
+    python recipes/train_ppo.py dataset=data/small split=[unseen_trajectory,train] out=runs/ppo ppo.total_frames=1000000
 
 Writes ``out/tracker.pt`` (loads with ``Tracker.load``), ``out/checkpoint.pt`` and ``out/metrics.csv``.
 An ``out`` holding other files, or a run, is refused before any work (one line, exit code 2):
 ``resume=true`` continues the run there (with the settings it was started with; a larger
-``total_frames`` trains on), ``force=true`` starts over. Unknown keys are refused.
+``ppo.total_frames`` trains on), ``force=true`` starts over. Unknown keys are refused.
 """
 
 import hydra

@@ -44,7 +44,7 @@ def test_a_recipe_trains_a_policy_it_composed(tiny_dataset, tmp_path):
 
     out = tmp_path / "custom"
     r = _run(ROOT / "recipes/train_custom_policy.py", f"dataset={tiny_dataset}", "build_preset=null",
-             "total_frames=512", "ppo.frames_per_batch=256", "ppo.minibatch_size=128", "ppo.epochs=1",
+             "ppo.total_frames=512", "ppo.frames_per_batch=256", "ppo.minibatch_size=128", "ppo.epochs=1",
              "ppo.update_threads=1", "collector.worlds=8", "collector.env_threads=1", "policy.hidden=[32,32]",
              "eval_max_references=0", "wandb=false", "progress=false", f"out={out}", cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]

@@ -61,7 +61,7 @@ class RewardConfig:
     """Weights and thresholds of the tracking reward (lengths in m, angles in rad).
 
     Every number of :func:`tracking_reward` is a field here, so a run changes the reward by settings
-    (``TrainConfig.reward``, ``+reward.w_prox=1.0`` in the recipes) rather than by code; the terms are
+    (``TrainConfig.reward``, ``reward.w_prox=1.0`` in the recipes) rather than by code; the terms are
     those of the module docstring. Setting the shaping weights (``w_alive`` … ``w_termination``) and
     ``object_frame`` to 0 leaves the paper's Eq. 1.
 

@@ -14,7 +14,7 @@ from adadex._exports import lazy_exports
 _EXPORTS = {
     "adadex.train.ppo": ("PPOTrainer", "train", "default_loss", "TrainingDiverged"),
     "adadex.train.config": ("TrainConfig", "PPOConfig", "PolicyConfig", "CollectorConfig",
-                            "ModulatorSettings"),
+                            "ModulatorSettings", "SimConfig"),
     "adadex.train.envs": ("TrackingEnvFactory", "ModulatedEnv"),
     "adadex.train.collectors": ("make_collector", "local_collector"),
     "adadex.train.distill": ("Distiller", "DistillConfig", "distill"),
@@ -22,13 +22,14 @@ _EXPORTS = {
     "adadex.train.checkpoint": ("save_checkpoint", "load_checkpoint"),
     "adadex.train.logs": ("RunLog", "read_metrics"),
     "adadex.train.rollouts": ("teacher_rollouts", "load_rollouts"),
-    "adadex.train.pipeline": ("PipelineConfig", "run_pipeline"),
+    "adadex.train.pipeline": ("PipelineConfig", "run_pipeline", "SpecialistStage", "RolloutStage", "DistillStage",
+                              "ModulatorStage", "BaselineStage", "EvaluationStage"),
 }
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 if TYPE_CHECKING:      # the same names, for type checkers and IDEs
     from adadex.train.ppo import PPOTrainer, train, default_loss, TrainingDiverged
-    from adadex.train.config import TrainConfig, PPOConfig, PolicyConfig, CollectorConfig, ModulatorSettings
+    from adadex.train.config import TrainConfig, PPOConfig, PolicyConfig, CollectorConfig, ModulatorSettings, SimConfig
     from adadex.train.envs import TrackingEnvFactory, ModulatedEnv
     from adadex.train.collectors import make_collector, local_collector
     from adadex.train.distill import Distiller, DistillConfig, distill
@@ -36,4 +37,5 @@ if TYPE_CHECKING:      # the same names, for type checkers and IDEs
     from adadex.train.checkpoint import save_checkpoint, load_checkpoint
     from adadex.train.logs import RunLog, read_metrics
     from adadex.train.rollouts import teacher_rollouts, load_rollouts
-    from adadex.train.pipeline import PipelineConfig, run_pipeline
+    from adadex.train.pipeline import (PipelineConfig, run_pipeline, SpecialistStage, RolloutStage, DistillStage,
+                                       ModulatorStage, BaselineStage, EvaluationStage)

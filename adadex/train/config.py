@@ -16,6 +16,7 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from adadex.errors import ConfigError, check_number, check_numbers, from_known_keys
 
@@ -297,14 +298,14 @@ class ModulatorSettings:
     tracker: str
     channels: str = "R+O+T"
     hidden: tuple[int, ...] = (256, 256, 128)
-    init_scale: float | dict | None = None
+    init_scale: Any = None                 # float | dict | None (OmegaConf: a union of containers)
     loc_bound: float = 5.0
     modulation: dict = field(default_factory=dict)
     inputs: str = "view"
     history: int = 3
     prior: str | None = None
     hold_steps: int = 0
-    hold_scale: float | dict | None = None
+    hold_scale: Any = None                 # float | dict | None
 
     def __post_init__(self):
         from adadex.modules.modulator import INPUTS, ModulationLayout, channel_scales
@@ -329,6 +330,10 @@ class ModulatorSettings:
         check_number("ModulatorSettings.history", self.history, integer=True)
         if self.inputs not in INPUTS:
             raise ConfigError(f"ModulatorSettings.inputs must be one of {INPUTS}, got {self.inputs!r}")
+        from adadex.modules.channels import ModulationConfig
+        from adadex.train.schema import changes
+
+        self.modulation = changes(ModulationConfig, self.modulation, "ModulatorSettings.modulation")
         if not Path(self.tracker).is_file():
             raise ConfigError(f"ModulatorSettings.tracker: no tracker checkpoint at {self.tracker!r} "
                               f"(train or distill one first)")
@@ -339,6 +344,27 @@ class ModulatorSettings:
             Tracker.load(self.tracker)
         except CheckpointError as e:
             raise ConfigError(f"ModulatorSettings.tracker: {e}") from None
+
+
+def _modulator_from(d: Mapping) -> ModulatorSettings | None:
+    """A recipe's ``modulator`` node: ``None`` (a tracker run) while ``modulator.tracker`` is unset —
+    refused if other modulator settings differ from their defaults — else :class:`ModulatorSettings`."""
+    from adadex.train.schema import changes
+
+    d = dict(d)
+    if d.get("tracker") is not None:
+        return ModulatorSettings(**d)
+    from adadex.modules.channels import ModulationConfig
+
+    d.pop("tracker", None)
+    given = {f"modulation.{k}": v for k, v in changes(ModulationConfig, d.pop("modulation", None),
+                                                          "TrainConfig.modulator.modulation").items()}
+    given.update(changes(ModulatorSettings, d, "TrainConfig.modulator", drop=("tracker", "modulation")))
+    if given:
+        raise ConfigError(f"modulator.{sorted(given)[0]}={given[sorted(given)[0]]!r} is a modulator setting: give "
+                          f"modulator.tracker (the frozen generalist) to train a modulator, or use "
+                          f"recipes/train_modulator.py")
+    return None
 
 
 def randomization_with(changes: dict, where: str):
@@ -387,6 +413,9 @@ class TrainConfig:
         policy: the tracker trained (:class:`PolicyConfig`).
         modulator: set: train a modulator around this frozen tracker instead of a tracker
             (:class:`ModulatorSettings`; default ``None``).
+        env: :class:`~adadex.envs.tracking.TrackingConfig` fields to change for this run (``{"window":
+            60}``; the reward has its own setting); the rest keep their defaults (or those of the
+            ``env_config`` the trainer is given). Checked here.
         reward: :class:`~adadex.envs.reward.RewardConfig` fields to change for this run
             (``{"w_prox": 1.0}``); the rest keep their defaults (or those of the ``env_config`` the
             trainer is given). Checked here.
@@ -417,6 +446,7 @@ class TrainConfig:
     sim: SimConfig = field(default_factory=SimConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     modulator: ModulatorSettings | None = None
+    env: dict = field(default_factory=dict)
     reward: dict = field(default_factory=dict)
     randomization: dict = field(default_factory=dict)
     checkpoint_every: int = 5
@@ -442,14 +472,26 @@ class TrainConfig:
         check_number("TrainConfig.checkpoint_every", self.checkpoint_every, low=1, integer=True)
         check_number("TrainConfig.eval_every", self.eval_every, integer=True)
         check_number("TrainConfig.eval_max_references", self.eval_max_references, integer=True)
+        if isinstance(self.modulator, Mapping):
+            self.modulator = _modulator_from(self.modulator)
         for name, sub in (("ppo", PPOConfig), ("collector", CollectorConfig), ("sim", SimConfig),
                           ("policy", PolicyConfig), ("modulator", ModulatorSettings)):
             v = getattr(self, name)
-            if isinstance(v, dict):
+            if isinstance(v, Mapping):
                 setattr(self, name, sub(**v))
-        self.reward = dict(self.reward or {})
-        self._reward_config(None)             # unknown or out-of-range reward settings fail here
-        self.randomization = dict(self.randomization or {})
+        from adadex.envs.randomization import Randomization
+        from adadex.envs.reward import RewardConfig
+        from adadex.envs.tracking import TrackingConfig
+        from adadex.train.schema import ENV_CODE_ONLY, RANDOMIZATION_CODE_ONLY, changes
+
+        self.env = changes(TrackingConfig, self.env, "TrainConfig.env", drop=ENV_CODE_ONLY)
+        self.reward = changes(RewardConfig, self.reward, "TrainConfig.reward")
+        self._reward_config(None)             # out-of-range reward settings fail here
+        self.env_config()                     # … and env settings
+        if self.randomization and set(self.randomization) & set(RANDOMIZATION_CODE_ONLY):
+            self._randomization()             # says where effects and patches are set
+        self.randomization = changes(Randomization, self.randomization, "TrainConfig.randomization",
+                                     drop=RANDOMIZATION_CODE_ONLY)
         self._randomization()                 # … and randomization settings
 
     def _reward_config(self, base):
@@ -468,11 +510,14 @@ class TrainConfig:
 
     def env_config(self, base=None):
         """``base`` (a :class:`~adadex.envs.tracking.TrackingConfig`, default: the defaults) with this
-        run's reward settings."""
+        run's env and reward settings."""
         from adadex.envs.tracking import TrackingConfig
 
         base = TrackingConfig() if base is None else base
-        return dataclasses.replace(base, reward=self._reward_config(base.reward))
+        try:
+            return dataclasses.replace(base, **self.env, reward=self._reward_config(base.reward))
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"TrainConfig.env: {e}") from None
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -27,7 +27,14 @@ modulator uses each of its channels (``channel_usage.png`` / ``.json``: mean |ac
 ``generalist_vs_teachers.json``: per seed, how much of each specialist's completion the distilled
 generalist kept on that specialist's references.
 
-**Seeds side by side.** ``seed_workers=2`` runs each seed's chain in its own process (the table
+**Settings.** :class:`PipelineConfig`: the dataset, the seeds, what every stage shares (``env``,
+``reward``, ``randomization``, ``sim``, ``collector``) and one group per stage — ``specialist``,
+``rollouts``, ``distill``, ``modulator``, ``baseline``, ``evaluation`` — each with its own learner
+where it trains (``specialist.ppo.total_frames``, ``modulator.ppo.total_frames``,
+``baseline.ppo.total_frames``). The recipe's keys are these fields (the ``adadex_pipeline`` node of
+:mod:`adadex.train.schema`).
+
+**Seeds side by side.** ``seed_workers=2`` (the default) runs each seed's chain in its own process (the table
 and figures are made in the main one). On 2 cores this fills the core that one seed leaves idle while it
 updates, distils or evaluates on one torch thread; the results are the same as one seed after another.
 
@@ -39,7 +46,8 @@ and evaluations are written as one unit, so a killed one simply runs again.
 Example::
 
     from adadex.train.pipeline import PipelineConfig, run_pipeline
-    result = run_pipeline(PipelineConfig(out="runs/table1", dataset_preset="tiny", seeds=(0,), ...))
+    result = run_pipeline(PipelineConfig(out="runs/table1", dataset_preset="tiny", seeds=(0,),
+                                         specialist={"count": 2, "ppo": {"total_frames": 512}}, ...))
     result["table"]["unseen_trajectory"]["randomized"]["ROT"]["completion_pct"]
 """
 
@@ -48,40 +56,286 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset
+from adadex.data.reference import ReferenceDataset
 from adadex.envs.randomization import Randomization
+from adadex.envs.reward import RewardConfig
 from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import ConfigError, check_number, from_known_keys
 from adadex.io import atomic_write_text, check_output_dir, mark_output_dir
 from adadex.train.config import (CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, SimConfig,
                                  TrainConfig, randomization_with)
+from adadex.train.schema import ENV_CODE_ONLY, RANDOMIZATION_CODE_ONLY, changes
 from adadex.train.stages import STAGE, run_in_processes, run_stage
+
 #: modulator rows of the table → the channel set each trains
 MODULATOR_ROWS = {"R": "R", "RT": "R+T", "ROT": "R+O+T", "O": "O"}
 EVAL_SPLITS = ("unseen_trajectory", "unseen_object")
+#: the :class:`ModulatorSettings` fields a :class:`ModulatorStage` sets for every modulator row (the
+#: tracker, the channels and ``modulation`` are the pipeline's)
+MODULATOR_SETTINGS = ("hidden", "init_scale", "loc_bound", "inputs", "history", "prior", "hold_steps", "hold_scale")
 
 
-#: The pipeline's trackers are plain residual trackers (kinematic replay plus a learned correction),
-#: not object-anchored ones (``PolicyConfig.anchor``, which the specialist recipes keep): on Table 1's
-#: randomized unseen-trajectory evaluation (47 references × 4 draws, seed 0) the anchored feed-forward
-#: alone completed 68.7 % against replay's 82.2 %, and vanilla PPO trained on it 67.9 % against 81.3 %
-#: for the same PPO without the anchor (docs/training-log.md, Table 1). ``policy.anchor=0.05``
-#: restores it.
-POLICY_DEFAULTS = {"anchor": 0.0}
-#: PPO as Table 1 was measured: one torch thread for the updates (adadex.train.threads) and the constant
-#: learning rate (``PPOConfig.desired_kl``'s adaptive default was chosen on anchored specialists, which
-#: the pipeline does not train). ``ppo.desired_kl=0.016`` turns it on.
-PPO_DEFAULTS = {"update_threads": 1, "desired_kl": 0.0}
+def _pipeline_ppo(total_frames: int) -> PPOConfig:
+    """PPO as Table 1 was measured: one torch thread for the updates (adadex.train.threads) and the
+    constant learning rate (``PPOConfig.desired_kl``'s adaptive default was chosen on anchored
+    specialists, which the pipeline does not train); ``<stage>.ppo.desired_kl=0.016`` turns it on."""
+    return PPOConfig(total_frames=total_frames, desired_kl=0.0, update_threads=1)
+
+
+def _pipeline_policy() -> PolicyConfig:
+    """The pipeline's trackers are plain residual trackers (kinematic replay plus a learned correction),
+    not object-anchored ones (``PolicyConfig.anchor``, which the specialist recipes keep): on Table 1's
+    randomized unseen-trajectory evaluation (47 references × 4 draws, seed 0) the anchored feed-forward
+    alone completed 68.7 % against replay's 82.2 %, and vanilla PPO trained on it 67.9 % against 81.3 %
+    for the same PPO without the anchor (docs/training-log.md, Table 1). ``specialist.policy.anchor=0.05``
+    (``baseline.policy.anchor=0.05``) restores it."""
+    return PolicyConfig(anchor=0.0)
+
+
+def _modulator_default(name: str):
+    """:class:`ModulatorSettings`' default of field ``name``, as a field of :class:`ModulatorStage` (one
+    default per setting: written once, there)."""
+    f = next(f for f in dataclasses.fields(ModulatorSettings) if f.name == name)
+    if f.default_factory is not dataclasses.MISSING:
+        return field(default_factory=f.default_factory)
+    return field(default=f.default)
+
+
+def _field_default(cls, name: str):
+    f = next(f for f in dataclasses.fields(cls) if f.name == name)
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+
+
+def _group(owner, name: str, cls, where: str):
+    """``owner.name`` as a ``cls``: one as is, or a mapping of ``cls`` fields that change the field's
+    default (``{"total_frames": 512}`` keeps the stage's other PPO settings); a key that is not a field, or
+    a bad value, is one :class:`ConfigError` naming ``where``."""
+    value = getattr(owner, name)
+    if isinstance(value, cls):
+        return value
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{where} must be a mapping of {cls.__name__} fields, got {value!r}")
+    known = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(value) - set(known))
+    if unknown:
+        raise ConfigError(f"{where}: unknown setting{'s' if len(unknown) > 1 else ''} "
+                          f"{', '.join(map(repr, unknown))} (known: {', '.join(known)})")
+    base = _field_default(type(owner), name)
+    try:
+        return dataclasses.replace(base, **value) if isinstance(base, cls) else cls(**value)
+    except ConfigError as e:
+        raise ConfigError(str(e) if str(e).startswith(where) else f"{where}: {e}") from None
+
+
+@dataclass
+class SpecialistStage:
+    """The PPO specialists (paper A.3.1), each on a block of the training split's semantic groups
+    (``specialist.*`` in the recipe).
+
+    Attributes:
+        count: specialists; the unseen-trajectory training split's semantic groups are shared out in
+            this many blocks of whole groups (default 4; the paper has one per group).
+        ppo: each specialist's learner (:class:`~adadex.train.config.PPOConfig`; default 250 000 frames,
+            the constant learning rate and one update thread, as Table 1 was measured).
+        policy: the trackers trained (:class:`~adadex.train.config.PolicyConfig`; default without the
+            object anchor, ``anchor=0``). Its ``hidden`` is also the distilled generalist's, and the
+            modulator runs carry it.
+    """
+
+    count: int = 4
+    ppo: PPOConfig = field(default_factory=lambda: _pipeline_ppo(250_000))
+    policy: PolicyConfig = field(default_factory=_pipeline_policy)
+
+    def __post_init__(self):
+        check_number("PipelineConfig.specialist.count", self.count, low=1, integer=True)
+        self.ppo = _group(self, "ppo", PPOConfig, "PipelineConfig.specialist.ppo")
+        self.policy = _group(self, "policy", PolicyConfig, "PipelineConfig.specialist.policy")
+
+
+@dataclass
+class RolloutStage:
+    """The specialists' randomized teacher rollouts (``rollouts.*``; :mod:`adadex.train.rollouts`).
+
+    Attributes:
+        episodes: randomized teacher episodes per reference (default 4).
+        criterion: which teacher episodes are kept: ``"mean_error"`` (default) or ``"completion>=x"``
+            (:func:`adadex.train.rollouts.success_criterion`).
+    """
+
+    episodes: int = 4
+    criterion: str = "mean_error"
+
+    def __post_init__(self):
+        from adadex.train.rollouts import success_criterion
+
+        check_number("PipelineConfig.rollouts.episodes", self.episodes, low=1, integer=True)
+        try:
+            success_criterion(self.criterion)
+        except ConfigError as e:
+            raise ConfigError(f"PipelineConfig.rollouts.criterion: {e}") from None
+
+
+@dataclass
+class DistillStage:
+    """The generalist distilled from the teacher rollouts, and the data-scaling study's generalists
+    (``distill.*``; :mod:`adadex.train.distill`). Its network is the specialists' ``policy.hidden``.
+
+    Attributes:
+        steps: the distillation's Adam steps (default 3000).
+        batch_size: the distillation's batch size (default 1024).
+    """
+
+    steps: int = 3000
+    batch_size: int = 1024
+
+    def __post_init__(self):
+        for k in ("steps", "batch_size"):
+            check_number(f"PipelineConfig.distill.{k}", getattr(self, k), low=1, integer=True)
+
+
+@dataclass
+class ModulatorStage:
+    """Modulator RL around the frozen generalist, one run per row of :data:`MODULATOR_ROWS`
+    (``modulator.*``; :class:`~adadex.train.config.ModulatorSettings`, whose defaults these are).
+
+    Attributes:
+        ppo: each modulator's learner (:class:`~adadex.train.config.PPOConfig`; default 250 000
+            frames, the constant learning rate and one update thread, as Table 1 was measured).
+        reference_channel: the reference channel of the R rows (R, RT, ROT): ``"R"`` (default) — the
+            full per-frame residuals (112 numbers); ``"C"`` — the compact edit, a palm offset through
+            the arm Jacobian and a closure per finger (7 numbers,
+            :class:`adadex.transforms.modulation.CompactModulation`).
+        modulation: :class:`~adadex.modules.channels.ModulationConfig` fields to change (λ's, bounds,
+            persistence), for training and evaluating every modulator; kept as the changes from
+            its defaults (default none).
+        hidden: widths of the modulator's hidden layers (:attr:`ModulatorSettings.hidden`).
+        init_scale: initial exploration scale: ``None`` (each channel's own), a number or
+            ``{channel: scale}`` (:attr:`ModulatorSettings.init_scale`).
+        loc_bound: bound of the pre-tanh mean (:attr:`ModulatorSettings.loc_bound`).
+        inputs: what the modulator reads, ``"view"`` or ``"observation"``
+            (:attr:`ModulatorSettings.inputs`).
+        history: previous frames in the view (:attr:`ModulatorSettings.history`).
+        prior: ``"anchor"`` or ``None``: what channel C's palm action is an offset around
+            (:attr:`ModulatorSettings.prior`).
+        hold_steps: > 0: held exploration noise, redrawn every this many steps
+            (:attr:`ModulatorSettings.hold_steps`).
+        hold_scale: the held noise's scale per channel or entry (:attr:`ModulatorSettings.hold_scale`).
+    """
+
+    ppo: PPOConfig = field(default_factory=lambda: _pipeline_ppo(250_000))
+    reference_channel: str = "R"
+    modulation: dict = field(default_factory=dict)
+    hidden: tuple[int, ...] = _modulator_default("hidden")
+    init_scale: Any = _modulator_default("init_scale")
+    loc_bound: float = _modulator_default("loc_bound")
+    inputs: str = _modulator_default("inputs")
+    history: int = _modulator_default("history")
+    prior: str | None = _modulator_default("prior")
+    hold_steps: int = _modulator_default("hold_steps")
+    hold_scale: Any = _modulator_default("hold_scale")
+
+    def __post_init__(self):
+        from adadex.modules.channels import ModulationConfig
+
+        self.ppo = _group(self, "ppo", PPOConfig, "PipelineConfig.modulator.ppo")
+        if self.reference_channel not in ("R", "C"):
+            raise ConfigError(f"PipelineConfig.modulator.reference_channel must be 'R' or 'C', "
+                              f"got {self.reference_channel!r}")
+        self.modulation = changes(ModulationConfig, self.modulation, "PipelineConfig.modulator.modulation")
+        try:
+            ModulationConfig(**self.modulation)
+        except (ConfigError, ValueError, TypeError) as e:
+            raise ConfigError(f"PipelineConfig.modulator.modulation: {e}") from None
+        self.hidden = tuple(int(h) for h in self.hidden)
+        for mapping in ("init_scale", "hold_scale"):
+            if isinstance(getattr(self, mapping), Mapping):
+                setattr(self, mapping, {str(k): v for k, v in getattr(self, mapping).items()})
+        # every row's settings checked now, not after the specialists: ModulatorSettings checks them all
+        # before it looks for the tracker, which here is no file (the last check, the one let through)
+        for row in MODULATOR_ROWS:
+            try:
+                ModulatorSettings(tracker="", channels=self.row_channels(row), modulation=dict(self.modulation),
+                                  **self.settings())
+            except ConfigError as e:
+                if not str(e).startswith("ModulatorSettings.tracker:"):
+                    raise ConfigError(f"PipelineConfig.modulator (row {row}): {e}") from None
+
+    def row_channels(self, row: str) -> str:
+        """The channels a modulator row trains: :data:`MODULATOR_ROWS` with ``reference_channel`` for R."""
+        return "+".join(self.reference_channel if c == "R" else c for c in MODULATOR_ROWS[row].split("+"))
+
+    def settings(self) -> dict:
+        """The :data:`MODULATOR_SETTINGS` fields, as :class:`ModulatorSettings` takes them."""
+        return {k: getattr(self, k) for k in MODULATOR_SETTINGS}
+
+
+@dataclass
+class BaselineStage:
+    """The baselines, vanilla PPO and DexTrack-style IL+RL (paper B.2), both on all training references
+    (``baseline.*``).
+
+    Attributes:
+        ppo: both baselines' learner (:class:`~adadex.train.config.PPOConfig`; default 500 000 frames —
+            they see all training references — the constant learning rate and one update thread).
+        policy: the trackers trained (:class:`~adadex.train.config.PolicyConfig`; default without the
+            object anchor, as the specialists).
+        imitation_coef: IL+RL's imitation weight (default 1.0; vanilla PPO's is 0).
+    """
+
+    ppo: PPOConfig = field(default_factory=lambda: _pipeline_ppo(500_000))
+    policy: PolicyConfig = field(default_factory=_pipeline_policy)
+    imitation_coef: float = 1.0
+
+    def __post_init__(self):
+        self.ppo = _group(self, "ppo", PPOConfig, "PipelineConfig.baseline.ppo")
+        self.policy = _group(self, "policy", PolicyConfig, "PipelineConfig.baseline.policy")
+        check_number("PipelineConfig.baseline.imitation_coef", self.imitation_coef, strict_low=True)
+
+
+@dataclass
+class EvaluationStage:
+    """The evaluations, the data-scaling study (Fig. 6) and the latent smoothness (Fig. 12)
+    (``evaluation.*``).
+
+    Attributes:
+        repeats: randomized evaluation: episodes per test reference, each on its own Table 3 draw
+            (default 4).
+        scaling_fractions: the reference fractions of the data-scaling study, each in (0, 1]
+            (default (0.125, 0.25, 0.5, 1.0)).
+        smoothness_samples: observations ρ is measured on (Fig. 12; default 512).
+    """
+
+    repeats: int = 4
+    scaling_fractions: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)
+    smoothness_samples: int = 512
+
+    def __post_init__(self):
+        for k in ("repeats", "smoothness_samples"):
+            check_number(f"PipelineConfig.evaluation.{k}", getattr(self, k), low=1, integer=True)
+        self.scaling_fractions = tuple(sorted({float(f) for f in self.scaling_fractions}))
+        for f in self.scaling_fractions:
+            check_number("PipelineConfig.evaluation.scaling_fractions[…]", f, high=1.0, strict_low=True)
+
+
+#: the stage groups of :class:`PipelineConfig`: field → class
+STAGES = {"specialist": SpecialistStage, "rollouts": RolloutStage, "distill": DistillStage,
+          "modulator": ModulatorStage, "baseline": BaselineStage, "evaluation": EvaluationStage}
 
 
 @dataclass
 class PipelineConfig:
     """Everything the pipeline runs with; ``recipes/pipeline.yaml`` and its presets fill it.
+
+    One group per stage; the recipe's keys are these fields (``specialist.ppo.total_frames``,
+    ``env.window``, …). A group may be given as a mapping of its fields (``specialist={"count": 2,
+    "ppo": {"total_frames": 512}}``); what it leaves out keeps the group's default.
 
     Attributes:
         out: the pipeline's folder (every stage's run, the table and the figures).
@@ -90,131 +344,101 @@ class PipelineConfig:
         dataset_preset: the preset built when ``dataset`` is None (default ``"small"``).
         dataset_seed: the seed of that build (default 0).
         dataset_planned_grasp: the built dataset holds the object with a pinch planned for the hand
-            (:mod:`adadex.data.planned_grasp`), so its references carry what they grasp (default True).
+            (:mod:`adadex.data.planned_grasp`), so its references carry what they grasp (nominal replay
+            lifts 110 of 146 rising objects, against 15 of 161 with the retargeted human grasp; default
+            True).
         seeds: training seeds: the whole chain runs once per seed (default (0, 1)).
-        seed_workers: seeds trained side by side, each chain in its own process (default 1).
-        specialists: specialists, each on a block of the semantic groups (default 4).
-        worlds: worlds per env (default 64).
-        window: frames per episode, in every training stage, the teacher rollouts and the evaluations
-            (``TrackingConfig.window``; only references that long take part).
-        env_threads: the physics rollout's threads per env (default 2).
-        workers: collector worker processes (default 1).
-        specialist_frames: PPO frames per specialist (default 250 000).
-        modulator_frames: PPO frames per modulator (default 250 000).
-        ppo_frames: PPO frames of the baselines (vanilla PPO, IL+RL), which see all training
-            references (default 500 000).
-        ppo: ``PPOConfig`` overrides (``frames_per_batch``, ``lr``, …), on top of :data:`PPO_DEFAULTS`.
-        policy: ``PolicyConfig`` overrides of the trackers trained, on top of :data:`POLICY_DEFAULTS`.
-        sim: ``SimConfig`` fields of every env of the chain (``{"backend": "warp"}``: MuJoCo Warp for
-            training, teacher rollouts and evaluations; default: ``mujoco.rollout`` on the CPU).
-        rollout_episodes: randomized teacher episodes per reference (default 4).
-        rollout_criterion: which teacher episodes are kept (default ``"mean_error"``; see
-            :mod:`adadex.train.rollouts`).
-        distill_steps: the distillation's Adam steps (default 3000).
-        distill_batch: the distillation's batch size (default 1024).
-        imitation_coef: IL+RL's imitation weight (default 1.0).
-        modulator: ``ModulatorSettings`` fields (``hidden``, ``init_scale``, ``inputs``, …).
-        reference_channel: the reference channel of the R rows (R, RT, ROT): ``"R"`` (default) —
-            the full per-frame residuals (112 numbers); ``"C"`` — the compact edit, a palm offset
-            through the arm Jacobian and a closure per finger (7 numbers,
-            :class:`adadex.transforms.modulation.CompactModulation`).
-        modulation: ``ModulationConfig`` overrides (default ``{"persistent": True}``).
-        eval_repeats: randomized evaluation: episodes per test reference (default 4).
-        randomization: ``Randomization`` fields to change from Table 3 (e.g. ``{"object_xy_std":
-            0.02}``), for every training stage, the teacher rollouts and the "randomized"
-            evaluations alike.
-        scaling_fractions: the reference fractions of the data-scaling study, each in (0, 1]
-            (default (0.125, 0.25, 0.5, 1.0)).
-        smoothness_samples: observations ρ is measured on (Fig. 12; default 512).
-        wandb: also log to wandb (default True).
+        seed_workers: seeds trained side by side, each chain in its own process (default 2: on 2 cores
+            it fills the core that one seed's single-threaded updates, distillation and evaluations
+            leave idle).
+        env: :class:`~adadex.envs.tracking.TrackingConfig` fields to change (``{"window": 60}``: frames
+            per episode; only references that long take part), for every training stage, the teacher
+            rollouts and the evaluations; kept as the changes from its defaults.
+        reward: :class:`~adadex.envs.reward.RewardConfig` fields to change (``{"w_prox": 1.0}``), for
+            every training stage and the evaluations; kept as the changes from its defaults.
+        randomization: ``Randomization`` fields to change from Table 3 (``{"object_xy_std": 0.02}``),
+            for every training stage, the teacher rollouts and the "randomized" evaluations alike;
+            kept as the changes from Table 3.
+        sim: the physics of every env of the chain (:class:`~adadex.train.config.SimConfig`;
+            ``{"backend": "warp"}`` with ``ppo.device=cuda`` of each stage: the whole pipeline on a GPU;
+            default ``mujoco.rollout`` on the CPU).
+        collector: where each training stage's env steps run, and the worlds and physics threads of
+            the teacher rollouts and evaluations too (:class:`~adadex.train.config.CollectorConfig`;
+            local collectors only: ``backend="local"``, no ``ray_address``).
+        specialist: the PPO specialists (:class:`SpecialistStage`).
+        rollouts: their teacher rollouts (:class:`RolloutStage`).
+        distill: the distilled generalist (:class:`DistillStage`).
+        modulator: modulator RL on the generalist (:class:`ModulatorStage`).
+        baseline: vanilla PPO and IL+RL (:class:`BaselineStage`).
+        evaluation: the evaluations and the figures' samples (:class:`EvaluationStage`).
+        wandb: each training stage also logs to wandb, offline unless ``WANDB_MODE`` says otherwise
+            (default True).
         progress: show progress bars (default True).
     """
 
     out: str
-    #: a reference dataset folder; ``None``: ``out/data``, built from ``dataset_preset`` when missing
     dataset: str | None = None
     dataset_preset: str = "small"
     dataset_seed: int = 0
-    #: the built dataset holds the object with a pinch planned for the hand (adadex.data.planned_grasp):
-    #: its references carry what they grasp (nominal replay lifts 110 of 146 rising objects, against 15
-    #: of 161 with the retargeted human grasp)
     dataset_planned_grasp: bool = True
-    seeds: tuple[int, ...] = (0, 1)          # training seeds: the whole chain runs once per seed
-    #: seeds trained side by side, each chain in its own process; 2 on 2 cores fills the core that one
-    #: seed's single-threaded updates, distillation and evaluations leave idle
-    seed_workers: int = 1
-    specialists: int = 4                     # specialists, each on a block of the semantic groups
-    worlds: int = 64
-    #: frames per episode, in every training stage, the teacher rollouts and the evaluations
-    #: (``TrackingConfig.window``; only references that long take part); the tiny preset shortens it
-    window: int = WINDOW_FRAMES
-    env_threads: int = 2
-    workers: int = 1
-    specialist_frames: int = 250_000
-    modulator_frames: int = 250_000
-    ppo_frames: int = 500_000                # the baselines (vanilla PPO, IL+RL) see all training references
-    #: PPOConfig overrides (frames_per_batch, lr, …), on top of :data:`PPO_DEFAULTS`
-    ppo: dict = field(default_factory=dict)
-    #: PolicyConfig overrides of the trackers trained, on top of :data:`POLICY_DEFAULTS`
-    policy: dict = field(default_factory=dict)
-    #: SimConfig fields of every env of the chain — training, teacher rollouts, evaluations
-    #: (``sim.backend=warp`` with ``ppo.device=cuda``: the whole pipeline on a GPU)
-    sim: dict = field(default_factory=dict)
-    rollout_episodes: int = 4                # randomized teacher episodes per reference
-    rollout_criterion: str = "mean_error"    # which teacher episodes are kept (see adadex.train.rollouts)
-    distill_steps: int = 3000
-    distill_batch: int = 1024
-    imitation_coef: float = 1.0              # IL+RL's imitation weight
-    modulator: dict = field(default_factory=dict)    # ModulatorSettings fields (hidden, init_scale, inputs, …)
-    #: the reference channel of the R rows (R, RT, ROT): ``"R"`` — the full per-frame residuals (112
-    #: numbers); ``"C"`` — the compact edit, a palm offset through the arm Jacobian and a closure per
-    #: finger (7 numbers, :class:`adadex.transforms.modulation.CompactModulation`)
-    reference_channel: str = "R"
-    modulation: dict = field(default_factory=lambda: {"persistent": True})   # ModulationConfig overrides
-    eval_repeats: int = 4                    # randomized evaluation: episodes per test reference
-    #: Randomization fields to change from Table 3 (e.g. ``{"object_xy_std": 0.02}``), for every training
-    #: stage, the teacher rollouts and the "randomized" evaluations alike
+    seeds: tuple[int, ...] = (0, 1)
+    seed_workers: int = 2
+    env: dict = field(default_factory=dict)
+    reward: dict = field(default_factory=dict)
     randomization: dict = field(default_factory=dict)
-    scaling_fractions: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)
-    smoothness_samples: int = 512            # observations ρ is measured on (Fig. 12)
+    sim: SimConfig = field(default_factory=SimConfig)
+    collector: CollectorConfig = field(default_factory=CollectorConfig)
+    specialist: SpecialistStage = field(default_factory=SpecialistStage)
+    rollouts: RolloutStage = field(default_factory=RolloutStage)
+    distill: DistillStage = field(default_factory=DistillStage)
+    modulator: ModulatorStage = field(default_factory=ModulatorStage)
+    baseline: BaselineStage = field(default_factory=BaselineStage)
+    evaluation: EvaluationStage = field(default_factory=EvaluationStage)
     wandb: bool = True
     progress: bool = True
 
     def __post_init__(self):
         self.seeds = tuple(int(s) for s in self.seeds)
-        self.scaling_fractions = tuple(sorted({float(f) for f in self.scaling_fractions}))
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
             raise ConfigError(f"PipelineConfig.seeds must be distinct training seeds, got {list(self.seeds)}")
-        check_number("PipelineConfig.env_threads", self.env_threads, low=0, integer=True)
-        for k in ("seed_workers", "specialists", "worlds", "workers", "specialist_frames",
-                  "modulator_frames", "ppo_frames", "rollout_episodes", "distill_steps", "distill_batch",
-                  "eval_repeats", "smoothness_samples"):
-            check_number(f"PipelineConfig.{k}", getattr(self, k), low=1, integer=True)
-        check_number("PipelineConfig.imitation_coef", self.imitation_coef, strict_low=True)
-        try:
-            TrackingConfig(window=self.window)
-        except ValueError as e:
-            raise ConfigError(f"PipelineConfig.window: {e}") from None
-        for f in self.scaling_fractions:
-            check_number("PipelineConfig.scaling_fractions[…]", f, high=1.0, strict_low=True)
-        self.policy = {**POLICY_DEFAULTS, **(self.policy or {})}
-        self.ppo = {**PPO_DEFAULTS, **(self.ppo or {})}
-        self.sim = dict(self.sim or {})
-        for name, cls in (("ppo", PPOConfig), ("policy", PolicyConfig), ("sim", SimConfig)):
-            cls(**getattr(self, name))       # a bad key or value fails here, before any stage runs
-        self.randomization = dict(self.randomization or {})
+        check_number("PipelineConfig.seed_workers", self.seed_workers, low=1, integer=True)
+        self.sim = _group(self, "sim", SimConfig, "PipelineConfig.sim")
+        self.collector = _group(self, "collector", CollectorConfig, "PipelineConfig.collector")
+        if self.collector.backend != "local" or self.collector.ray_address is not None:
+            raise ConfigError(f"PipelineConfig.collector: the pipeline's stages collect locally (backend='local', "
+                              f"ray_address=null), got backend={self.collector.backend!r}, "
+                              f"ray_address={self.collector.ray_address!r}")
+        for name, cls in STAGES.items():
+            setattr(self, name, _group(self, name, cls, f"PipelineConfig.{name}"))
+        self.env = changes(TrackingConfig, self.env, "PipelineConfig.env", drop=ENV_CODE_ONLY)
+        self.reward = changes(RewardConfig, self.reward, "PipelineConfig.reward")
+        self.env_config()                    # a bad env or reward value fails here, before any stage runs
+        if self.randomization and set(self.randomization) & set(RANDOMIZATION_CODE_ONLY):
+            self.randomization_config()      # says where effects and patches are set
+        self.randomization = changes(Randomization, self.randomization, "PipelineConfig.randomization",
+                                     drop=RANDOMIZATION_CODE_ONLY)
         self.randomization_config()
-        if self.reference_channel not in ("R", "C"):
-            raise ConfigError(f"PipelineConfig.reference_channel must be 'R' or 'C', got {self.reference_channel!r}")
 
     def row_channels(self, row: str) -> str:
-        """The channels a modulator row trains: :data:`MODULATOR_ROWS` with ``reference_channel`` for R."""
-        return "+".join(self.reference_channel if c == "R" else c for c in MODULATOR_ROWS[row].split("+"))
+        """The channels a modulator row trains (:meth:`ModulatorStage.row_channels`)."""
+        return self.modulator.row_channels(row)
 
     @property
     def backend(self) -> str:
         """The physics backend of every env of the chain (``sim.backend``)."""
-        return SimConfig(**self.sim).backend
+        return self.sim.backend
+
+    def env_config(self) -> TrackingConfig:
+        """The episodes of the whole chain: :class:`TrackingConfig` with this pipeline's ``env`` and
+        ``reward`` changes."""
+        try:
+            reward = from_known_keys(RewardConfig, self.reward)
+        except (ValueError, TypeError) as e:
+            raise ConfigError(f"PipelineConfig.reward: {e}") from None
+        try:
+            return dataclasses.replace(TrackingConfig(), **self.env, reward=reward)
+        except (ConfigError, ValueError, TypeError) as e:
+            raise ConfigError(f"PipelineConfig.env: {e}") from None
 
     def randomization_config(self) -> Randomization:
         """Table 3 with this pipeline's ``randomization`` changes (checked as a training run checks them)."""
@@ -222,7 +446,19 @@ class PipelineConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> PipelineConfig:
+        """The config from a mapping of its fields (a composed recipe config); unknown keys refused."""
         return from_known_keys(cls, d)
+
+    @classmethod
+    def node(cls) -> dict:
+        """The recipe's node (:func:`adadex.train.schema.pipeline_node`): every field with its default,
+        the stage groups as their defaults' mappings, ``env``/``reward``/``randomization`` and
+        ``modulator.modulation`` with every field of their classes."""
+        from adadex.train.schema import change_nodes, defaults_of, modulation_node
+
+        return defaults_of(cls, expand={**change_nodes(),
+                                        "modulator": defaults_of(ModulatorStage,
+                                                                 expand={"modulation": modulation_node()})})
 
 
 def specialist_blocks(dataset: ReferenceDataset, k: int, window: int) -> list[list[int]]:
@@ -240,15 +476,24 @@ class Pipeline:
     """The stages of :func:`run_pipeline` (see the module docstring)."""
 
     def __init__(self, cfg: PipelineConfig, env_config: TrackingConfig | None = None):
-        self.cfg, self.env_config = cfg, env_config or TrackingConfig(window=cfg.window)
+        self.cfg, self.env_config = cfg, env_config or cfg.env_config()
         self.out = Path(cfg.out)
+        # the episodes' settings as changes from the defaults: what the stages are keyed with, and what
+        # every training stage's TrainConfig carries
+        self.env_changes = changes(TrackingConfig, {f.name: getattr(self.env_config, f.name)
+                                                    for f in dataclasses.fields(TrackingConfig)
+                                                    if f.name not in ENV_CODE_ONLY},
+                                   "env_config", drop=ENV_CODE_ONLY)
+        self.reward_changes = changes(RewardConfig, dataclasses.asdict(self.env_config.reward), "env_config.reward")
 
     def _stage(self, folder: Path, settings: dict, fn, *, label: str) -> dict:
-        """:func:`run_stage` with the episode window among the settings when it is not the default
-        (stages run before the window was a setting still match, and a stage is never reused across
-        windows)."""
-        if self.env_config.window != WINDOW_FRAMES:
-            settings = {**settings, "window": self.env_config.window}
+        """:func:`run_stage` with the episodes' ``env`` and ``reward`` changes among the settings when
+        there are any (stages run with the defaults keep their settings as before, and a stage is never
+        reused across other episodes)."""
+        if self.env_changes:
+            settings = {**settings, "env": self.env_changes}
+        if self.reward_changes:
+            settings = {**settings, "reward": self.reward_changes}
         if self.cfg.backend != SimConfig().backend:      # other physics: never the default backend's stage
             settings = {**settings, "sim_backend": self.cfg.backend}
         return run_stage(folder, settings, fn, label=label, log=self.log)
@@ -275,18 +520,22 @@ class Pipeline:
                                   f"use a new out")
         return ds
 
-    def _train_config(self, out: Path, seed: int, frames: int, **kw) -> TrainConfig:
+    def _train_config(self, out: Path, seed: int, ppo: PPOConfig, policy: PolicyConfig, **kw) -> TrainConfig:
+        """A training stage's run: its stage's ``ppo`` and ``policy``, the chain's collector, physics,
+        episodes and randomization."""
         c = self.cfg
         return TrainConfig(dataset=str(self.ds.path), out=str(out), seed=seed, resume=True,
-                           ppo=PPOConfig(**{**c.ppo, "total_frames": frames}),
-                           collector=CollectorConfig(workers=c.workers, worlds=c.worlds, env_threads=c.env_threads),
-                           policy=PolicyConfig(**c.policy), randomization=dict(c.randomization), wandb=c.wandb,
-                           sim=SimConfig(**c.sim), progress=c.progress, **kw)
+                           ppo=dataclasses.replace(ppo), collector=dataclasses.replace(c.collector),
+                           policy=dataclasses.replace(policy), env=dict(self.env_changes),
+                           reward=dict(self.reward_changes), randomization=dict(c.randomization), wandb=c.wandb,
+                           sim=dataclasses.replace(c.sim), progress=c.progress, **kw)
 
     def _ppo(self, tc: TrainConfig, label: str, teacher=None) -> dict:
         from adadex.train.ppo import PPOTrainer
 
         settings = {k: v for k, v in tc.to_dict().items() if k not in ("resume", "wandb", "progress", "out")}
+        if not settings["env"]:
+            del settings["env"]            # default episodes: the settings of stages run before env was one
         settings["ppo"] = {k: v for k, v in settings["ppo"].items() if k != "update_threads"}   # speed, not result
         if teacher is not None:
             settings["teacher"] = teacher[0]
@@ -305,10 +554,11 @@ class Pipeline:
     # -- per seed ------------------------------------------------------------------------------
     def specialists(self, seed: int, root: Path) -> dict[str, list[int]]:
         teachers = {}
-        blocks = specialist_blocks(self.ds, self.cfg.specialists, self.env_config.window)
+        s = self.cfg.specialist
+        blocks = specialist_blocks(self.ds, s.count, self.env_config.window)
         for k, refs in enumerate(blocks):
             out = root / "specialists" / f"spec_{k}"
-            tc = self._train_config(out, seed + 101 * k, self.cfg.specialist_frames, split=None, references=refs)
+            tc = self._train_config(out, seed + 101 * k, s.ppo, s.policy, split=None, references=refs)
             r = self._ppo(tc, f"seed {seed} specialist {k + 1}/{len(blocks)} ({len(refs)} references)")
             teachers[r["policy"]] = refs
         return teachers
@@ -321,15 +571,15 @@ class Pipeline:
         # chunk k rolls out on env seed env_seed + k: 1,000 apart per pipeline seed, so that two seeds'
         # teacher rollouts never share Table 3 draws (10_000 + seed made seed 0's chunk 1 seed 1's chunk 0)
         env_seed = 10_000 + 1_000 * seed
-        settings = {"teachers": teachers, "episodes": c.rollout_episodes, "criterion": c.rollout_criterion,
-                    "seed": seed, "env_seed": env_seed, "worlds": c.worlds,
+        settings = {"teachers": teachers, "episodes": c.rollouts.episodes, "criterion": c.rollouts.criterion,
+                    "seed": seed, "env_seed": env_seed, "worlds": c.collector.worlds,
                     **({"randomization": c.randomization} if c.randomization else {})}
 
         def fit():
-            info = teacher_rollouts(teachers, self.ds, out / "data", episodes_per_reference=c.rollout_episodes,
-                                    seed=env_seed, max_worlds=c.worlds, criterion=c.rollout_criterion,
+            info = teacher_rollouts(teachers, self.ds, out / "data", episodes_per_reference=c.rollouts.episodes,
+                                    seed=env_seed, max_worlds=c.collector.worlds, criterion=c.rollouts.criterion,
                                     randomize=c.randomization_config(),
-                                    config=self.env_config, nthread=c.env_threads, progress=c.progress,
+                                    config=self.env_config, nthread=c.collector.env_threads, progress=c.progress,
                                     backend=c.backend)
             return {k: info[k] for k in ("episodes_tried", "episodes_kept", "success_pct", "frames")}
 
@@ -340,10 +590,9 @@ class Pipeline:
         from adadex.train.distill import DistillConfig, distill
 
         c = self.cfg
-        dc = DistillConfig(rollouts=rollouts, out=str(out), steps=c.distill_steps, batch_size=c.distill_batch,
+        dc = DistillConfig(rollouts=rollouts, out=str(out), steps=c.distill.steps, batch_size=c.distill.batch_size,
                            seed=seed, resume=True, fraction=fraction, wandb=c.wandb, progress=c.progress,
-                           checkpoint_every=max(1, c.distill_steps // 5),
-                           hidden=tuple(c.policy.get("hidden", PolicyConfig().hidden)))
+                           checkpoint_every=max(1, c.distill.steps // 5), hidden=tuple(c.specialist.policy.hidden))
         settings = {k: v for k, v in dataclasses.asdict(dc).items()
                     if k not in ("resume", "wandb", "progress", "out", "threads")}
         label = f"seed {seed} distill" + (f" ({fraction:g} of the references)" if fraction < 1 else "")
@@ -353,19 +602,22 @@ class Pipeline:
 
     def modulators(self, seed: int, root: Path, tracker: str) -> dict[str, str]:
         out = {}
+        stage = self.cfg.modulator
         for row in MODULATOR_ROWS:
-            channels = self.cfg.row_channels(row)
-            m = ModulatorSettings(tracker=tracker, channels=channels, modulation=dict(self.cfg.modulation),
-                                  **self.cfg.modulator)
-            tc = self._train_config(root / "modulators" / row, seed, self.cfg.modulator_frames, modulator=m)
+            channels = stage.row_channels(row)
+            m = ModulatorSettings(tracker=tracker, channels=channels, modulation=dict(stage.modulation),
+                                  **stage.settings())
+            # the run's policy settings are the specialists' (a modulator run trains no tracker)
+            tc = self._train_config(root / "modulators" / row, seed, stage.ppo, self.cfg.specialist.policy,
+                                    modulator=m)
             out[row] = self._ppo(tc, f"seed {seed} modulator {channels}")["policy"]
         return out
 
     def baselines(self, seed: int, root: Path, rollouts: str) -> dict[str, str]:
-        c = self.cfg
-        ppo = self._train_config(root / "baselines" / "ppo", seed, c.ppo_frames)
-        il = self._train_config(root / "baselines" / "il_rl", seed, c.ppo_frames)
-        il.ppo = PPOConfig(**{**dataclasses.asdict(il.ppo), "imitation_coef": c.imitation_coef})
+        b = self.cfg.baseline
+        ppo = self._train_config(root / "baselines" / "ppo", seed, b.ppo, b.policy)
+        il = self._train_config(root / "baselines" / "il_rl", seed,
+                                dataclasses.replace(b.ppo, imitation_coef=b.imitation_coef), b.policy)
         return {"ppo": self._ppo(ppo, f"seed {seed} vanilla PPO")["policy"],
                 "il_rl": self._ppo(il, f"seed {seed} IL+RL", teacher=(rollouts,))["policy"]}
 
@@ -382,7 +634,7 @@ class Pipeline:
             g = make_policy(replay_policy(), None, channels="none")
         elif row in MODULATOR_ROWS:
             g = make_policy(Tracker.load(paths["tracker"]), Modulator.load(paths[row]), channels=self.cfg.row_channels(row),
-                            config=ModulationConfig(**self.cfg.modulation))
+                            config=ModulationConfig(**self.cfg.modulator.modulation))
         else:
             g = make_policy(Tracker.load(paths[row]), None, channels="none")
         return g
@@ -396,10 +648,11 @@ class Pipeline:
             raise ConfigError(f"{self.ds.path}: the {split} split has no test reference with a "
                               f"{self.env_config.window}-frame window")
         randomized = condition == "randomized"
-        return evaluate(policy, self.ds, split=None, references=refs * (self.cfg.eval_repeats if randomized else 1),
-                        max_worlds=self.cfg.worlds, env_transform=policy.primer, config=self.env_config,
-                        randomize=self.cfg.randomization_config() if randomized else None, seed=eval_seed, progress=False,
-                        nthread=self.cfg.env_threads, keep_rollouts=keep_rollouts, backend=self.cfg.backend)
+        c = self.cfg
+        return evaluate(policy, self.ds, split=None, references=refs * (c.evaluation.repeats if randomized else 1),
+                        max_worlds=c.collector.worlds, env_transform=policy.primer, config=self.env_config,
+                        randomize=c.randomization_config() if randomized else None, seed=eval_seed, progress=False,
+                        nthread=c.collector.env_threads, keep_rollouts=keep_rollouts, backend=c.backend)
 
     def evaluations(self, seed: int, root: Path, paths: dict) -> dict:
         """Every row on both splits, nominal and randomized; the same environment seed, references and
@@ -413,7 +666,7 @@ class Pipeline:
                 for row in ("replay", "ppo", "il_rl", "tracker", *MODULATOR_ROWS):
                     folder = root / "eval" / split / condition / row
                     settings = {"policy": paths.get(row, "replay"), "tracker": paths["tracker"],
-                                "repeats": self.cfg.eval_repeats, "seed": seed}
+                                "repeats": self.cfg.evaluation.repeats, "seed": seed}
 
                     def run(row=row, split=split, condition=condition):
                         r = self.evaluate(self.policy(row, paths), split, condition, 20_000 + seed)
@@ -447,7 +700,7 @@ class Pipeline:
                         "generalist_completion_pct": r["tracker"]["summary"]["completion_pct"],
                         "generalist_minus_teacher": d["estimate"], "generalist_minus_teacher_ci95": d["ci95"]}
 
-            out.append(self._stage(folder, {"teacher": path, "tracker": tracker, "repeats": self.cfg.eval_repeats,
+            out.append(self._stage(folder, {"teacher": path, "tracker": tracker, "repeats": self.cfg.evaluation.repeats,
                                             "seed": seed}, run,
                                    label=f"seed {seed} generalist against teacher {k + 1} on its references"))
         return out
@@ -456,10 +709,10 @@ class Pipeline:
         """Fig. 6: generalists distilled from fractions of the references, on the unseen-trajectory
         test split under randomization (fraction 1 is the generalist itself)."""
         out = {}
-        for f in self.cfg.scaling_fractions:
+        for f in self.cfg.evaluation.scaling_fractions:
             path = tracker if f == 1.0 else self.distill(seed, root / "scaling" / f"frac_{f:g}", rollouts, f)
             folder = root / "scaling" / f"frac_{f:g}" / "eval"
-            settings = {"tracker": path, "repeats": self.cfg.eval_repeats, "seed": seed}
+            settings = {"tracker": path, "repeats": self.cfg.evaluation.repeats, "seed": seed}
             out[f] = self._stage(folder, settings, lambda p=path: {"summary": self.evaluate(
                 self.policy("tracker", {"tracker": p}), "unseen_trajectory", "randomized", 20_000 + seed)["summary"]},
                 label=f"seed {seed} evaluate the {f:g}-fraction generalist")["summary"]
@@ -550,7 +803,7 @@ def run_pipeline(cfg: PipelineConfig, **kwargs) -> dict:
     Args:
         cfg: the pipeline's settings.
         **kwargs: :class:`Pipeline`'s keyword arguments (``env_config``: the episode settings,
-            default ``TrackingConfig()``).
+            default ``cfg.env_config()``).
 
     Returns:
         :meth:`Pipeline.run`'s result dict.

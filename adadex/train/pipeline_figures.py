@@ -29,7 +29,7 @@ def pipeline_figures(p, table: dict, scaling: dict, paths: dict, seed: int, modu
     folder = p.out / "figures"
     out = {"ablation": fig.plot_ablation(table, folder / "ablation.png")}
     # Fig. 4 and 5: the R+O+T policy of the first seed on the unseen-trajectory test references
-    refs = episode_references(p.ds, ("unseen_trajectory", "test"), p.env_config.window)[: p.cfg.worlds]
+    refs = episode_references(p.ds, ("unseen_trajectory", "test"), p.env_config.window)[: p.cfg.collector.worlds]
     res = p.evaluate(p.policy("ROT", paths), "unseen_trajectory", "nominal", 20_000 + seed,
                         references=refs, keep_rollouts=True)
     td = res["rollouts"][0]
@@ -39,7 +39,7 @@ def pipeline_figures(p, table: dict, scaling: dict, paths: dict, seed: int, modu
     out["fig4_object_path"] = fig.plot_object_paths(paths_xyz[w], folder / "fig4_object_path.png",
                                                     title=f"{name}: reference, modulated reference, executed")
     frames, latents = fig.decoded_latents(td, w, channels=p.cfg.row_channels("ROT"),
-                                          config=ModulationConfig(**p.cfg.modulation))
+                                          config=ModulationConfig(**p.cfg.modulator.modulation))
     obj = p.ds.entries[refs[w]]["object"]
     out["fig5_latent"] = fig.plot_latent_decoding(load_encoder(SHIPPED_ENCODER)[0], latents, frames, obj,
                                                   folder / "fig5_latent.png",
@@ -58,7 +58,7 @@ def pipeline_figures(p, table: dict, scaling: dict, paths: dict, seed: int, modu
     obs = torch.cat([t.reshape(-1).select(*reads)
                      for t in p.evaluate(p.policy("tracker", paths), "unseen_trajectory", "nominal",
                                             20_000 + seed, keep_rollouts=True)["rollouts"]])
-    pick = torch.randperm(obs.shape[0], generator=torch.Generator().manual_seed(seed))[: p.cfg.smoothness_samples]
+    pick = torch.randperm(obs.shape[0], generator=torch.Generator().manual_seed(seed))[: p.cfg.evaluation.smoothness_samples]
     rho = {row: latent_smoothness(actor, obs[pick], seed=seed) for row, actor in actors.items()}
     plot_latent_smoothness({ROW_LABELS[k]: v for k, v in rho.items()}, folder / "fig12_smoothness.png")
     out["fig12_smoothness"] = folder / "fig12_smoothness.png"

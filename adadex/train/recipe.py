@@ -1,8 +1,8 @@
 """From a Hydra recipe's config (``recipes/*.yaml``) to a run: strict keys, the output guard, one error contract.
 
-The recipes stay thin: :func:`train_config` maps the recipe keys onto :class:`TrainConfig`
-(``total_frames`` → ``ppo.total_frames``, ``ray.address`` → ``collector.ray_address``,
-``split``/``part`` → ``split``, ``tracker``/``channels``/``modulator``/``modulation`` → a modulator run),
+The recipes stay thin: their keys are the config dataclasses' fields (the ConfigStore nodes of
+:mod:`adadex.train.schema`, which :func:`recipe_main` registers), so a composed PPO recipe config *is*
+a :class:`TrainConfig` plus the recipe's ``force`` and ``build_preset`` (:func:`train_settings`);
 :func:`run` builds the dataset if asked and trains.
 
 Every recipe runs through :func:`recipe_main`, which checks the command line *before Hydra starts*
@@ -11,8 +11,8 @@ runs):
 
 * **strict keys** — a setting the recipe does not know (``+foo=1``, ``ppo.foo=1``, ``+ppo.foo=1``,
   ``+preset=tiny`` on a training recipe) is refused with one line naming it and the known ones. What
-  is known comes from the config dataclasses (:func:`dataclass_keys`; :data:`TRAIN_KEYS` for the PPO
-  recipes), not from a second list kept by hand;
+  is known comes from the config dataclasses (:func:`adadex.train.schema.keys`; :func:`dataclass_keys`
+  for a flat one), not from a second list kept by hand;
 * **the output guard** — the recipe's ``guard`` (for a training run :func:`check_training_out`; for
   ``evaluate.py`` and ``train_encoder.py`` :func:`check_recipe_out`) on the composed config, so a user's
   folder, a finished run without ``resume=true``, a resume without a checkpoint or with other settings
@@ -36,10 +36,10 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from adadex.errors import ConfigError, exit_on_error
-from adadex.train.config import CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, SimConfig, TrainConfig
+from adadex.train.config import TrainConfig
 
-_TOP = ("seed", "resume", "group", "references", "randomize", "checkpoint_every", "eval_every", "eval_split",
-        "eval_max_references", "wandb", "progress", "reward", "randomization")
+#: the PPO recipes' own keys beside TrainConfig's fields
+RECIPE_OPTIONS = ("force", "build_preset")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -69,19 +69,12 @@ def yaml_keys(path, **nested) -> dict:
 
 def train_keys() -> dict:
     """What the PPO recipes (``train_common.yaml`` and the recipes on it) accept: :class:`TrainConfig`'s
-    fields, the nested configs' fields under ``ppo``/``collector``/``policy``/``modulator``/``modulation``,
-    and the recipe's own keys (``total_frames``, ``part``, ``build_preset``, ``tracker``, ``channels``,
-    ``ray.address``, ``force``). ``reward`` and ``randomization`` are checked by their own classes."""
-    return dataclass_keys(
-        TrainConfig, drop=("modulator",),
-        ppo=dataclass_keys(PPOConfig, drop=("total_frames",)),          # set with total_frames
-        collector=dataclass_keys(CollectorConfig, drop=("ray_address",)),   # set with ray.address
-        sim=dataclass_keys(SimConfig),
-        policy=dataclass_keys(PolicyConfig),
-        modulator=dataclass_keys(ModulatorSettings, drop=("tracker", "channels", "modulation")),
-        modulation=modulation_keys(),
-        ray={"address": None}, total_frames=None, part=None, build_preset=None, tracker=None, channels=None,
-        force=None)
+    fields, every field of the configs nested in it (``ppo``, ``collector``, ``sim``, ``policy``,
+    ``modulator`` with ``modulation``, ``env``, ``reward``, ``randomization``) and :data:`RECIPE_OPTIONS`
+    — the ``adadex_train`` node's keys."""
+    from adadex.train.schema import keys
+
+    return keys("adadex_train")
 
 
 def _unknown(d: Mapping, schema: dict, prefix: str = "") -> list[tuple[str, str, list[str]]]:
@@ -179,6 +172,9 @@ def recipe_main(main: Callable, *, schema: dict, guard: Callable | None = None, 
 
     from omegaconf.errors import OmegaConfBaseException
 
+    from adadex.train.schema import register
+
+    register()                       # the config nodes the recipes' defaults lists name
     file = Path(inspect.getfile(getattr(main, "__wrapped__", main)))
     with exit_on_error(f"recipes/{file.name}"):
         cfg = _compose(file.parent, config_name or file.stem, sys.argv[1:], schema)
@@ -202,24 +198,20 @@ _CHECKING_COMMAND_LINE = False
 # ----------------------------------------------------------------------------------------------
 # The PPO recipes
 
-def train_config(cfg: Mapping) -> TrainConfig:
-    """:class:`TrainConfig` from a recipe config (a plain mapping or an OmegaConf ``DictConfig``)."""
+def train_settings(cfg: Mapping) -> tuple[TrainConfig, dict]:
+    """A composed PPO recipe config (a mapping or an OmegaConf ``DictConfig``) as the
+    :class:`TrainConfig` it holds and the recipe's own options (:data:`RECIPE_OPTIONS`). The keys are
+    the fields: nothing is renamed; TrainConfig's checks validate the values.
+
+    >>> tc, options = train_settings({"dataset": "d", "out": "o", "ppo": {"total_frames": 512}, "force": True})
+    >>> tc.ppo.total_frames, options
+    (512, {'force': True})
+    """
     if OmegaConf.is_config(cfg):
         cfg = OmegaConf.to_container(cfg, resolve=True)
-    ppo = dict(cfg.get("ppo") or {})
-    if "total_frames" in cfg:
-        ppo["total_frames"] = cfg["total_frames"]
-    collector = dict(cfg.get("collector") or {})
-    collector["ray_address"] = (cfg.get("ray") or {}).get("address")
-    split = (cfg["split"], cfg.get("part", "train")) if cfg.get("split") else None
-    modulator = None
-    if cfg.get("tracker") is not None:
-        modulator = ModulatorSettings(tracker=str(cfg["tracker"]), channels=str(cfg.get("channels", "R+O+T")),
-                                      modulation=dict(cfg.get("modulation") or {}), **(cfg.get("modulator") or {}))
-    return TrainConfig(dataset=str(cfg["dataset"]), out=str(cfg["out"]), split=split,
-                       ppo=PPOConfig(**ppo), collector=CollectorConfig(**collector), sim=SimConfig(**(cfg.get("sim") or {})),
-                       policy=PolicyConfig(**(cfg.get("policy") or {})), modulator=modulator,
-                       **{k: cfg[k] for k in _TOP if k in cfg})
+    settings = dict(cfg)
+    options = {k: settings.pop(k) for k in RECIPE_OPTIONS if k in settings}
+    return TrainConfig.from_dict(settings), options
 
 
 def check_training_out(cfg) -> dict | None:
@@ -227,8 +219,8 @@ def check_training_out(cfg) -> dict | None:
     needs a checkpoint): the checkpoint to continue from, or ``None`` for a fresh run. Writes nothing."""
     from adadex.train.checkpoint import TRAINING_RUN, check_run
 
-    tc = train_config(cfg)
-    return check_run(tc.out, TRAINING_RUN, tc.to_dict(), resume=tc.resume, force=bool(cfg.get("force", False)),
+    tc, options = train_settings(cfg)
+    return check_run(tc.out, TRAINING_RUN, tc.to_dict(), resume=tc.resume, force=bool(options.get("force", False)),
                      ignore=hydra_files(tc.out))
 
 
@@ -279,17 +271,20 @@ def claim_recipe_out(cfg, kind: str) -> Path:
     return mark_output_dir(check_recipe_out(cfg, kind), kind)
 
 
-def run(cfg: Mapping, *, name: str, prog: str | None = None, **trainer) -> dict:
+def run(cfg: Mapping, *, name: str, prog: str | None = None, modulator: bool = False, **trainer) -> dict:
     """Check the keys and the output folder, build the dataset if missing (``build_preset``), train,
     print and return the final evaluation. ``trainer``: :class:`~adadex.train.ppo.PPOTrainer`'s own
     modules — ``policy``, ``loss``, ``env_transforms`` — for a recipe that trains a policy it composed
-    (``recipes/train_custom_policy.py``).
+    (``recipes/train_custom_policy.py``). ``modulator``: the recipe trains a modulator, so
+    ``modulator.tracker`` is required (``recipes/train_modulator.py``).
 
     Bad input — an unknown key, an ``out`` that holds someone else's files or a run not to be replaced,
     a missing dataset or checkpoint, a bad setting, an unknown group — is one line on stderr and exit
     code 2, no traceback; anything else is reported as a bug, exit code 1
     (:func:`adadex.errors.report_error`)."""
     with exit_on_error(prog or f"recipes/{Path(sys.argv[0]).name}"):
+        if modulator:
+            require_modulator(cfg)
         return _run(cfg, name, trainer)
 
 
@@ -300,10 +295,7 @@ def _run(cfg: Mapping, name: str, trainer: dict) -> dict:
     check_keys(cfg, train_keys())
     if OmegaConf.is_config(cfg):
         cfg = OmegaConf.to_container(cfg, resolve=True)
-    if cfg.get("tracker") is None and cfg.get("channels") is not None:
-        raise ConfigError(f"channels={cfg.get('channels')} is a modulator setting: give tracker= (the frozen "
-                          f"generalist) to train a modulator, or use recipes/train_modulator.py")
-    tc = train_config(cfg)
+    tc, options = train_settings(cfg)
     blob = check_training_out(cfg)                  # before any work: nothing written when refused
     if blob is not None and blob["frames"] >= tc.ppo.total_frames:
         print(f"{name}: {tc.out} holds the finished run ({blob['frames']} of {tc.ppo.total_frames} frames): "
@@ -311,7 +303,7 @@ def _run(cfg: Mapping, name: str, trainer: dict) -> dict:
         return {}
     from adadex.data.build import dataset_at
 
-    dataset_at(tc.dataset, preset=cfg.get("build_preset"), setting="dataset", seed=tc.seed,
+    dataset_at(tc.dataset, preset=options.get("build_preset"), setting="dataset", seed=tc.seed,
                hint="set build_preset to build one")
     start_run(tc.out, TRAINING_RUN, fresh=blob is None)
     result = train(tc, run_name=name, **trainer)
@@ -320,6 +312,21 @@ def _run(cfg: Mapping, name: str, trainer: dict) -> dict:
     return result["eval"]
 
 
-def train_recipe(main: Callable):
-    """:func:`recipe_main` for a PPO recipe: :func:`train_keys`, :func:`check_training_out`."""
-    return recipe_main(main, schema=train_keys(), guard=check_training_out)
+def require_modulator(cfg) -> None:
+    """Refuse a modulator recipe's config without ``modulator.tracker`` (the frozen generalist): without it
+    the settings describe a tracker run."""
+    tracker = (cfg.get("modulator") or {}).get("tracker")
+    if tracker is None:
+        raise ConfigError("modulator.tracker is required: the frozen generalist's checkpoint "
+                          "(modulator.tracker=runs/generalist/tracker.pt)")
+
+
+def train_recipe(main: Callable, *, modulator: bool = False):
+    """:func:`recipe_main` for a PPO recipe: :func:`train_keys`, :func:`check_training_out` (and, for a
+    ``modulator`` recipe, :func:`require_modulator`)."""
+    def guard(cfg):
+        if modulator:
+            require_modulator(cfg)
+        return check_training_out(cfg)
+
+    return recipe_main(main, schema=train_keys(), guard=guard)

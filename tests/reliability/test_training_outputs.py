@@ -30,7 +30,7 @@ from adadex.train.config import PPOConfig, TrainConfig
 from tests.reliability.recipe_runs import refused, run_recipes
 
 ROOT = Path(__file__).resolve().parents[2]
-TINY = ["build_preset=null", "total_frames=512", "ppo.frames_per_batch=256", "ppo.minibatch_size=128", "ppo.epochs=1",
+TINY = ["build_preset=null", "ppo.total_frames=512", "ppo.frames_per_batch=256", "ppo.minibatch_size=128", "ppo.epochs=1",
         "ppo.update_threads=1", "collector.worlds=8", "collector.env_threads=1", "policy.hidden=[32,32]",
         "eval_max_references=0", "wandb=false", "progress=false"]
 
@@ -71,7 +71,7 @@ def runs(tiny_dataset, tmp_path_factory):
         "ppo_foo": (ppo, [*base, f"out={tmp / 'foo'}", "ppo.foo=1"], None),
         "plus_ppo_foo": (ppo, [*base, f"out={tmp / 'foo'}", "+ppo.foo=1"], None),
         "plus_preset": (ppo, [*base, f"out={tmp / 'foo'}", "+preset=tiny"], None),
-        "continue": (ppo, [*base, f"out={run}", "resume=true", "total_frames=768", "ppo.update_threads=2",
+        "continue": (ppo, [*base, f"out={run}", "resume=true", "ppo.total_frames=768", "ppo.update_threads=2",
                            "collector.env_threads=0", "checkpoint_every=3"], None),
         "pipeline_user_folder": (str(ROOT / "recipes" / "pipeline.py"),
                                  ["preset=tiny", f"out={table}", f"dataset={tmp / 'no_dataset'}"], table),
@@ -135,7 +135,7 @@ def test_settings_that_do_not_change_the_result_continue_and_force_starts_over(r
                                               ("plus_preset", "'preset'", "known: ")])
 def test_unknown_keys_are_refused_naming_them_and_the_known_ones(runs, case, key, known):
     line = refused(runs[case], key, known)
-    assert ("lr" if "ppo" in key else "total_frames") in line
+    assert ("lr" if "ppo" in key else "randomization") in line
     assert not (runs["tmp"] / "foo").exists()
 
 

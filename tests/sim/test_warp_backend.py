@@ -279,12 +279,12 @@ def test_tracking_env_observes_the_same_on_both_backends(warp, tiny_dataset, ran
 
 def test_sim_backend_setting_is_validated():
     from adadex.train.config import SimConfig, TrainConfig
-    from adadex.train.recipe import train_config
+    from adadex.train.recipe import train_settings
 
     assert TrainConfig(dataset="d", out="o").sim == SimConfig("rollout")
-    assert train_config({"dataset": "d", "out": "o", "sim": {"backend": "rollout"}}).sim.backend == "rollout"
+    assert train_settings({"dataset": "d", "out": "o", "sim": {"backend": "rollout"}})[0].sim.backend == "rollout"
     with pytest.raises(ConfigError, match=r"sim\.backend.*'rollout', 'warp'"):
-        train_config({"dataset": "d", "out": "o", "sim": {"backend": "jax"}})
+        train_settings({"dataset": "d", "out": "o", "sim": {"backend": "jax"}})
     assert TrainConfig(dataset="d", out="o", sim={"backend": "warp"}).sim.backend == "warp"
 
 

@@ -23,6 +23,7 @@ from adadex.eval.table1 import CONDITIONS, METRICS, ROWS, SPLITS
 from adadex.modules.tracker import Tracker
 from adadex.train.checkpoint import load_checkpoint
 from adadex.train.distill import DistillConfig, reference_subset
+from adadex.train.config import PPOConfig
 from adadex.train.pipeline import PipelineConfig, specialist_blocks
 from adadex.train.stages import run_stage
 
@@ -91,7 +92,9 @@ def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
     assert any((seed0 / "baselines" / "ppo" / "wandb").iterdir())
     # the preset's short episodes reach every stage, and are part of what a stage was run with
     marker = json.loads((seed0 / "eval" / "unseen_trajectory" / "randomized" / "tracker" / "stage.json").read_text())
-    assert marker["settings"]["window"] == 60
+    assert marker["settings"]["env"] == {"window": 60}
+    trained = json.loads((seed0 / "modulators" / "ROT" / "stage.json").read_text())["settings"]
+    assert trained["env"] == {"window": 60} and trained["ppo"]["frames_per_batch"] == 256      # the preset's batch
     episodes = marker["result"]["per_episode"]
     assert len(episodes["completion"]) == marker["result"]["summary"]["trajectories"] and "carried" in episodes
     assert "Difference to the tracker" in md
@@ -126,7 +129,7 @@ def test_a_second_run_skips_every_stage_and_a_killed_one_resumes(tiny_run, tiny_
     assert load_checkpoint(stage)["frames"] == frames        # continued from the checkpoint, not retrained
     assert json.loads((out / "table1.json").read_text()) == before
     # other settings for finished stages are refused, not silently mixed
-    bad = _pipeline(tmp, out, tiny_dataset, "specialist_frames=1024")
+    bad = _pipeline(tmp, out, tiny_dataset, "specialist.ppo.total_frames=1024")
     assert bad.returncode == 2 and "run with other settings" in bad.stderr and "Traceback" not in bad.stderr
 
 
@@ -135,17 +138,111 @@ def test_bad_settings_are_one_line_errors(tiny_dataset, tmp_path):
     assert r.returncode == 2 and "distinct training seeds" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "o" / "seed_0").exists()
     with pytest.raises(ConfigError, match="unknown keys"):
-        PipelineConfig.from_dict({"out": "o", "specialist_frame": 10})
-    with pytest.raises(ConfigError, match="PPOConfig.lr"):
-        PipelineConfig(out="o", ppo={"lr": -1.0})
-    with pytest.raises(ConfigError, match="scaling_fractions"):
-        PipelineConfig(out="o", scaling_fractions=(0.0, 1.0))
-    with pytest.raises(ConfigError, match="PipelineConfig.randomization.*object_xy"):
-        PipelineConfig(out="o", randomization={"object_xy": 0.02})
-    with pytest.raises(ConfigError, match="PipelineConfig.randomization"):
-        PipelineConfig(out="o", randomization={"object_xy_std": -1.0})
-    with pytest.raises(ConfigError, match="PipelineConfig.window: window must be at least"):
-        PipelineConfig(out="o", window=5)
+        PipelineConfig.from_dict({"out": "o", "specialist_frames": 10})
+    for kwargs, message in (
+            ({"specialist": {"ppo": {"lr": -1.0}}}, "PipelineConfig.specialist.ppo: PPOConfig.lr"),
+            ({"specialist": {"ppo": {"lrr": 1}}}, "PipelineConfig.specialist.ppo: unknown setting 'lrr'"),
+            ({"specialist": {"count": 0}}, "PipelineConfig.specialist.count must be"),
+            ({"specialist": {"frames": 10}}, "PipelineConfig.specialist: unknown setting 'frames'"),
+            ({"baseline": {"imitation_coef": 0.0}}, "PipelineConfig.baseline.imitation_coef"),
+            ({"baseline": {"policy": {"anchor_iterations": 0}}}, "PipelineConfig.baseline.policy: PolicyConfig"),
+            ({"rollouts": {"criterion": "best"}}, "PipelineConfig.rollouts.criterion"),
+            ({"distill": {"batch_size": 0}}, "PipelineConfig.distill.batch_size"),
+            ({"evaluation": {"scaling_fractions": (0.0, 1.0)}}, "PipelineConfig.evaluation.scaling_fractions"),
+            ({"modulator": {"reference_channel": "X"}}, "PipelineConfig.modulator.reference_channel"),
+            ({"modulator": {"modulation": {"persist": True}}}, "PipelineConfig.modulator.modulation: unknown"),
+            ({"modulator": {"inputs": "pixels"}}, "PipelineConfig.modulator .*inputs"),
+            ({"randomization": {"object_xy": 0.02}}, "PipelineConfig.randomization.*object_xy"),
+            ({"randomization": {"object_xy_std": -1.0}}, "PipelineConfig.randomization"),
+            ({"env": {"window": 5}}, "PipelineConfig.env: window must be at least"),
+            ({"env": {"windows": 60}}, "PipelineConfig.env: unknown setting 'windows'"),
+            ({"reward": {"w_prx": 1.0}}, "PipelineConfig.reward: unknown setting 'w_prx'"),
+            ({"collector": {"backend": "ray"}}, "PipelineConfig.collector: the pipeline's stages collect locally"),
+            ({"collector": {"worlds": 0}}, "PipelineConfig.collector: CollectorConfig.worlds"),
+            ({"sim": {"backend": "gpu"}}, "sim.backend")):
+        with pytest.raises(ConfigError, match=message):
+            PipelineConfig(out="o", **kwargs)
+
+
+def test_a_group_given_as_a_mapping_changes_only_what_it_names():
+    """``specialist={"ppo": {"total_frames": 512}}`` keeps the stage's other settings (the constant
+    learning rate, one update thread, the unanchored tracker), not PPOConfig's or PolicyConfig's."""
+    from adadex.train.pipeline import SpecialistStage
+
+    pc = PipelineConfig(out="o", specialist={"count": 2, "ppo": {"total_frames": 512}, "policy": {"hidden": [32, 32]}})
+    assert pc.specialist.count == 2 and pc.specialist.ppo.total_frames == 512
+    assert pc.specialist.ppo.desired_kl == 0.0 and pc.specialist.ppo.update_threads == 1
+    assert pc.specialist.policy.anchor == 0.0 and pc.specialist.policy.hidden == (32, 32)
+    assert pc == PipelineConfig(out="o", specialist=SpecialistStage(count=2, ppo={"total_frames": 512},
+                                                                    policy={"hidden": (32, 32)}))
+    # env, reward, randomization and modulation keep only what differs from their classes' defaults
+    pc = PipelineConfig(out="o", env={"window": 300, "max_action": 0.2}, reward={"w_prox": 0.5, "w_goal": 2.0},
+                        modulator={"modulation": {"persistent": True}})
+    assert pc.env == {"max_action": 0.2} and pc.reward == {"w_goal": 2.0} and pc.modulator.modulation == {}
+    assert pc.env_config().max_action == 0.2 and pc.env_config().reward.w_goal == 2.0
+
+
+def _recipe_config(*overrides) -> PipelineConfig:
+    """``recipes/pipeline.yaml`` composed with ``overrides``, as the recipe reads it."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from adadex.train import schema
+
+    schema.register()
+    with initialize_config_dir(config_dir=str(ROOT / "recipes"), version_base="1.3"):
+        cfg = OmegaConf.to_container(compose(config_name="pipeline", overrides=list(overrides)), resolve=True)
+    assert cfg.pop("force") is False
+    return PipelineConfig.from_dict(cfg)
+
+
+def test_the_recipe_lists_only_changes_and_its_node_is_the_dataclass(tmp_path):
+    """``pipeline.yaml`` with the small preset is PipelineConfig's defaults but ``out``; the node the
+    recipe composes on holds every field of the dataclasses (the modulator group: every
+    ModulatorSettings field the pipeline does not set itself)."""
+    from adadex.modules.channels import ModulationConfig
+    from adadex.train.config import ModulatorSettings
+    from adadex.train.pipeline import STAGES
+    from adadex.train.schema import defaults_of
+
+    assert _recipe_config("preset=small") == PipelineConfig(out="runs/table1")
+    node = PipelineConfig.node()
+    assert list(node) == [f.name for f in dataclasses.fields(PipelineConfig)]
+    for name, cls in STAGES.items():
+        assert set(node[name]) == {f.name for f in dataclasses.fields(cls)}, name
+    assert set(node["specialist"]["ppo"]) == {f.name for f in dataclasses.fields(PPOConfig)}
+    assert node["specialist"]["ppo"]["total_frames"] == 250_000 and node["baseline"]["ppo"]["total_frames"] == 500_000
+    assert set(node["modulator"]["modulation"]) == {f.name for f in dataclasses.fields(ModulationConfig)}
+    assert set(node["env"]) == {f.name for f in dataclasses.fields(TrackingConfig)} - {"reward"}
+    settings = {f.name for f in dataclasses.fields(ModulatorSettings)} - {"tracker", "channels"}
+    assert settings <= set(node["modulator"])
+    own = defaults_of(ModulatorSettings)
+    assert all(node["modulator"][k] == own[k] for k in settings - {"modulation"})    # ModulatorSettings' defaults
+
+
+def test_a_nested_override_reaches_the_stage_it_names(tiny_dataset, tmp_path):
+    """``specialist.ppo.lr=…`` on the recipe's command line trains the specialists with it (and only
+    them); the preset's batch settings reach every training stage."""
+    from adadex.train.pipeline import Pipeline
+
+    pipe = Pipeline(_recipe_config("preset=tiny", f"out={tmp_path}", "specialist.ppo.lr=1e-4"))
+    pipe.ds = ReferenceDataset(tiny_dataset)
+    seen = []
+    pipe._ppo = lambda tc, label, teacher=None: seen.append(tc) or {"policy": f"p{len(seen)}"}
+    pipe.specialists(0, tmp_path / "seed_0")
+    pipe.baselines(0, tmp_path / "seed_0", "rollouts")
+    specialists, baselines = seen[:2], seen[2:]
+    assert len(specialists) == 2 and all(tc.ppo.lr == 1e-4 and tc.ppo.total_frames == 512 for tc in specialists)
+    assert all(tc.ppo.lr == PPOConfig().lr for tc in baselines)
+    assert all(tc.ppo.frames_per_batch == 256 and tc.env == {"window": 60} and tc.policy.hidden == (32, 32)
+               for tc in seen)
+
+
+def test_an_unknown_nested_key_is_refused_by_the_recipe(tiny_dataset, tmp_path):
+    r = _pipeline(tmp_path, tmp_path / "o", tiny_dataset, "specialist.ppo.lrr=1")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "'specialist.ppo.lrr'" in r.stderr, r.stderr
+    assert not (tmp_path / "o").exists()
 
 
 def test_randomization_changes_reach_training_rollouts_and_evaluation(tiny_dataset, tmp_path, monkeypatch):
@@ -159,7 +256,7 @@ def test_randomization_changes_reach_training_rollouts_and_evaluation(tiny_datas
 
     pipe = pipeline_module.Pipeline(PipelineConfig(out=str(tmp_path), randomization={"object_xy_std": 0.02}))
     pipe.ds = ReferenceDataset(tiny_dataset)
-    tc = pipe._train_config(tmp_path / "run", 0, 1000)
+    tc = pipe._train_config(tmp_path / "run", 0, pipe.cfg.specialist.ppo, pipe.cfg.specialist.policy)
     assert tc.randomization_config().object_xy_std == 0.02
     assert tc.randomization_config().object_yaw_std == PipelineConfig(out="o").randomization_config().object_yaw_std
     seen = {}
@@ -182,16 +279,20 @@ def test_randomization_changes_reach_training_rollouts_and_evaluation(tiny_datas
 
 
 def test_pipeline_trackers_are_unanchored_unless_asked(tiny_dataset, tmp_path):
-    """The pipeline trains plain residual trackers (POLICY_DEFAULTS), while PolicyConfig, which the
-    specialist recipes use, keeps its anchor; ``policy.anchor`` sets it back, other keys keep the default."""
+    """The pipeline trains plain residual trackers (the stages' ``policy`` default), while PolicyConfig,
+    which the specialist recipes use, keeps its anchor; ``specialist.policy.anchor`` sets it back, other
+    keys keep the default."""
     from adadex.train import pipeline as pipeline_module
     from adadex.train.config import PolicyConfig
 
     assert PolicyConfig().anchor > 0
     for policy, anchor in (({}, 0.0), ({"hidden": [32, 32]}, 0.0), ({"anchor": 0.05}, 0.05)):
-        pipe = pipeline_module.Pipeline(PipelineConfig(out=str(tmp_path), policy=policy))
-        pipe.ds = ReferenceDataset(tiny_dataset)
-        assert pipe._train_config(tmp_path / "run", 0, 1000).policy.anchor == anchor
+        for stage in ("specialist", "baseline"):
+            cfg = PipelineConfig(out=str(tmp_path), **{stage: {"policy": policy}})
+            pipe = pipeline_module.Pipeline(cfg)
+            pipe.ds = ReferenceDataset(tiny_dataset)
+            group = getattr(cfg, stage)
+            assert pipe._train_config(tmp_path / "run", 0, group.ppo, group.policy).policy.anchor == anchor
 
 
 def test_sim_backend_reaches_every_training_run_and_keys_the_stages(tiny_dataset, tmp_path):
@@ -201,7 +302,8 @@ def test_sim_backend_reaches_every_training_run_and_keys_the_stages(tiny_dataset
 
     pipe = pipeline_module.Pipeline(PipelineConfig(out=str(tmp_path), sim={"backend": "warp"}))
     pipe.ds = ReferenceDataset(tiny_dataset)
-    assert pipe.cfg.backend == "warp" and pipe._train_config(tmp_path / "run", 0, 1000).sim.backend == "warp"
+    tc = pipe._train_config(tmp_path / "run", 0, pipe.cfg.specialist.ppo, pipe.cfg.specialist.policy)
+    assert pipe.cfg.backend == "warp" and tc.sim.backend == "warp"
     stored = pipeline_module.Pipeline(PipelineConfig(out=str(tmp_path)))
     stored._stage(tmp_path / "st", {"a": 1}, lambda: {"r": 1}, label="st")
     with pytest.raises(ConfigError, match="sim_backend"):

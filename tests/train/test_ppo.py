@@ -266,7 +266,7 @@ def test_kill_9_then_resume_continues_from_the_checkpoint(tiny_dataset, tmp_path
             "collector.worlds=8", "collector.env_threads=1", "policy.hidden=[32,32]", "checkpoint_every=1",
             "wandb=false", "progress=false", "eval_max_references=2"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen(args + ["total_frames=100000"], env=env, stdout=subprocess.DEVNULL,
+    proc = subprocess.Popen(args + ["ppo.total_frames=100000"], env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 300
@@ -283,7 +283,7 @@ def test_kill_9_then_resume_continues_from_the_checkpoint(tiny_dataset, tmp_path
     saved = load_checkpoint(out)
     assert saved["iteration"] >= 2
     total = saved["frames"] + 512
-    done = subprocess.run(args + [f"total_frames={total}", "resume=true"], env=env, capture_output=True, text=True,
+    done = subprocess.run(args + [f"ppo.total_frames={total}", "resume=true"], env=env, capture_output=True, text=True,
                           timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     final = load_checkpoint(out)
@@ -412,12 +412,17 @@ def test_imitation_term_pulls_the_policy_to_the_teacher(tiny_dataset, tmp_path):
 
 
 REFUSALS = [   # (recipe, arguments, what its one line of stderr says)
-    ("train_modulator.py", ["tracker=/nonexistent/generalist.pt"], "no tracker checkpoint"),
-    ("train_modulator.py", [f"tracker={ROOT / 'README.md'}"], "README.md: not a readable tracker checkpoint"),
+    ("train_modulator.py", ["modulator.tracker=/nonexistent/generalist.pt"], "no tracker checkpoint"),
+    ("train_modulator.py", [f"modulator.tracker={ROOT / 'README.md'}"], "README.md: not a readable tracker checkpoint"),
+    ("train_modulator.py", [], "modulator.tracker is required"),
+    ("train_ppo.py", ["modulator.channels=R"], "give modulator.tracker"),
+    ("train_ppo.py", ["env.window=3"], "TrainConfig.env: window must be at least"),
+    ("train_ppo.py", ["split=unseen_object"], "TrainConfig.split must be [name, part]"),
     ("train_specialist.py", ["group=999"], "semantic group 999"),
     ("train_ppo.py", ["collector.backend=slurm"], "backend must be 'local' or 'ray'"),
-    ("train_ppo.py", ["+reward.w_alvie=1.0"], "RewardConfig: unknown keys ['w_alvie']"),
-    ("train_ppo.py", ["+randomization.object_mass=[1.3,0.7]"], "object_mass must be a range"),
+    ("train_ppo.py", ["reward.w_alvie=1.0"], "unknown setting 'reward.w_alvie'"),
+    ("train_ppo.py", ["reward.w_prox=-1"], "w_prox"),
+    ("train_ppo.py", ["randomization.object_mass=[1.3,0.7]"], "object_mass must be a range"),
 ]
 
 def test_recipes_refuse_bad_input_in_one_line(tiny_dataset, tmp_path):
@@ -484,10 +489,10 @@ def test_bad_learning_rate_bounds_are_refused():
 
 def test_reward_settings_reach_the_envs_a_run_trains_on(tiny_dataset, tmp_path):
     from adadex.envs.tracking import TrackingConfig
-    from adadex.train.recipe import train_config
+    from adadex.train.recipe import train_settings
 
-    tc = train_config({"dataset": str(tiny_dataset), "out": str(tmp_path / "run"),
-                       "reward": {"w_alive": 0.0, "w_prox": 2.0}})
+    tc, _ = train_settings({"dataset": str(tiny_dataset), "out": str(tmp_path / "run"),
+                            "reward": {"w_alive": 0.0, "w_prox": 2.0}})
     trainer = PPOTrainer(tc)
     env = trainer.env_factory(0)
     assert (env.config.reward.w_alive, env.config.reward.w_prox, env.config.reward.w_goal) == (0.0, 2.0, 1.0)
@@ -501,16 +506,16 @@ def test_reward_settings_reach_the_envs_a_run_trains_on(tiny_dataset, tmp_path):
 
 
 def test_randomization_settings_reach_the_envs_a_run_trains_on(tiny_dataset, tmp_path):
-    from adadex.train.recipe import train_config
+    from adadex.train.recipe import train_settings
 
-    tc = train_config({"dataset": str(tiny_dataset), "out": str(tmp_path / "run"),
-                       "randomization": {"action_noise_uncorrelated": 0.005, "object_mass": [0.9, 1.1]}})
+    tc, _ = train_settings({"dataset": str(tiny_dataset), "out": str(tmp_path / "run"),
+                            "randomization": {"action_noise_uncorrelated": 0.005, "object_mass": [0.9, 1.1]}})
     rnd = PPOTrainer(tc).env_factory(0).randomize
     assert (rnd.action_noise_uncorrelated, rnd.object_mass, rnd.object_xy_std) == (0.005, (0.9, 1.1), 0.05)
     assert TrainConfig.from_dict(tc.to_dict()).randomization_config() == rnd     # a resumed run reads them back
     off = TrainConfig(dataset="d", out="o", randomize=False, randomization={"object_xy_std": 0.0})
     assert off.randomization_config() is None
-    for bad, fragment in (({"object_xy_sd": 0.1}, "unknown keys ['object_xy_sd']"),
+    for bad, fragment in (({"object_xy_sd": 0.1}, "unknown setting 'object_xy_sd'"),
                           ({"object_mass": [1.3, 0.7]}, "object_mass must be a range"),
                           ({"proprio_noise": -1.0}, "proprio_noise"),
                           ({"effects": []}, "cannot be set here")):

@@ -23,7 +23,8 @@ replay + 15 says the target asks this specialist for more than removing the disp
 Writes ``benchmarks/results/specialist_quality.json`` (``replay``, ``specialist``, ``ppo``: each with
 ``completion_pct``, ``mean_error_pct``, ``T_o`` …, ``lifted_pct`` — the episodes whose object rose
 3 cm or more, of those whose reference lifts it — ``terminated_pct``, and ``completion_by_offset``,
-completion by how far the randomization displaced the object, ``failed_near``, the episodes displaced
+completion by how far the randomization displaced the object, ``per_episode`` (each episode's object
+offset and completion, in evaluation order: every run meets the same draws, so runs pair up), ``failed_near``, the episodes displaced
 less than 10 cm that failed and why, plus the training wall times) and keeps the runs
 (checkpoints, metrics.csv) under ``--runs``; rerunning resumes them. ``--ppo KEY=VALUE`` changes a
 PPO setting of both runs (``--ppo desired_kl=0``: the constant learning rate); ``--eval-anchor-reach M``
@@ -256,6 +257,8 @@ def main(argv=None) -> dict:
         rollouts = res.pop("rollouts")
         out["lifted_pct"], out["terminated_pct"] = _carried(rollouts)
         per_episode[name] = _episodes(rollouts)
+        out["per_episode"] = {"offset_m": [round(float(x), 5) for x in per_episode[name][0]],
+                              "completion": [round(float(x), 5) for x in per_episode[name][1]]}
         out["completion_by_offset"] = _by_offset(*per_episode[name])
         out["failed_near"] = f = _failures(rollouts, *per_episode[name])
         if randomize is not None:

@@ -105,14 +105,9 @@ def _modules(cfg):
 def _env(cfg):
     """The episodes' :class:`TrackingConfig` (``env``, ``reward``) and the randomization (Table 3 with the
     ``randomization`` changes when ``randomize``, else None); a bad setting is a :class:`ConfigError`."""
-    from adadex.train.config import randomization_with
-    from adadex.train.schema import RANDOMIZATION_CODE_ONLY, changes, env_settings
+    from adadex.train.schema import episode_settings
 
-    c = OmegaConf.to_container(cfg, resolve=True)
-    env = env_settings(c.get("env"), c.get("reward"), "evaluate")
-    rnd = randomization_with(changes(Randomization, c.get("randomization"), "evaluate.randomization",
-                                     drop=RANDOMIZATION_CODE_ONLY), "evaluate.randomization")
-    return env, (rnd if cfg.randomize else None)
+    return episode_settings(OmegaConf.to_container(cfg, resolve=True), "evaluate")
 
 
 def guard(cfg) -> None:

@@ -167,6 +167,20 @@ def env_settings(env: Mapping | None, reward: Mapping | None, where: str):
         raise ConfigError(f"{where}: {e}") from None
 
 
+def episode_settings(cfg: Mapping, where: str):
+    """(the :class:`~adadex.envs.tracking.TrackingConfig`, the Table 3 randomization or ``None``) of a
+    recipe with the ``env``, ``reward`` and ``randomization`` groups and a ``randomize`` switch
+    (``evaluate.py``, ``teacher_rollouts.py``); a bad key or value is one :class:`ConfigError` naming
+    ``where``."""
+    from adadex.envs.randomization import Randomization
+    from adadex.train.config import randomization_with
+
+    env = env_settings(cfg.get("env"), cfg.get("reward"), where)
+    rnd = randomization_with(changes(Randomization, cfg.get("randomization"), f"{where}.randomization",
+                                     drop=RANDOMIZATION_CODE_ONLY), f"{where}.randomization")
+    return env, (rnd if cfg.get("randomize") else None)
+
+
 #: the nodes :func:`register` stores: name → what builds it. ``adadex_env``, ``adadex_reward``,
 #: ``adadex_randomization`` and ``adadex_modulation`` are single groups for recipes that are not a
 #: config dataclass themselves (``defaults: [adadex_env@env, …]`` in ``evaluate.yaml``).

@@ -200,12 +200,12 @@ def test_recipes_end_to_end(made, tiny_dataset, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}      # this checkout's adadex, wherever the package is installed
     r = subprocess.run([*py, ROOT / "recipes/teacher_rollouts.py", f"dataset={tiny_dataset}", f"teachers={runs}",
                         f"out={tmp_path}/ro", "episodes_per_reference=3", "max_worlds=3", "env_threads=1",
-                        "criterion='completion>=0.1'", "progress=false"],
+                        "criterion='completion>=0.1'", "progress=false", "env.window=60"],
                        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     info = json.loads((tmp_path / "ro" / "rollouts.json").read_text())
     assert info["teachers"][0]["references"] == [5] and info["episodes_tried"] == 3
-    assert info["criterion"] == "completion>=0.1" and info["frames"] > 0
+    assert info["criterion"] == "completion>=0.1" and 0 < info["frames"] <= 3 * 60      # env.window reached it
     d = subprocess.run([*py, ROOT / "recipes/distill.py", f"rollouts={tmp_path}/ro", f"out={tmp_path}/gen", "steps=5",
                         "batch_size=64", "hidden=[32,32]", "wandb=false", "progress=false"],
                        cwd=tmp_path, env=env, capture_output=True, text=True,

@@ -209,3 +209,44 @@ def table_markdown(table: dict, *, title: str = "Table 1") -> str:
                                  f"{_diff_cell(e, 'carried_pct', '.1f')} | {_diff_cell(e, 'T_o', '.2f')} |")
             lines.append("")
     return "\n".join(lines)
+
+
+def o_channel_note(table: dict, rho_mean: float, *, lambda_latent: float, latent_dim: int = 64,
+                   action_bound: float = 0.05, action_dim: int = 22) -> dict:
+    """Whether channel O can act, and why not when it does not: the O-only row against the tracker
+    (unseen trajectories, randomized) beside how far O's largest edit can move the tracker's action.
+
+    O edits the object latent the tracker reads, ``f̃ = clip(f + λ·a, −1, 1)`` with ``a ∈ [−1, 1]^64``,
+    so its largest edit has norm ``λ·√64``; a tracker whose action moves ``ρ`` per unit of latent
+    (the latent smoothness of Fig. 12, :mod:`adadex.eval.latent_smoothness`) moves about ``ρ·λ·√64``
+    under it, to set against T's largest edit, ``action_bound·√22``. A row whose difference's interval
+    holds zero has no effect resolved.
+
+    Args:
+        table: the :func:`aggregate` structure (table1.json).
+        rho_mean: the generalist tracker's mean ρ (action norm per unit latent norm).
+        lambda_latent: O's step, :attr:`ModulationConfig.lambda_latent`.
+        latent_dim: the latent's size (64).
+        action_bound: T's bound per joint, :attr:`ModulationConfig.action_bound`.
+        action_dim: the action's size (22).
+
+    Returns:
+        ``{"diff", "diff_ci95", "resolved", "o_reach", "t_reach", "rho_mean", "text"}`` (``diff`` in
+        completion points; ``None`` without the O row or its paired difference).
+    """
+    row = table.get("unseen_trajectory", {}).get("randomized", {}).get("O", {})
+    diff = (row.get("diff_vs_tracker") or {}).get("completion_pct")
+    ci = (row.get("diff_vs_tracker_ci95") or {}).get("completion_pct")
+    o_reach = float(rho_mean) * lambda_latent * latent_dim ** 0.5
+    t_reach = action_bound * action_dim ** 0.5
+    resolved = None if ci is None else not (ci[0] <= 0.0 <= ci[1])
+    effect = ("no O row with a paired difference" if diff is None else
+              f"O alone {diff:+.1f} completion points against the tracker"
+              + ("" if ci is None else f" [{ci[0]:+.1f}, {ci[1]:+.1f}]")
+              + (", an effect resolved" if resolved else ", no effect resolved" if resolved is False else ""))
+    text = (f"**Channel O** (unseen trajectories, randomized): {effect}. The generalist's action moves "
+            f"ρ = {rho_mean:.3f} per unit of latent (Fig. 12), so O's largest edit (λ = {lambda_latent:g} on "
+            f"{latent_dim} latent entries) moves it about {o_reach:.3f} rad, against {t_reach:.3f} rad for T's "
+            f"largest edit: O can act only as far as the tracker reads the latent.")
+    return {"diff": diff, "diff_ci95": ci, "resolved": resolved, "o_reach": o_reach, "t_reach": t_reach,
+            "rho_mean": float(rho_mean), "text": text}

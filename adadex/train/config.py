@@ -54,9 +54,7 @@ class PPOConfig:
             always runs torch on one.
         desired_kl: > 0 adapts the learning rate to keep each minibatch's approximate KL near this
             value — ÷1.5 above 2×, ×1.5 below ½×, within [``lr_min``, ``lr_max``], the schedule of
-            large-batch dexterous PPO; 0: a constant ``lr``. The default, 0.016, because anchored
-            specialists trained with it completed more than with the constant 3e-4 on each of three
-            seeds (docs/training-log.md, "Learning-rate schedules"; docs/training.md).
+            large-batch dexterous PPO; 0: a constant ``lr`` (default 0.016; why: docs/training.md).
         lr_min: lower bound of the adapted or annealed learning rate (default 1e-6).
         lr_max: upper bound of the adapted learning rate (default 1e-2).
         anneal_lr: decay the learning rate linearly from ``lr`` at the first frame to ``lr_min`` at
@@ -66,9 +64,7 @@ class PPOConfig:
             batch; ``"running"`` — every normalizer holds the mean and standard deviation of all
             observations collected so far, merged after each iteration's update
             (:class:`~adadex.modules.nets.ObservationMoments`). The first batch holds only the
-            episodes' first steps, so it leaves a lifted object's height and the reference's future
-            object positions clipped; it stays the default because specialists trained with running
-            statistics completed less (docs/training-log.md, "Running observation statistics").
+            episodes' first steps (why it is the default: docs/training.md).
         device: where the policy, the critic, GAE and the minibatch updates run: ``"cpu"`` (default)
             or a CUDA device (``"cuda"``, ``"cuda:1"``). The env stays where its backend puts it (the
             host for ``sim.backend=rollout``, the GPU for ``warp``) and the collector stores each batch
@@ -203,30 +199,21 @@ class PolicyConfig:
         hidden: widths of the actor's and the critic's hidden layers (default (256, 256, 128)).
         residual: > 0 (default 0.25 rad): the action is kinematic replay plus a learned correction
             within ±``residual`` rad (see Tracker); the target is then q̂_{t+1} + correction, so this
-            bounds how far the policy may leave the reference. 0: a plain policy. 0.25 because a bound
-            of 0.05 could not reach an object Table 3 displaced (docs/training-log.md,
-            ``benchmarks/specialist_quality.py --residual``).
+            bounds how far the policy may leave the reference. 0: a plain policy.
         init_scale: initial pre-tanh exploration scale of the correction (default 0.05, ±0.0125 rad
-            at residual 0.25): chosen with the object anchor, because sampled wider the palm shakes a
-            grasped object loose and PPO learns to leave it; without the anchor a wider scale (0.5)
-            trained better (docs/training-log.md).
+            at residual 0.25).
         loc_bound: bound of the pre-tanh mean, ``b·tanh(loc/b)`` (TorchRL's tanh_loc; default 5; 0:
-            none). Unbounded, a specialist's mean grew until PPO's ratio overflowed and NaN reached
-            the weights (docs/training.md, "Numerical safety").
+            none; why: docs/training.md, "Numerical safety").
         anchor: > 0 (default 0.05 m): the feed-forward is replay of the reference shifted onto the
             object where it started the episode, fading out over this many metres of the reference
             object's travel (Tracker ``anchor``, :class:`~adadex.modules.anchor.ObjectAnchor`); 0:
-            plain replay. On by default because with it specialists keep a displaced object far
-            closer to its reference than replay does, and without it they do not
-            (docs/training-log.md).
+            plain replay.
         anchor_reach: > 0: objects displaced this far (m) or farther from the reference's start are
             left unanchored (Tracker ``anchor_reach``): holding them, every frame fails the paper's
             10 cm position threshold (:class:`~adadex.modules.anchor.ObjectAnchor`); 0 (default): no
             limit. Needs ``anchor`` > 0.
         anchor_iterations: Gauss–Newton steps placing the anchored palm (Tracker
-            ``anchor_iterations``; default 3): one, the linearization alone, leaves the palm about a
-            centimetre off at an 8 cm shift (docs/training-log.md, "The anchored palm placed
-            exactly").
+            ``anchor_iterations``; default 3; 1: the linearization alone).
     """
 
     hidden: tuple[int, ...] = (256, 256, 128)
@@ -273,9 +260,8 @@ class ModulatorSettings:
         hidden: widths of the modulator's trunk and critic hidden layers (default (256, 256, 128)).
         init_scale: initial exploration scale (pre-tanh): ``None`` (default) — each channel's own,
             sized so that sampling an untrained modulator leaves the tracker's success intact
-            (``CHANNELS[c].init_scale``); a number for all channels (a wide one, such as the former
-            default 0.5, costs the tracker completion as soon as it is sampled: docs/modulation.md,
-            "Exploration sized per channel"); or ``{channel: scale}``.
+            (``CHANNELS[c].init_scale``; docs/modulation.md, "Exploration sized per channel"); a number
+            for all channels; or ``{channel: scale}``.
         loc_bound: bound of the pre-tanh mean, as :attr:`PolicyConfig.loc_bound` (default 5).
         modulation: :class:`~adadex.modules.channels.ModulationConfig` fields to override (λ's,
             bounds, persistence; default none).
@@ -285,9 +271,7 @@ class ModulatorSettings:
         history: previous frames in the view (default 3).
         prior: ``"anchor"``: channel C's palm action is an offset around the object anchor's palm
             shift (the untrained modulator *is* the anchored feed-forward); ``None`` (default): around
-            zero. See :class:`~adadex.modules.modulator.Modulator`; not the default because with it PPO
-            kept the anchored feed-forward's trade of completion for object completion and learned
-            nothing on top (docs/modulation.md).
+            zero. See :class:`~adadex.modules.modulator.Modulator` and docs/modulation.md.
         hold_steps: > 0: while sampling, the ``hold_scale`` entries are shifted by noise redrawn every
             ``hold_steps`` steps and held in between (exploration that lasts long enough to reach;
             PPO's ratios stay exact); 0 (default): no held noise.

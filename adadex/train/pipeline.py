@@ -762,9 +762,22 @@ class Pipeline:
             self.log(f"seed {seed}: generalist − teacher on each teacher's references (completion points): "
                      + ", ".join(f"{c['generalist_minus_teacher']:+.1f}" for c in checks))
         figures = self.figures(table, scaling, paths_by_seed[self.cfg.seeds[0]], self.cfg.seeds[0])
+        note = self.o_channel(table)
+        atomic_write_text(self.out / "table1.md", table_markdown(table) + "\n" + note["text"] + "\n")
+        self.log(note["text"])
         wall = time.perf_counter() - t0
         self.log(f"table1: {self.out / 'table1.md'} ({wall:.0f} s)")
         return {"table": table, "figures": figures, "wall_s": wall}
+
+    def o_channel(self, table: dict) -> dict:
+        """Whether channel O acts (:func:`adadex.eval.table1.o_channel_note`, with the first seed's
+        generalist's latent smoothness from ``figures/smoothness.json``); written below the table."""
+        from adadex.eval.table1 import o_channel_note
+        from adadex.modules.channels import ModulationConfig
+
+        rho = json.loads((self.out / "figures" / "smoothness.json").read_text(encoding="utf-8"))["tracker"]["mean"]
+        m = ModulationConfig(**self.cfg.modulator.modulation)
+        return o_channel_note(table, rho, lambda_latent=m.lambda_latent, action_bound=m.action_bound)
 
     def figures(self, table: dict, scaling: dict, paths: dict, seed: int) -> dict[str, str]:
         """``out/figures/`` (:func:`adadex.train.pipeline_figures.pipeline_figures`)."""

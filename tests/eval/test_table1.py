@@ -110,3 +110,15 @@ def test_old_style_summaries_without_per_episode_results_still_load():
 
 def test_every_metric_has_a_per_episode_field():
     assert set(EPISODE_FIELDS) == set(METRICS)
+
+def test_o_channel_note_says_whether_o_acts_and_how_far_it_reaches():
+    from adadex.eval.table1 import o_channel_note
+
+    table = {"unseen_trajectory": {"randomized": {"O": {"diff_vs_tracker": {"completion_pct": 0.4},
+                                                        "diff_vs_tracker_ci95": {"completion_pct": [-1.0, 1.8]}}}}}
+    note = o_channel_note(table, 0.05, lambda_latent=0.25)
+    assert note["resolved"] is False and "no effect resolved" in note["text"]
+    assert note["o_reach"] == pytest.approx(0.05 * 0.25 * 8) and note["t_reach"] == pytest.approx(0.05 * 22 ** 0.5)
+    table["unseen_trajectory"]["randomized"]["O"]["diff_vs_tracker_ci95"]["completion_pct"] = [0.1, 0.9]
+    assert o_channel_note(table, 0.05, lambda_latent=0.25)["resolved"] is True
+    assert o_channel_note({}, 0.05, lambda_latent=0.25)["diff"] is None

@@ -98,6 +98,9 @@ def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
     episodes = marker["result"]["per_episode"]
     assert len(episodes["completion"]) == marker["result"]["summary"]["trajectories"] and "carried" in episodes
     assert "Difference to the tracker" in md
+    # below the table: whether O acts, with the O row's difference and how far O can move the tracker
+    rho = json.loads((out / "figures" / "smoothness.json").read_text())["tracker"]["mean"]
+    assert "**Channel O**" in md and f"ρ = {rho:.3f}" in md and f"{rho * 0.25 * 8:.3f} rad" in md
     assert Tracker.load(seed0 / "generalist" / "tracker.pt").config["residual"] == 0.25
     # the IL+RL baseline trained with the imitation term, vanilla PPO without
     il = (seed0 / "baselines" / "il_rl" / "metrics.csv").read_text().splitlines()[0]

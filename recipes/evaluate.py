@@ -23,7 +23,6 @@ from omegaconf import DictConfig, OmegaConf
 from adadex.data.reference import ReferenceDataset, SplitError
 from adadex.errors import AdadexError, ConfigError, check_number, exit_on_error
 from adadex.envs.replay import replay_policy
-from adadex.envs.randomization import Randomization
 from adadex.eval.evaluate import evaluate, format_summary
 from adadex.eval.latent_smoothness import latent_smoothness, plot_latent_smoothness
 from adadex.io import atomic_write_text, output_kind

@@ -33,7 +33,21 @@ CONFIG = Path(__file__).with_name("sim2real.yaml")
 
 
 def keys() -> dict:
-    return yaml_keys(CONFIG)
+    """What the recipe accepts: sim2real.yaml's keys and every :class:`Sim2RealPreset` field (a change to
+    the preset's value; ``reward.*``: :class:`RewardConfig` fields)."""
+    from adadex.train.schema import keys as node_keys
+    from adadex.train.sim2real import PRESET_FIELDS
+
+    return yaml_keys(CONFIG, **{k: None for k in PRESET_FIELDS if k not in ("dataset", "reward")},
+                     reward=node_keys("adadex_reward"))
+
+
+def preset_changes(cfg) -> dict:
+    """The :class:`Sim2RealPreset` fields the command line set (lists as tuples)."""
+    from adadex.train.sim2real import PRESET_FIELDS
+
+    c = OmegaConf.to_container(cfg, resolve=True)
+    return {k: tuple(c[k]) if isinstance(c[k], list) else c[k] for k in PRESET_FIELDS if k in c and k != "dataset"}
 
 
 def config(argv: list[str]):
@@ -57,7 +71,7 @@ def guard(cfg) -> None:
     """What is checked before any work: the preset, the hidden robot, the tracker, then ``out``."""
     from adadex.train.sim2real import HiddenRobot, check_out, preset
 
-    preset(str(cfg.preset), backend=cfg.backend, device=cfg.device)
+    preset(str(cfg.preset), **preset_changes(cfg))
     HiddenRobot(cfg.real)
     if str(cfg.tracker) != "replay" and not Path(str(cfg.tracker)).is_file():
         raise FileNotFoundError(f"tracker={cfg.tracker}: no such checkpoint file")
@@ -72,10 +86,7 @@ def main(argv: list[str] | None = None) -> dict:
         guard(cfg)
         result = run_sim2real(str(cfg.real), str(cfg.out), tracker=str(cfg.tracker), preset_name=str(cfg.preset),
                               seed=int(cfg.seed), dataset=cfg.dataset, oracle=bool(cfg.oracle), force=bool(cfg.force),
-                              progress=bool(cfg.progress), threads=int(cfg.threads), channels=cfg.channels,
-                              frames=cfg.frames, eval_repeats=cfg.eval_repeats,
-                              frames_per_batch=cfg.frames_per_batch, gamma=cfg.gamma, lmbda=cfg.lmbda,
-                              backend=cfg.backend, device=cfg.device)
+                              progress=bool(cfg.progress), threads=int(cfg.threads), **preset_changes(cfg))
     print()
     print(format_table(result))
     print(f"minutes per stage: {result['stage_minutes']}")

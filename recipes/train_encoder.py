@@ -11,7 +11,6 @@ writes into it); an earlier output is replaced.
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import hydra
 import torch
@@ -25,7 +24,6 @@ from adadex.train.recipe import (
     check_recipe_out,
     claim_recipe_out,
     recipe_main,
-    yaml_keys,
 )
 
 
@@ -35,8 +33,10 @@ def guard(cfg) -> None:
 
 
 def keys() -> dict:
-    """What the recipe accepts: encoder.yaml's keys."""
-    return yaml_keys(Path(__file__).with_name("encoder.yaml"))
+    """What the recipe accepts: the ``adadex_encoder`` node's keys (:func:`adadex.train.schema.encoder_node`)."""
+    from adadex.train.schema import keys as node_keys
+
+    return node_keys("adadex_encoder")
 
 
 @hydra.main(config_path=".", config_name="encoder", version_base="1.3")

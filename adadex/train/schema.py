@@ -152,6 +152,14 @@ def distill_node() -> dict:
     return {**defaults_of(DistillConfig), "force": False}
 
 
+def encoder_node() -> dict:
+    """The encoder recipe's node (``adadex_encoder``): :class:`~adadex.train.encoder.TrainSettings`' fields,
+    ``threads`` (torch threads; null: torch's default), ``out`` and ``force``."""
+    from adadex.train.encoder import TrainSettings
+
+    return {**defaults_of(TrainSettings), "threads": None, "out": MISSING, "force": False}
+
+
 def env_settings(env: Mapping | None, reward: Mapping | None, where: str):
     """The :class:`~adadex.envs.tracking.TrackingConfig` with ``env`` and ``reward`` changes (an evaluation
     recipe's ``env`` and ``reward`` nodes); a bad key or value is one :class:`ConfigError` naming
@@ -186,6 +194,7 @@ def episode_settings(cfg: Mapping, where: str):
 #: config dataclass themselves (``defaults: [adadex_env@env, …]`` in ``evaluate.yaml``).
 NODES: dict[str, Callable[[], dict]] = {
     "adadex_train": train_node, "adadex_pipeline": pipeline_node, "adadex_distill": distill_node,
+    "adadex_encoder": encoder_node,
     "adadex_env": lambda: change_nodes()["env"], "adadex_reward": lambda: change_nodes()["reward"],
     "adadex_randomization": lambda: change_nodes()["randomization"], "adadex_modulation": modulation_node}
 

@@ -52,7 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
-from adadex.errors import AdadexError, ConfigError
+from adadex.errors import AdadexError, ConfigError, check_number
 from adadex.sim.robot import JOINT_NAMES
 
 #: the kind of output folder the recipe writes (its marker, :mod:`adadex.io`)
@@ -125,14 +125,40 @@ PRESETS = {
 }
 
 
+#: the fields of :class:`Sim2RealPreset` (each a key of ``recipes/sim2real.py``)
+PRESET_FIELDS = tuple(f.name for f in dataclasses.fields(Sim2RealPreset))
+
+
 def preset(name: str, **changes) -> Sim2RealPreset:
-    """The preset ``name`` with ``changes`` (fields whose value is not None)."""
+    """The preset ``name`` with ``changes`` (fields whose value is not None; ``reward`` changes the
+    preset's reward settings it names), checked before any work: a bad value is one
+    :class:`ConfigError` naming the key."""
+    from adadex.envs.reward import RewardConfig
+    from adadex.envs.tracking import TrackingConfig
+    from adadex.modules.channels import ModulationLayout
     from adadex.train.config import SimConfig
 
     if name not in PRESETS:
         raise ConfigError(f"preset={name}: no such preset; known: {', '.join(PRESETS)}")
-    p = dataclasses.replace(PRESETS[name], **{k: v for k, v in changes.items() if v is not None})
+    unknown = sorted(set(changes) - set(PRESET_FIELDS))
+    if unknown:
+        raise ConfigError(f"{unknown[0]}: not a Sim2RealPreset field (known: {', '.join(PRESET_FIELDS)})")
+    changes = {k: v for k, v in changes.items() if v is not None}
+    if "reward" in changes:
+        changes["reward"] = {**PRESETS[name].reward, **dict(changes["reward"])}
+    p = dataclasses.replace(PRESETS[name], **changes)
+    for key in ("eval_repeats", "worlds", "frames", "frames_per_batch", "minibatch_size", "epochs"):
+        check_number(key, getattr(p, key), low=1, integer=True)
+    for key, check in (("window", lambda: TrackingConfig(window=p.window)),
+                       ("reward", lambda: RewardConfig(**p.reward)),
+                       ("channels", lambda: ModulationLayout(p.channels))):
+        try:
+            check()
+        except (ConfigError, ValueError, TypeError) as e:
+            raise ConfigError(f"{key}={getattr(p, key)}: {e}") from None
     # a bad backend or device is refused before any work, named as the recipe's keys
+    for key in ("gamma", "lmbda"):
+        check_number(key, getattr(p, key), high=1.0)
     for key, check in (("backend", lambda: SimConfig(backend=p.backend)), ("device", lambda: _ppo_config(p))):
         try:
             check()

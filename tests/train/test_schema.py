@@ -17,7 +17,8 @@ from adadex.train.recipe import train_settings
 
 RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 #: recipe file → the node its defaults list names first
-ON_NODES = {"train_common": "adadex_train", "pipeline": "adadex_pipeline", "distill": "adadex_distill"}
+ON_NODES = {"train_common": "adadex_train", "pipeline": "adadex_pipeline", "distill": "adadex_distill",
+            "encoder": "adadex_encoder"}
 
 
 def _compose(name: str, overrides=()):

@@ -18,7 +18,7 @@ from adadex.errors import exit_on_error
 from adadex.train.checkpoint import DISTILLATION_RUN, check_run, start_run
 from adadex.train.distill import DistillConfig, distill
 from adadex.train.recipe import check_keys, hydra_files, recipe_main
-from adadex.train.schema import keys
+from adadex.train.config_store import keys
 
 KEYS = keys("adadex_distill")      # DistillConfig's fields and force
 

@@ -104,7 +104,7 @@ def _modules(cfg):
 def _env(cfg):
     """The episodes' :class:`TrackingConfig` (``env``, ``reward``) and the randomization (Table 3 with the
     ``randomization`` changes when ``randomize``, else None); a bad setting is a :class:`ConfigError`."""
-    from adadex.train.schema import episode_settings
+    from adadex.train.config_store import episode_settings
 
     return episode_settings(OmegaConf.to_container(cfg, resolve=True), "evaluate")
 
@@ -118,7 +118,7 @@ def guard(cfg) -> None:
 def keys() -> dict:
     """What the recipe accepts: evaluate.yaml's keys and the fields of its groups (``modulation``,
     ``env``, ``reward``, ``randomization``)."""
-    from adadex.train.schema import keys as node_keys
+    from adadex.train.config_store import keys as node_keys
 
     return yaml_keys(Path(__file__).with_name("evaluate.yaml"),
                      **{g: node_keys(f"adadex_{g}") for g in ("modulation", "env", "reward", "randomization")})

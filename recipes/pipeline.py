@@ -19,16 +19,16 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from adadex.errors import exit_on_error
-from adadex.train import schema
+from adadex.train import config_store
 from adadex.train.recipe import check_keys, hydra_files, recipe_main
 
-schema.register()                    # the adadex_pipeline node that pipeline.yaml's defaults list names
+config_store.register()                    # the adadex_pipeline node that pipeline.yaml's defaults list names
 
 
 def keys() -> dict:
     """What the recipe accepts: PipelineConfig's fields and its groups' (the ``adadex_pipeline`` node's
     keys, ``force`` among them) and ``preset``."""
-    return {**schema.keys("adadex_pipeline"), "preset": None}
+    return {**config_store.keys("adadex_pipeline"), "preset": None}
 
 
 def _config(cfg):

@@ -22,7 +22,7 @@ from adadex.train.rollouts import specialist_teachers, teacher_rollouts
 def keys() -> dict:
     """What the recipe accepts: teacher_rollouts.yaml's keys and the fields of its groups (``env``,
     ``reward``, ``randomization``)."""
-    from adadex.train.schema import keys as node_keys
+    from adadex.train.config_store import keys as node_keys
 
     return yaml_keys(Path(__file__).with_name("teacher_rollouts.yaml"),
                      **{g: node_keys(f"adadex_{g}") for g in ("env", "reward", "randomization")})
@@ -32,7 +32,7 @@ def keys() -> dict:
 def main(cfg: DictConfig) -> dict:
     with exit_on_error("recipes/teacher_rollouts.py"):       # input errors: one line, exit code 2
         check_keys(cfg, keys())
-        from adadex.train.schema import episode_settings
+        from adadex.train.config_store import episode_settings
 
         env, randomize = episode_settings(OmegaConf.to_container(cfg, resolve=True), "teacher_rollouts")
         teachers = specialist_teachers(cfg.teachers, cfg.dataset)

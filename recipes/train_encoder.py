@@ -33,8 +33,8 @@ def guard(cfg) -> None:
 
 
 def keys() -> dict:
-    """What the recipe accepts: the ``adadex_encoder`` node's keys (:func:`adadex.train.schema.encoder_node`)."""
-    from adadex.train.schema import keys as node_keys
+    """What the recipe accepts: the ``adadex_encoder`` node's keys (:func:`adadex.train.config_store.encoder_node`)."""
+    from adadex.train.config_store import keys as node_keys
 
     return node_keys("adadex_encoder")
 

@@ -136,6 +136,22 @@ class Tracker(ActorCritic):
         self.critic = make_critic(OBSERVATION, OBS_DIM, hidden)
 
     @classmethod
+    def from_config(cls, config, max_action: float | None = None) -> Tracker:
+        """The tracker a :class:`~adadex.train.config.PolicyConfig` describes (what the training recipes
+        train: ``Tracker.from_config(PolicyConfig())``); the constructor's own defaults describe a plain
+        tracker (no residual, no anchor). ``max_action``: the env's action bound (default the
+        constructor's).
+
+        >>> from adadex.train.config import PolicyConfig
+        >>> Tracker.from_config(PolicyConfig(hidden=(32,))).config["residual"]
+        0.25
+        """
+        extra = {} if max_action is None else {"max_action": max_action}
+        return cls(hidden=config.hidden, init_scale=config.init_scale, residual=config.residual,
+                   loc_bound=config.loc_bound, anchor=config.anchor, anchor_reach=config.anchor_reach,
+                   anchor_iterations=config.anchor_iterations, **extra)
+
+    @classmethod
     def replay(cls, hidden: Sequence[int] = (16,), max_action: float = 0.1, residual: float = 0.25) -> Tracker:
         """Kinematic replay as a tracker: a residual tracker whose correction is exactly zero (its
         heads zeroed), so its deterministic action is replay's (to float32 rounding). A frozen

@@ -238,10 +238,7 @@ class PolicyConfig:
         the env's action bound (``TrackingConfig.max_action``; default the Tracker's own)."""
         from adadex.modules.tracker import Tracker
 
-        extra = {} if max_action is None else {"max_action": max_action}
-        return Tracker(hidden=self.hidden, init_scale=self.init_scale, residual=self.residual,
-                       loc_bound=self.loc_bound, anchor=self.anchor, anchor_reach=self.anchor_reach,
-                       anchor_iterations=self.anchor_iterations, **extra)
+        return Tracker.from_config(self, max_action=max_action)
 
 
 @dataclass

@@ -451,7 +451,7 @@ class PipelineConfig:
 
     @classmethod
     def node(cls) -> dict:
-        """The recipe's node (:func:`adadex.train.schema.pipeline_node`): every field with its default,
+        """The recipe's node (:func:`adadex.train.config_store.pipeline_node`): every field with its default,
         the stage groups as their defaults' mappings, ``env``/``reward``/``randomization`` and
         ``modulator.modulation`` with every field of their classes."""
         from adadex.train.schema import change_nodes, defaults_of, modulation_node

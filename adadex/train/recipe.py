@@ -1,7 +1,7 @@
 """From a Hydra recipe's config (``recipes/*.yaml``) to a run: strict keys, the output guard, one error contract.
 
 The recipes stay thin: their keys are the config dataclasses' fields (the ConfigStore nodes of
-:mod:`adadex.train.schema`, which :func:`recipe_main` registers), so a composed PPO recipe config *is*
+:mod:`adadex.train.config_store`, which :func:`recipe_main` registers), so a composed PPO recipe config *is*
 a :class:`TrainConfig` plus the recipe's ``force`` and ``build_preset`` (:func:`train_settings`);
 :func:`run` builds the dataset if asked and trains.
 
@@ -11,7 +11,7 @@ runs):
 
 * **strict keys** — a setting the recipe does not know (``+foo=1``, ``ppo.foo=1``, ``+ppo.foo=1``,
   ``+preset=tiny`` on a training recipe) is refused with one line naming it and the known ones. What
-  is known comes from the config dataclasses (:func:`adadex.train.schema.keys`; :func:`dataclass_keys`
+  is known comes from the config dataclasses (:func:`adadex.train.config_store.keys`; :func:`dataclass_keys`
   for a flat one), not from a second list kept by hand;
 * **the output guard** — the recipe's ``guard`` (for a training run :func:`check_training_out`; for
   ``evaluate.py`` and ``train_encoder.py`` :func:`check_recipe_out`) on the composed config, so a user's
@@ -72,7 +72,7 @@ def train_keys() -> dict:
     fields, every field of the configs nested in it (``ppo``, ``collector``, ``sim``, ``policy``,
     ``modulator`` with ``modulation``, ``env``, ``reward``, ``randomization``) and :data:`RECIPE_OPTIONS`
     — the ``adadex_train`` node's keys."""
-    from adadex.train.schema import keys
+    from adadex.train.config_store import keys
 
     return keys("adadex_train")
 
@@ -172,7 +172,7 @@ def recipe_main(main: Callable, *, schema: dict, guard: Callable | None = None, 
 
     from omegaconf.errors import OmegaConfBaseException
 
-    from adadex.train.schema import register
+    from adadex.train.config_store import register
 
     register()                       # the config nodes the recipes' defaults lists name
     file = Path(inspect.getfile(getattr(main, "__wrapped__", main)))

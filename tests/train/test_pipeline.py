@@ -190,9 +190,9 @@ def _recipe_config(*overrides) -> PipelineConfig:
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from adadex.train import schema
+    from adadex.train import config_store
 
-    schema.register()
+    config_store.register()
     with initialize_config_dir(config_dir=str(ROOT / "recipes"), version_base="1.3"):
         cfg = OmegaConf.to_container(compose(config_name="pipeline", overrides=list(overrides)), resolve=True)
     assert cfg.pop("force") is False

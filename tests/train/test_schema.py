@@ -11,7 +11,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from adadex.errors import ConfigError
-from adadex.train import schema
+from adadex.train import config_store, schema
 from adadex.train.config import ModulatorSettings, PolicyConfig, PPOConfig, TrainConfig
 from adadex.train.recipe import train_settings
 
@@ -24,7 +24,7 @@ ON_NODES = {"train_common": "adadex_train", "pipeline": "adadex_pipeline", "dist
 def _compose(name: str, overrides=()):
     from hydra import compose, initialize_config_dir
 
-    schema.register()
+    config_store.register()
     with initialize_config_dir(config_dir=str(RECIPES), version_base="1.3"):
         return compose(config_name=name, overrides=list(overrides))
 
@@ -49,7 +49,7 @@ def test_recipe_files_repeat_no_default(recipe, node):
     copy of a default is how two defaults for one setting began)."""
     own = OmegaConf.to_container(OmegaConf.load(RECIPES / f"{recipe}.yaml"), resolve=False)
     own = {k: v for k, v in own.items() if k not in ("defaults", "hydra")}
-    base = schema.NODES[node]()
+    base = config_store.NODES[node]()
     for key, value in _leaves(own):
         default = _get(base, key)          # KeyError: a key that is not a field
         assert value != default, f"recipes/{recipe}.yaml repeats the default {key}={value!r}"
@@ -58,7 +58,7 @@ def test_recipe_files_repeat_no_default(recipe, node):
 def test_every_train_field_is_settable_without_plus_and_reaches_trainconfig():
     """Each leaf of the adadex_train node can be set on the command line as ``key=value`` (no ``+``), and
     a changed value reaches the TrainConfig the recipe trains with."""
-    node = schema.train_node()
+    node = config_store.train_node()
     leaves = dict(_leaves(node))
     assert {"ppo.total_frames", "collector.ray_address", "modulator.channels", "modulator.modulation.persistent",
             "env.window", "reward.w_prox", "randomization.object_xy_std", "policy.anchor", "sim.backend"} <= set(leaves)
@@ -93,7 +93,7 @@ def test_modulator_node_is_modulator_settings(tmp_path):
                                                         "modulator.modulation.persistent=false"]))
     assert isinstance(tc.modulator, ModulatorSettings)
     assert (tc.modulator.channels, tc.modulator.history, tc.modulator.modulation) == ("R+T", 0, {"persistent": False})
-    node = schema.train_node()["modulator"]
+    node = config_store.train_node()["modulator"]
     assert set(node) == {f.name for f in dataclasses.fields(ModulatorSettings)}
 
 

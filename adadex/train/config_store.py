@@ -12,7 +12,7 @@ stores every node of :data:`NODES`, and :func:`keys` is a node's strict-key sche
       total_frames: 250000
 
 >>> sorted(keys("adadex_distill"))[:3]
-['batch_size', 'checkpoint_every', 'fraction']
+['batch_size', 'checkpoint_every', 'force']
 """
 
 from __future__ import annotations

@@ -10,6 +10,29 @@ error, so that every regime counts alike:
 
     reduction = mean over sequences of 1 − (MSE_after − σ²) / (MSE_before − σ²)
 
+Friction is scored on the cost it is fitted on. A free replay of a Coulomb friction is chaotic
+(:mod:`adadex.sysid.fit`): the stick–slip timing of a fast, torque-limited sequence diverges even at the
+true value, so the free replay's error of a held-out sequence need not fall with the true effect (0.5 N·m
+added to arm_j3 by an MjSpec edit, 2 s pre-roll, noise: fitted at 0.4995 N·m, scored 0 %, verdict
+unexplained, nothing stored). An effect of :data:`~adadex.sysid.fit.WINDOWED_EFFECTS` is therefore scored
+on the windowed cost its fit locates it on — 0.25-s windows restarted from the measured positions, the
+worst 10 % of a joint's windows trimmed, each sequence's mean over its kept windows
+(:meth:`~adadex.sysid.fit.JointFitter.window_mse_per_sequence`) — against the same windowed cost of the
+model without it, in the reduction above; so is every set that holds one: a further effect chosen on the
+same joint on top of it, a joint's selected effects scored together, the margin of an effect on such a
+joint in the selection rule (below), and the shared effect-and-load pair of such an effect. Every other
+effect and set is scored on the free replay, as before. Each hypothesis, selected effect and per-joint
+finding says which cost it was scored on (``scored_by``: ``"windowed"`` or ``"replay"``); candidates
+scored on either are ranked together. The noise floor σ² is the same: a window restarts from noisy
+measured positions, so at the true model its error holds the sensor noise plus what the window keeps of
+the restart's noise; measured on friction simulated with the library (noise 2e-4 rad, the default
+16-sequence excitation of one joint; 0.5 N·m on arm_j3, 0.2 on arm_j5, 0.05 on rf_pip and on if_dip), the
+windowed cost at the truth is 1.02–1.24 × the noise variance (median over sequences; at most 1.71 ×, on
+arm_j3) where the free replay's is 1.01 ×, both well under σ² as :func:`~adadex.sysid.compare.noise_floor`
+estimates it from those recordings (5.6–22 × the noise variance on a joint that moves); where σ² is the
+noise variance itself (a joint mostly holding its pose), a sequence scored at the least excess that counts
+(2 σ²) keeps at most 36 % of it at the truth, and one with a large excess next to none.
+
 Candidates are ranked by held-out reduction minus a complexity penalty per parameter. Forward
 selection then adds further effects on the same joint while each adds at least
 ``min_gain`` of held-out reduction. Candidates whose held-out reduction is within ``tie`` of the
@@ -90,7 +113,8 @@ from adadex.progress import progress_bar
 from adadex.sim.effects import EFFECT_NAMES, get_effect, robot_ids
 from adadex.sim.patch import EffectInstance, ModelPatch
 from adadex.sysid.compare import FAIL_ABS, FAIL_RATIO, compare, heldout_mask, localize, noise_floor
-from adadex.sysid.fit import CoupledFitter, JointFitter
+from adadex.sysid.fit import (WINDOW_S, WINDOWED_EFFECTS, CoupledFitter, JointFitter, window_length,
+                              window_mse_per_sequence, window_rows)
 from adadex.sysid.replay import Replayer
 
 COMPLEXITY_PENALTY = 0.02
@@ -125,6 +149,9 @@ class Candidate:
     #: the values and 95 % intervals of the effect's further parameters (a payload's offset), when fitted
     extra: tuple[float, ...] = ()
     extra_ci95: tuple[tuple[float, float], ...] = ()
+    #: the cost its error reductions were measured on: ``"replay"`` (free replay) or ``"windowed"``
+    #: (multiple shooting, for an effect of :data:`~adadex.sysid.fit.WINDOWED_EFFECTS` or a set holding one)
+    scored_by: str = "replay"
 
     @property
     def values(self) -> list[float]:
@@ -150,13 +177,20 @@ class Diagnosis:
             ``params`` and ``ci95`` (by parameter name: a value, and a ``[lo, hi]`` 95 % interval, per
             joint), ``train_error_reduction`` and ``heldout_error_reduction`` (fractions of the excess
             error; the held-out one ``None`` when scored on training sequences), ``score``,
-            ``alternatives`` (look-alike effects) and ``scored_on`` (``"heldout"`` or ``"train"``).
+            ``alternatives`` (look-alike effects), ``scored_on`` (``"heldout"`` or ``"train"``) and
+            ``scored_by``: the cost the reductions were measured on, ``"windowed"`` (an effect of
+            :data:`~adadex.sysid.fit.WINDOWED_EFFECTS`, Coulomb friction, or one chosen on top of it:
+            0.25-s windows restarted from the measured positions, see the module docstring) or
+            ``"replay"`` (a free replay; every other effect). Absent in a file written before it.
         selected: the effects chosen, one dict per effect over all the joints it was chosen on:
             ``effect``, ``joints``, ``params`` and ``ci95`` (by parameter name, one entry per joint),
-            ``heldout_error_reduction``, ``identifiable`` and ``scored_on`` (one per joint),
+            ``heldout_error_reduction``, ``identifiable``, ``scored_on`` and ``scored_by`` (one per joint;
+            ``scored_by`` as a hypothesis', for the joint's selected effects scored together),
             ``alternatives`` and ``unit`` (the first parameter's).
         explained_fraction: by failing joint, the fraction of its held-out excess error the selected
-            effects remove, in [0, 1] (empty when nothing is missing).
+            effects remove, in [0, 1] (empty when nothing is missing); on the windowed cost for a joint whose
+            selected effects hold a windowed one (its ``selected`` entry's ``scored_by`` and its finding
+            say so), on the free replay otherwise.
         findings: the findings in sentences: the localization's, then what the diagnosis found (a load,
             knock-on joints, suggestions), ending with one per failing joint (and, when unexplained,
             one naming the joints left unexplained).
@@ -258,6 +292,16 @@ def _reduction(before, after, noise2: float) -> float:
         return 0.0
     red = 1.0 - np.maximum(after[keep] - noise2, 0.0) / excess[keep]
     return float(np.mean(np.clip(red, -1.0, 1.0)))
+
+
+def _windowed(effects) -> bool:
+    """Whether a set of effects (names or candidates) is scored on the windowed cost: it holds an effect of
+    :data:`~adadex.sysid.fit.WINDOWED_EFFECTS` (see the module docstring)."""
+    return any((e if isinstance(e, str) else e.effect) in WINDOWED_EFFECTS for e in effects)
+
+
+def _scored_by(windowed: bool) -> str:
+    return "windowed" if windowed else "replay"
 
 
 def _patch_of(selected_per_joint: dict, base: ModelPatch) -> ModelPatch:
@@ -551,11 +595,13 @@ def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects
     chosen: list[Candidate] = []
     patch = setting.base_patch if patch is None else patch
     held_before = JointFitter(setting.replayer, joint, held, patch).mse_per_sequence(patch)
+    start = patch
     first_round: list[Candidate] = []
     for round_ in range(max_effects):
         names_left = [n for n in candidates if not any(c.effect == n for c in chosen)]
         cands = _fit_and_score_candidates(setting, joint, names_left, patch, train, held, held_before, n2,
-                                          refine_top=refine_top, bar=bar if round_ == 0 else None, moved=moved)
+                                          refine_top=refine_top, bar=bar if round_ == 0 else None, moved=moved,
+                                          start=start, windowed=_windowed(chosen))
         if round_ == 0:
             first_round = cands
         if not cands or cands[0].score < (min_gain if chosen else 0.0):
@@ -570,9 +616,17 @@ def _forward_selection(setting: _Setting, joint: str, candidates, *, max_effects
 
 
 def _fit_and_score_candidates(setting: _Setting, joint: str, names: list[str], patch: ModelPatch, train, held,
-                              held_before, n2: float, *, refine_top: int, bar, moved=()) -> list[Candidate]:
+                              held_before, n2: float, *, refine_top: int, bar, moved=(),
+                              start: ModelPatch | None = None, windowed: bool = False) -> list[Candidate]:
     """Fit each of ``names`` on top of ``patch`` on the training sequences and score it on the held-out
     ones; ranked best first. ``bar`` (if given) advances once per candidate.
+
+    Scoring: ``held_before`` is the free-replay MSE of each held-out sequence on ``start`` (the patch the
+    joint's forward selection started from; default ``patch``). An effect of
+    :data:`~adadex.sysid.fit.WINDOWED_EFFECTS`, and every candidate when ``windowed`` (an effect chosen
+    on the joint already is one), is scored on the windowed cost instead — its training and held-out
+    reductions and its gain over ``patch`` all measured against the windowed cost of ``start`` and
+    ``patch`` (``scored_by`` ``"windowed"``; see the module docstring).
 
     With failing joints still pending (``moved``), the best candidate is then refitted against the error
     of ``joint`` and of those joints on all their training sequences (a
@@ -585,15 +639,29 @@ def _fit_and_score_candidates(setting: _Setting, joint: str, names: list[str], p
     held_fitter = JointFitter(setting.replayer, joint, held, patch)
     cur_held = held_fitter.mse_per_sequence(patch)
     train_before = fitter.mse(patch)
+    start = patch if start is None else start
+    windowed_before: dict[str, np.ndarray] = {}    # the windowed costs of start and patch, when first needed
 
     def scored(name: str, value: float, ci, after: float) -> Candidate:
-        held_after = held_fitter.mse_per_sequence(fitter.patch_with(name, value))
-        red_tr = _reduction(train_before, after, n2)
-        red_ho = _reduction(held_before, held_after, n2)
-        gain = red_ho - _reduction(held_before, cur_held, n2)
+        with_it = fitter.patch_with(name, value)
+        by_windows = windowed or name in WINDOWED_EFFECTS
+        if by_windows:
+            if not windowed_before:
+                windowed_before.update(held=held_fitter.window_mse_per_sequence(start),
+                                       cur=held_fitter.window_mse_per_sequence(patch),
+                                       train=fitter.window_mse_per_sequence(patch))
+            h_before, h_cur, t_before = windowed_before["held"], windowed_before["cur"], windowed_before["train"]
+            held_after, after = held_fitter.window_mse_per_sequence(with_it), fitter.window_mse_per_sequence(with_it)
+        else:
+            h_before, h_cur, t_before = held_before, cur_held, train_before
+            held_after = held_fitter.mse_per_sequence(with_it)
+        red_tr = _reduction(t_before, after, n2)
+        red_ho = _reduction(h_before, held_after, n2)
+        gain = red_ho - _reduction(h_before, h_cur, n2)
         return Candidate(effect=name, joint=joint, value=value, ci95=ci, train_error_reduction=red_tr,
                          heldout_error_reduction=red_ho,
-                         score=gain - COMPLEXITY_PENALTY * len(get_effect(name).params))
+                         score=gain - COMPLEXITY_PENALTY * len(get_effect(name).params),
+                         scored_by=_scored_by(by_windows))
 
     cands = []
     grids, ranked = _screen_on_grid(fitter, names)
@@ -740,9 +808,10 @@ def _shared_effect_and_load(setting: _Setting, failing: list[str], selected_per_
         values[j] = fits[j].value
     if any(on_bound(effect, j, f.value, f.ci95, robot) or _is_absent(effect, f.value, j, robot) for j, f in fits.items()):
         return None
-    before = _heldout_mse(setting, setting.base_patch, failing)
-    after = _heldout_mse(setting, model(values), failing)
-    no_load = _heldout_mse(setting, model(values, with_load=False), failing)
+    windowed = effect in WINDOWED_EFFECTS           # a set holding a windowed effect is scored on windows
+    before = _heldout_mse(setting, setting.base_patch, failing, windowed=windowed)
+    after = _heldout_mse(setting, model(values), failing, windowed=windowed)
+    no_load = _heldout_mse(setting, model(values, with_load=False), failing, windowed=windowed)
     reds = {j: _reduction(before[j], after[j], setting.noise2(j)) for j in failing}
     felt = [j for j in failing if reds[j] - _reduction(before[j], no_load[j], setting.noise2(j)) >= MIN_EXPLAINED]
     mean = float(np.mean(list(reds.values())))
@@ -750,9 +819,11 @@ def _shared_effect_and_load(setting: _Setting, failing: list[str], selected_per_
         return None
     cands = {j: Candidate(effect=effect, joint=j, value=f.value, ci95=f.ci95,
                           train_error_reduction=1.0 - f.mse_after / max(f.mse_before, 1e-30),
-                          heldout_error_reduction=reds[j], score=reds[j] - COMPLEXITY_PENALTY)
+                          heldout_error_reduction=reds[j], score=reds[j] - COMPLEXITY_PENALTY,
+                          scored_by=_scored_by(windowed))
              for j, f in fits.items()}
     load.heldout_error_reduction = mean
+    load.scored_by = _scored_by(windowed)
     return effect, cands, load, reds, current
 
 
@@ -1102,16 +1173,22 @@ def _refit_jointly(setting: _Setting, selected_per_joint: dict, passes: int, ski
                 c.value, c.ci95 = r.value, r.ci95
 
 
-def _heldout_mse(setting: _Setting, patch: ModelPatch, joints) -> dict[str, np.ndarray]:
-    """Per joint of ``joints``, the MSE of each of its held-out sequences under ``patch`` (one replay)."""
+def _heldout_mse(setting: _Setting, patch: ModelPatch, joints, windowed: bool = False) -> dict[str, np.ndarray]:
+    """Per joint of ``joints``, the MSE of each of its held-out sequences under ``patch`` (one replay):
+    free-replay, or (``windowed``) the windowed cost of each (a multiple-shooting replay; each joint's
+    windows trimmed as :meth:`~adadex.sysid.fit.JointFitter.window_mse_per_sequence` trims them)."""
     held = {j: setting.scored(j).astype(np.int64) for j in joints}
     seqs = np.unique(np.concatenate(list(held.values())))
-    sim = setting.replayer.simulate(patch, sequences=seqs)
+    L = window_length(setting.replayer.rec.dt)
+    sim = (setting.replayer.simulate_windows(patch, length=L, sequences=seqs) if windowed
+           else setting.replayer.simulate(patch, sequences=seqs))
     measured = setting.replayer.rec.joint_pos[seqs]
     out = {}
     for j, h in held.items():
         col, rows = setting.joint_names.index(j), np.searchsorted(seqs, h)
-        out[j] = np.mean((sim[rows, :, col] - measured[rows, :, col]) ** 2, axis=1)
+        e = sim[rows, :, col] - measured[rows, :, col]
+        out[j] = (window_mse_per_sequence(window_rows(e[..., None], L), len(rows)) if windowed
+                  else np.mean(e ** 2, axis=1))
     return out
 
 
@@ -1166,16 +1243,23 @@ def _prune(setting: _Setting, selected_per_joint: dict, carried: dict, moves: di
     if not items:
         return suggestions, removed
     scored = sorted({k for j, _ in items for k in its_joints(j)})
-    before = _heldout_mse(setting, setting.base_patch, scored)
+    # by cost (False: free replay; True: windowed, for an effect on a joint whose set holds a windowed one)
+    before = {False: _heldout_mse(setting, setting.base_patch, scored)}
     while items:
-        full = _heldout_mse(setting, _patch_of(selected_per_joint, setting.base_patch), scored)
+        full_patch = _patch_of(selected_per_joint, setting.base_patch)
+        full = {False: _heldout_mse(setting, full_patch, scored)}
         margins = []
         for joint, c in items:
+            w = _windowed(selected_per_joint[joint])
+            if w and w not in before:
+                before[w] = _heldout_mse(setting, setting.base_patch, scored, windowed=True)
+            if w and w not in full:
+                full[w] = _heldout_mse(setting, full_patch, scored, windowed=True)
             without = {j: [x for x in chosen if x is not c] for j, chosen in selected_per_joint.items()}
             js = its_joints(joint)
-            less = _heldout_mse(setting, _patch_of(without, setting.base_patch), js)
-            margins.append(float(np.mean([_reduction(before[k], full[k], setting.noise2(k))
-                                          - _reduction(before[k], less[k], setting.noise2(k)) for k in js])))
+            less = _heldout_mse(setting, _patch_of(without, setting.base_patch), js, windowed=w)
+            margins.append(float(np.mean([_reduction(before[w][k], full[w][k], setting.noise2(k))
+                                          - _reduction(before[w][k], less[k], setting.noise2(k)) for k in js])))
         i = int(np.argmin(margins))
         if margins[i] >= MIN_EXPLAINED:
             break
@@ -1199,12 +1283,15 @@ def _score_jointly(setting: _Setting, selected_per_joint: dict, carried=None) ->
                 continue
         held = setting.scored(joint)
         hf = JointFitter(setting.replayer, joint, held, setting.base_patch)
-        red = _reduction(hf.mse_per_sequence(setting.base_patch), hf.mse_per_sequence(full), setting.noise2(joint))
+        windowed = _windowed(chosen)
+        mse = hf.window_mse_per_sequence if windowed else hf.mse_per_sequence
+        red = _reduction(mse(setting.base_patch), mse(full), setting.noise2(joint))
         explained[joint] = red
         if joint in carried:
             red = float(np.mean([explained[j] for j in carried[joint]]))
         if chosen:
             chosen[-1].heldout_error_reduction = red
+            chosen[-1].scored_by = _scored_by(windowed)
     return explained
 
 
@@ -1225,7 +1312,7 @@ def _hypotheses(first_rounds: dict, selected_per_joint: dict, train_only=lambda 
                                "ci95": {n: [list(ci)] for n, ci in zip(names, [c.ci95, *c.extra_ci95])},
                                "train_error_reduction": max(0.0, c.train_error_reduction),
                                "heldout_error_reduction": max(0.0, c.heldout_error_reduction),
-                               "score": c.score, "alternatives": []})
+                               "score": c.score, "alternatives": [], "scored_by": c.scored_by})
     hypotheses.sort(key=lambda h: -h["score"])
     for joint, chosen in selected_per_joint.items():
         if chosen:
@@ -1245,7 +1332,7 @@ def _merge_over_joints(selected_per_joint: dict, robot=None) -> list[dict]:
             names = get_effect(c.effect).param_names
             h = merged.setdefault(c.effect, {"effect": c.effect, "joints": [], "params": {},
                                              "ci95": {}, "heldout_error_reduction": [],
-                                             "alternatives": [], "identifiable": [],
+                                             "alternatives": [], "identifiable": [], "scored_by": [],
                                              "unit": get_effect(c.effect).params[0].unit})
             h["identifiable"].append(identifiable(c.effect, joint, c.ci95, robot))
             h["joints"].append(joint)
@@ -1259,6 +1346,7 @@ def _merge_over_joints(selected_per_joint: dict, robot=None) -> list[dict]:
                     h["ci95"].setdefault(n, [[float(absent[i])] * 2] * prev).append(
                         list(cis[i]) if i < len(cis) else [float(absent[i])] * 2)
             h["heldout_error_reduction"].append(max(0.0, c.heldout_error_reduction))
+            h["scored_by"].append(c.scored_by)
             h["alternatives"] = sorted(set(h["alternatives"]) | set(c.alternatives))
     return list(merged.values())
 
@@ -1310,7 +1398,9 @@ def _verdict(explained: dict, selected_per_joint: dict, explained_at: float,
         # an effect that explains (next to) nothing of this joint is not printed as its explanation
         what = (" + ".join(_describe(c, robot) for c in chosen) if v >= MIN_EXPLAINED else "") or "nothing"
         on = "training (no sequence held out)" if joint in train_only else "held-out"
-        findings.append(f"{joint}: {what} explains {100 * v:.0f}% of the {on} error above the noise floor.")
+        how = (f" (scored on {WINDOW_S:g}-s windows restarted from the measured positions: a free replay of "
+               "friction is chaotic)" if _windowed(chosen) else "")
+        findings.append(f"{joint}: {what} explains {100 * v:.0f}% of the {on} error above the noise floor{how}.")
     if verdict == "unexplained":
         weak = [j for j, v in explained.items() if v < explained_at]
         findings.append(f"Unexplained: on {', '.join(weak)} the best candidates explain less than "

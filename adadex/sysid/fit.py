@@ -17,8 +17,10 @@ that changes leaves a lasting offset, and a fast, torque-limited arm amplifies i
 staircase of deep, narrow minima that a grid and Brent cannot search. Replayed in windows of
 :data:`WINDOW_S`, each restarted from the measured positions
 (:meth:`~adadex.sysid.replay.Replayer.simulate_windows`), the error cannot build up and its cost is
-nearly a bowl; the value found there is then polished on the free-replay cost, which the diagnosis
-scores on, in a narrow bracket around it (:meth:`JointFitter.fit`).
+nearly a bowl; the value found there is then polished on the free-replay cost in a narrow bracket
+around it (:meth:`JointFitter.fit`). The diagnosis scores such an effect on the windowed cost as well
+(:meth:`JointFitter.window_mse_per_sequence`): at the true friction a free replay of a fast held-out
+sequence can stay far off (:mod:`adadex.sysid.diagnose`).
 """
 
 from __future__ import annotations
@@ -94,18 +96,18 @@ class JointFitter:
         samples), replayed with :meth:`~adadex.sysid.replay.Replayer.simulate_windows` in windows of
         :data:`WINDOW_S`; the first sample (the pre-roll's rest, not predicted by any window) is left out."""
         self.evaluations += 1
-        L = max(1, int(round(WINDOW_S / self.rep.rec.dt)))
-        e = self._errors(self.rep.simulate_windows(patch, length=L, sequences=self.seqs))[:, 1:]
-        S, T, C = e.shape
-        W = -(-T // L)
-        pad = np.full((S, W * L, C), np.nan)
-        pad[:, :T] = e
-        return pad.reshape(S * W, L * C)
+        L = window_length(self.rep.rec.dt)
+        return window_rows(self._errors(self.rep.simulate_windows(patch, length=L, sequences=self.seqs)), L)
 
     def window_mse(self, patch: ModelPatch) -> float:
         """The windowed cost: the mean squared error of the windows but the :data:`WINDOW_TRIM` worst."""
         w = np.nanmean(self.window_errors(patch) ** 2, axis=1)
         return float(np.mean(w[_kept_windows(w)]))
+
+    def window_mse_per_sequence(self, patch: ModelPatch) -> np.ndarray:
+        """The windowed cost sequence by sequence, (S,): :func:`window_mse_per_sequence` of this joint's
+        windowed error (the windows :meth:`window_mse` keeps, each sequence's mean over its own)."""
+        return window_mse_per_sequence(self.window_errors(patch), len(self.seqs))
 
     def mse_per_sequence(self, patch: ModelPatch) -> np.ndarray:
         r = self.residual(patch).reshape(len(self.seqs), -1)
@@ -274,6 +276,39 @@ class CoupledFitter(JointFitter):
 
     def _errors(self, sim: np.ndarray) -> np.ndarray:
         return (sim[..., self.cols] - self.measured) * self.scale
+
+
+def window_length(dt: float) -> int:
+    """Samples per window of the windowed cost: :data:`WINDOW_S` at the recording period ``dt`` (at least 1)."""
+    return max(1, int(round(WINDOW_S / dt)))
+
+
+def window_rows(e: np.ndarray, L: int) -> np.ndarray:
+    """Errors ``e`` (S, T, C) of a windowed replay as one row per window of every sequence, (S · W, L · C),
+    sequence by sequence; the first sample (the pre-roll's rest, not predicted by any window) is left out
+    and a short last window is padded with NaN."""
+    e = e[:, 1:]
+    S, T, C = e.shape
+    W = -(-T // L)
+    pad = np.full((S, W * L, C), np.nan)
+    pad[:, :T] = e
+    return pad.reshape(S * W, L * C)
+
+
+def window_mse_per_sequence(rows: np.ndarray, num_sequences: int) -> np.ndarray:
+    """Each sequence's windowed cost, (S,), from the window rows of :meth:`JointFitter.window_errors`
+    (``num_sequences`` sequences, their windows in order): the mean squared error of the sequence's windows
+    among those the windowed cost keeps (all but the :data:`WINDOW_TRIM` worst of all the sequences'
+    windows together, as :meth:`JointFitter.window_mse` trims them); a sequence none of whose windows is
+    kept gets the mean of all of them. The held-out scoring of a windowed effect reads it
+    (:mod:`adadex.sysid.diagnose`): its per-sequence mean excess error, as the free replay's."""
+    w = np.nanmean(rows ** 2, axis=1)
+    kept = np.zeros(w.size, dtype=bool)
+    kept[_kept_windows(w)] = True
+    w, kept = w.reshape(num_sequences, -1), kept.reshape(num_sequences, -1)
+    n = kept.sum(axis=1)
+    trimmed = np.where(kept, w, 0.0).sum(axis=1) / np.maximum(n, 1)
+    return np.where(n > 0, trimmed, w.mean(axis=1))
 
 
 def _kept_windows(mse: np.ndarray) -> np.ndarray:

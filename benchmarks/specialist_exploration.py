@@ -87,7 +87,6 @@ def main(argv=None) -> dict:
     for s in scales:
         comp = column(s, "completion")
         row = {"completion_pct": [100.0 * float(c.mean()) for c in comp],
-               "object_completion_pct": [runs[(s, k)]["specialist"].get("object_completion_pct") for k in seeds],
                "T_o_cm": [runs[(s, k)]["specialist"]["T_o"] for k in seeds],
                "train_wall_s": [runs[(s, k)]["specialist"]["train_wall_s"] for k in seeds],
                "vs_replay": _paired(comp, replay)}

@@ -60,7 +60,18 @@ marks its hypotheses ``"scored_on": "train"`` and gives them no held-out figure
 Coupled joints: the failing joints are fitted worst first (error over noise), and after each joint's
 effects are chosen the rest are localized again on the model with those effects; a joint that no
 longer fails had only a knock-on error (the joint that moves it was the source) and gets no effect of
-its own (re-localization replays only the still-pending joints' sequences). While failing joints are
+its own (re-localization replays only the still-pending joints' sequences). Before a joint is fitted, and
+when other failing joints are left, one replay tells whether its failure is a knock-on of theirs whatever
+moves them (:func:`_follows`): its own sequences are replayed with those joints moving exactly as measured
+(:meth:`~adadex.sysid.replay.Replayer.simulate_imposed`: each a flywheel driven along its measurement, so it
+feels their measured motion through the model's coupled dynamics); if it no longer fails, it gets no
+effect of its own and is reported as a knock-on of the joints it follows (those that suffice alone), and
+of their error when that is unexplained. A drag outside the library on the elbow shakes the holding
+shoulder by 2.3 mrad against a 2 mrad failure floor; with no library effect on the elbow re-localization
+never cleared it, and a ``kd_scale`` × 2.13 was selected on it (tests/sysid/test_user_model_diagnosis.py);
+with the elbow imposed the shoulder's error is 0.8 × its noise floor. The joints a knock-on follows are
+not imposed in the checks of those after it (no two joints follow each other), and the effects later
+chosen on the joints it follows are fitted to its error too (below) and re-localize it. While failing joints are
 still pending, a joint's best candidate is refitted against the errors of those it visibly moves too
 (one replay decides which: the candidate changes their path by at least 10 % of their residual; on
 their training sequences, each joint in units of its noise floor; Brent to 1e-7 of the bounds and a
@@ -93,7 +104,9 @@ the ``adadex sysid excite`` command that would identify it. A hypothesis explain
 
 Verdicts: ``nothing_missing`` (no joint's error is above its noise floor), ``explained`` (every
 failing joint's held-out excess error falls by at least ``explained_at``), ``unexplained`` (the
-best candidates explain too little; the report says how much).
+best candidates explain too little; the report says how much). A knock-on of other failing joints
+(:func:`_follows`) is judged with them: on what their effects explain of its own error when they are
+explained, not at all (its finding says whose unexplained error it is) when they are not.
 """
 
 from __future__ import annotations
@@ -198,8 +211,8 @@ class Diagnosis:
         train_only_joints: the failing joints with too few sequences to hold any out, scored on their
             training sequences only (default ``[]``).
         model: the id of the model the diagnosis replayed on (default ``"builtin"``).
-        stage_times_s: wall time per stage, s (``localize``, ``load``, ``fit``, ``relocalize``,
-            ``joint_refit_and_scoring``; default ``{}``).
+        stage_times_s: wall time per stage, s (``localize``, ``load``, ``knock_on_check``, ``fit``,
+            ``relocalize``, ``joint_refit_and_scoring``; default ``{}``).
         suggestions: effects the data point to but cannot pin down (their value sits on a bound), each
             a dict like a selected effect's with the ``excite`` command that would identify it and its
             ``finding``; never selected (default ``[]``).
@@ -400,7 +413,8 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     rep = Replayer(recording, nthread=nthread)
     base_patch = base_patch if base_patch is not None else ModelPatch(robot=rep.robot)
     noise = noise_floor(recording.joint_pos)
-    times = {"localize": 0.0, "load": 0.0, "fit": 0.0, "relocalize": 0.0, "joint_refit_and_scoring": 0.0}
+    times = {"localize": 0.0, "load": 0.0, "knock_on_check": 0.0, "fit": 0.0, "relocalize": 0.0,
+             "joint_refit_and_scoring": 0.0}
     tick = time.perf_counter()
 
     def lap(stage: str) -> None:
@@ -454,25 +468,41 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         findings.append(f"{', '.join(carried[cand.joint])}: one {cand.effect} on the link of {cand.joint} "
                         f"({_link_names(setting, cand.joint)}; {_load_text(cand)}) explains their errors: it moves with all of them"
                         + (f"; {', '.join(load_gone)} no longer fail with it (knock-ons)." if load_gone else "."))
+    follows: dict[str, tuple[list[str], float]] = {}   # a joint -> (the joints it follows, its error then, rad)
     while pending:
         joint = pending.pop(0)
+        # a knock-on of another failing joint whatever moves that one: with the other failing joints moving
+        # exactly as measured the model reproduces it; it gets no effect of its own
+        leaders = ([j for j in failing if j != joint and j not in follows and j not in knock_on]
+                   if joints is None else [])
+        led = _follows(setting, joint, leaders, _patch_of(selected_per_joint, base_patch)) if leaders else None
+        lap("knock_on_check")
+        if led is not None:
+            follows[joint] = led
+            bar.update(len(candidates))
+            continue
+        followers = [j for j, (lead, _) in follows.items() if joint in lead]
         tried, chosen = _forward_selection(
             setting, joint, candidates, max_effects=max_effects_per_joint, min_gain=min_gain, tie=tie,
             refine_top=refine_top, bar=bar, patch=_patch_of(selected_per_joint, base_patch),
-            moved=pending if joints is None else ())
+            moved=pending + followers if joints is None else ())
         first_rounds[joint] = first_rounds.get(joint, []) + tried
         selected_per_joint[joint] = selected_per_joint.get(joint, []) + chosen
         explained[joint] = chosen[-1].heldout_error_reduction if chosen else 0.0
         lap("fit")
-        if chosen and pending and joints is None:
-            still = _still_failing(setting, pending, _patch_of(selected_per_joint, base_patch))
+        if chosen and (pending or followers) and joints is None:
+            still = _still_failing(setting, pending + followers, _patch_of(selected_per_joint, base_patch))
             lap("relocalize")
-            gone = [j for j in pending if j not in still]
+            gone = [j for j in pending + followers if j not in still]
             knock_on += gone
             moves[joint] = gone
+            bar.update(len([j for j in gone if j in pending]) * len(candidates))
             pending = [j for j in pending if j in still]
-            bar.update(len(gone) * len(candidates))
+            for j in gone:
+                follows.pop(j, None)
     bar.close()
+    for joint in follows:
+        selected_per_joint[joint] = []
     for joint in knock_on:
         if joint not in carried:
             selected_per_joint[joint] = []
@@ -497,7 +527,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         if not selected_per_joint[joint]:     # a source left with nothing: the joints it explained count again
             freed = carried.pop(joint, []) + moves.pop(joint, [])
             knock_on = [j for j in knock_on if j not in freed]
-    if sum(len(c) for c in selected_per_joint.values()) > 1 or knock_on or removed:
+    if sum(len(c) for c in selected_per_joint.values()) > 1 or knock_on or removed or follows:
         explained.update(_score_jointly(setting, selected_per_joint, carried))
     explained = {j: max(0.0, v) for j, v in explained.items() if j in failing}
     shared = (_shared_effect_and_load(setting, failing, selected_per_joint, explained, explained_at, tie)
@@ -508,7 +538,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         selected_per_joint.setdefault(load_cand.joint, []).append(load_cand)
         for c in [*cands.values(), load_cand]:
             first_rounds.setdefault(c.joint, []).insert(0, c)
-        explained, knock_on, suggestions = dict(reds), [], []
+        explained, knock_on, suggestions, follows = dict(reds), [], [], {}
         mean = float(np.mean(list(reds.values())))
         findings.append(f"{', '.join(failing)}: {effect} on every one of them "
                         f"({min(c.value for c in cands.values()):.3g}–{max(c.value for c in cands.values()):.3g}) "
@@ -521,14 +551,22 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         findings.append(f"{', '.join(own_knock_on)}: no effect of their own; their error follows from the effects "
                         "found on the joints that move them (it falls below the failure threshold once those are "
                         "in the model).")
+    # a joint that follows another: judged with it (its finding names what explains the joints it follows)
+    # when those are explained, else a knock-on of their unexplained error (it needs no effect of its own)
+    followed = {j: [c for k in lead for c in selected_per_joint.get(k, [])] for j, (lead, _) in follows.items()
+                if all(explained.get(k, 0.0) >= explained_at for k in lead)}
+    for j, (lead, rms) in follows.items():
+        unexplained_lead = [k for k in lead if explained.get(k, 0.0) < explained_at]
+        findings.append(_follower_text(setting, j, lead, rms, unexplained_lead))
     lap("joint_refit_and_scoring")
 
     hypotheses = _hypotheses(first_rounds, selected_per_joint, setting.train_only, rep.robot)
     selected = _merge_over_joints(selected_per_joint, rep.robot)
     train_only = [j for j in failing if setting.train_only(j)]
     _mark_train_only(hypotheses, selected, train_only)
-    verdict, sentences = _verdict({j: v for j, v in explained.items() if j not in knock_on or j in loaded},
-                                  {**selected_per_joint, **loaded},
+    verdict, sentences = _verdict({j: v for j, v in explained.items()
+                                   if (j not in knock_on or j in loaded) and (j not in follows or j in followed)},
+                                  {**selected_per_joint, **loaded, **followed},
                                   explained_at, rep.robot, train_only)
     if train_only:
         sentences.insert(0, f"Too few sequences to hold any out on {', '.join(train_only)} (at least 3 of a "
@@ -538,6 +576,17 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
                      explained_fraction=explained, findings=findings + sentences,
                      wall_time_s=time.perf_counter() - t0, train_only_joints=train_only, model=rep.robot.model_id,
                      stage_times_s={k: round(v, 3) for k, v in times.items()}, suggestions=suggestions)
+
+
+def _follower_text(setting: _Setting, joint: str, lead: list[str], rms: float, unexplained: list[str]) -> str:
+    """The finding of a joint whose failure is a knock-on of the failing joints ``lead`` (:func:`_follows`)."""
+    ratio = rms / max(float(setting.noise[setting.joint_names.index(joint)]), 1e-6)
+    text = (f"{joint}: a knock-on of {', '.join(lead)}, no effect of its own: with {', '.join(lead)} moving exactly "
+            f"as measured the model reproduces it (RMS error {np.degrees(rms):.2g}° = {ratio:.1f}× its noise floor "
+            f"on its own sequences, under the failure threshold)")
+    if unexplained:
+        return text + f"; its error is {', '.join(unexplained)}'s, which is unexplained."
+    return text + "."
 
 
 def _mark_train_only(hypotheses: list[dict], selected: list[dict], train_only: list[str]) -> None:
@@ -564,21 +613,60 @@ def _localize_failing_joints(recording, base_patch: ModelPatch, rep: Replayer, n
     return baseline, loc.failing_joints, list(loc.sentences), np.mean(cmp.error ** 2, axis=1)
 
 
+def _fails(setting: _Setting, joint: str, rms: float) -> bool:
+    """:func:`~adadex.sysid.compare.localize`'s test: an RMS error (rad) above :data:`FAIL_RATIO` × the
+    joint's noise floor and above :data:`FAIL_ABS`."""
+    col = setting.joint_names.index(joint)
+    return rms / max(float(setting.noise[col]), 1e-6) > FAIL_RATIO and rms > FAIL_ABS
+
+
+def _own_sequences(setting: _Setting, joint: str) -> np.ndarray:
+    """The sequences ``joint`` is localized on: its own, or all when none excites it (as localize)."""
+    own = np.unique(np.concatenate(setting.sequences(joint))).astype(np.int64)
+    return own if own.size else np.arange(len(setting.seq_meta), dtype=np.int64)
+
+
+def _follows(setting: _Setting, joint: str, others: list[str], patch: ModelPatch) -> tuple[list[str], float] | None:
+    """Whether the failure of ``joint`` is a knock-on of the failing joints ``others``, whatever moves them:
+    ``(the joints it follows, its RMS error then, rad)``, or None when it still fails.
+
+    Its own sequences are replayed on ``patch`` with ``others`` moving exactly as measured
+    (:meth:`~adadex.sysid.replay.Replayer.simulate_imposed`: every torque on them, a missing effect
+    included, is taken from the measurement; ``joint`` feels their measured motion through the model's
+    coupled dynamics). If ``joint`` then no longer fails (:func:`_fails`), its error came from their motion,
+    not from an effect of its own. One replay; when it follows several, each is tried alone too and the
+    joints it follows are those that suffice alone (all of them if none does)."""
+    seqs = _own_sequences(setting, joint)
+    col, measured = setting.joint_names.index(joint), setting.replayer.rec.joint_pos[seqs]
+
+    def rms_with(imposed: list[str]) -> float:
+        sim = setting.replayer.simulate_imposed(patch, imposed=imposed, sequences=seqs)
+        return float(np.sqrt(np.mean((sim[..., col] - measured[..., col]) ** 2)))
+
+    rms = rms_with(others)
+    if _fails(setting, joint, rms):
+        return None
+    if len(others) > 1:
+        alone = {o: rms_with([o]) for o in others}
+        enough = [o for o, r in alone.items() if not _fails(setting, joint, r)]
+        if enough:
+            return enough, min(alone[o] for o in enough)
+    return list(others), rms
+
+
 def _still_failing(setting: _Setting, joints: list[str], patch: ModelPatch) -> list[str]:
     """Which of ``joints`` still fail on ``patch``: :func:`~adadex.sysid.compare.localize`'s test (RMS error
     on a joint's own sequences against its noise floor over the whole recording), replaying only those
     joints' sequences rather than the whole recording."""
-    every = np.arange(len(setting.seq_meta))
-    own = {j: np.concatenate(setting.sequences(j)).astype(np.int64) for j in joints}
-    own = {j: s if s.size else every for j, s in own.items()}   # as localize: no own sequences -> all
+    own = {j: _own_sequences(setting, j) for j in joints}
     seqs = np.unique(np.concatenate(list(own.values())))
     sim = setting.replayer.simulate(patch, sequences=seqs)
     measured = setting.replayer.rec.joint_pos[seqs]
     out = []
     for j in joints:
-        col, rows = setting.joint_names.index(j), np.searchsorted(seqs, np.unique(own[j]))
+        col, rows = setting.joint_names.index(j), np.searchsorted(seqs, own[j])
         rms = float(np.sqrt(np.mean((sim[rows, :, col] - measured[rows, :, col]) ** 2)))
-        if rms / max(float(setting.noise[col]), 1e-6) > FAIL_RATIO and rms > FAIL_ABS:
+        if _fails(setting, j, rms):
             out.append(j)
     return out
 

@@ -12,6 +12,9 @@ The model is the built-in scene or a user's MJCF (``model=``, a
 own options and contacts; recorded joints, initial positions and commands map to its servoed
 joints by name, and the other actuators are sent 0.
 
+:meth:`Replayer.simulate_imposed` replays with some joints moved exactly as measured (the diagnosis' test
+of a knock-on: does a joint's error vanish when the joints that move it follow their measurement?).
+
 A :class:`Replayer` compiles one model per *structure* (which actuators carry a delay buffer or a
 lag state) and re-uses it: evaluating a new patch only rewrites model parameters (absolute values
 from a snapshot), which is what makes fitting fast.
@@ -43,6 +46,10 @@ from adadex.sim.scene import PHYSICS_TIMESTEP, PhysicsOptions
 #: recording starts: every sequence then starts at rest at the model's own equilibrium (a weaker
 #: servo or a payload sags before the first sample, not during it).
 PREROLL_S = 0.5
+#: :meth:`Replayer.simulate_imposed` drives a joint along its measured path as a flywheel of this many times
+#: the model's largest joint-space inertia: whatever else acts on it moves it by a part in this many
+IMPOSED_INERTIA = 1e8
+QFRC_APPLIED_SPEC = int(mujoco.mjtState.mjSTATE_QFRC_APPLIED)
 
 
 def substeps_for(dt: float, max_step: float = PHYSICS_TIMESTEP) -> int:
@@ -198,6 +205,79 @@ class Replayer(RolloutPool):
             qpos[:, t0 + 1:t0 + n + 1] = states[:, self.k - 1::self.k][..., qcols]
             state = states[:, -1]
         return patch.transform_measurement(qpos)[..., self.jid]
+
+    def simulate_imposed(self, patch: ModelPatch | None = None, *, imposed, sequences=None) -> np.ndarray:
+        """Simulated joint positions (S, T, J) of the recording's joints, as :meth:`simulate`, with the
+        joints ``imposed`` (names or columns of the recording's joints) moved exactly as measured: what the
+        model says the other joints do when those follow their measured path, whatever moves them.
+
+        Each imposed joint is made a flywheel driven along the measurement: its armature is raised by
+        :data:`IMPOSED_INERTIA` × the model's largest joint-space inertia, and a generalized force on it
+        of that added armature × the acceleration that brings the integrator exactly onto the measured
+        path at every physics step (the second difference of the measured positions, cubic-spline
+        interpolated to the physics steps; held at the first sample through the pre-roll). Whatever else
+        acts on it — its servo, a missing effect, the reaction of the joints it carries — changes its
+        acceleration by a part in :data:`IMPOSED_INERTIA`, so it moves as measured (to 1e-8 rad RMS on the
+        tiny arm of the tests) while every other joint feels its measured motion through the model's own
+        coupled dynamics (its inertia coupling, Coriolis and gravity terms), with the model's integrator.
+        One rollout, as :meth:`simulate`; the diagnosis uses it to tell a knock-on from a source. The sensor effects
+        of ``patch`` are undone on the measured path first (exactly for an encoder offset, as in
+        :meth:`simulate_windows`). Only hinge and slide joints can be imposed."""
+        from scipy.interpolate import CubicSpline
+
+        patch = patch if patch is not None else ModelPatch(robot=self.robot)
+        idx = np.arange(self._command.shape[0]) if sequences is None else np.asarray(sequences, dtype=np.int64)
+        names = list(self.rec.joint_names)
+        cols = np.array([names.index(j) if isinstance(j, str) else int(j) for j in imposed], dtype=np.int64)
+        model, _, datas = self.model_for(patch)
+        cmd = patch.transform_command(self._command[idx], self.rec.dt)
+        S, T, _ = cmd.shape
+        jnt, _, act = robot_ids(model, np.arange(self.robot.num_joints))
+        qcols = 1 + model.jnt_qposadr[jnt]
+        ejnt = jnt[self.jid[cols]]
+        if np.any((model.jnt_type[ejnt] != mujoco.mjtJoint.mjJNT_HINGE)
+                  & (model.jnt_type[ejnt] != mujoco.mjtJoint.mjJNT_SLIDE)):
+            raise ValueError("only hinge and slide joints can be imposed")
+        edof = model.jnt_dofadr[ejnt]
+        # the measured path of the imposed joints, as the joints were (sensor effects undone), at every
+        # physics step: the pre-roll holds the first sample, then a cubic spline through the samples
+        q = np.zeros((S, T, self.robot.num_joints))
+        q[..., self.jid] = self.rec.joint_pos[idx]
+        q = (2 * q - patch.transform_measurement(q.copy()))[..., self.jid[cols]]       # (S, T, E)
+        P, h = self.preroll_steps, self.timestep
+        tt = np.arange((T - 1) * self.k + 1) * h
+        path = CubicSpline(np.arange(T) * self.rec.dt, q, axis=1)(np.minimum(tt, (T - 1) * self.rec.dt))
+        path = np.concatenate([np.repeat(path[:, :1], P + 1, axis=1), path[:, 1:]], axis=1)   # (S, N+1, E)
+        # semi-implicit Euler from rest (v' = v + h a, q' = q + h v'): a_i = (Q[i+1] - 2 Q[i] + Q[i-1]) / h²
+        prev = np.concatenate([path[:, :1], path[:, :-2]], axis=1)
+        accel = (path[:, 1:] - 2 * path[:, :-1] + prev) / h ** 2                          # (S, N, E)
+        init = self._initial_states(model, cmd[:, 0], idx)
+        init[:, qcols[self.jid[cols]]] = q[:, 0]
+        init[:, 1 + model.nq + edof] = 0.0
+        ctrl = np.concatenate([np.repeat(cmd[:, :1], P, axis=1), np.repeat(cmd[:, :-1], self.k, axis=1)], axis=1)
+        n = ctrl.shape[1]
+        armature = model.dof_armature.copy()
+        try:
+            d = mujoco.MjData(model)
+            mujoco.mj_setState(model, d, init[0], FULLPHYSICS)
+            mujoco.mj_forward(model, d)
+            inertia = np.zeros((model.nv, model.nv))
+            mujoco.mj_fullM(model, d, inertia)
+            big = IMPOSED_INERTIA * float(max(np.max(np.diag(inertia)), 1e-9))
+            model.dof_armature[edof] = armature[edof] + big
+            force = np.zeros((S, n, model.nv))
+            force[..., edof] = big * accel
+            controls = np.concatenate([_model_ctrl(model, act, ctrl), force], axis=2)
+            state = np.empty((S, n, init.shape[1]))
+            self._pool.rollout([model] * S, datas, np.ascontiguousarray(init), np.ascontiguousarray(controls),
+                               control_spec=CTRL_SPEC | QFRC_APPLIED_SPEC, skip_checks=True, nstep=n,
+                               state=state, sensordata=np.empty((S, n, model.nsensordata)))
+        finally:
+            model.dof_armature[:] = armature
+        out = np.empty((S, T, len(jnt)))
+        out[:, 0] = state[:, P - 1, qcols] if P else init[:, qcols]
+        out[:, 1:] = state[:, P + self.k - 1::self.k][..., qcols]
+        return patch.transform_measurement(out)[..., self.jid]
 
     def _rollout(self, model, datas, init: np.ndarray, ctrl: np.ndarray, act: np.ndarray) -> np.ndarray:
         """The states (S, n, nstate) of ``init`` (S, nstate) driven by ``ctrl`` (S, n, J_robot)."""

@@ -100,6 +100,24 @@ def _with_units(h: dict) -> tuple[str, str]:
     return "; ".join(params), "; ".join(cis)
 
 
+def _hypothesis_table(hypotheses: list[dict]) -> str:
+    """The diagnosis' hypotheses as an HTML table: effect, joints, parameters and 95 % intervals with units,
+    train and held-out reductions, the cost they were scored on (``scored_by``: ``windowed``, 0.25-s windows
+    restarted from the measured positions, or ``replay``, a free replay; "—" in a diagnosis written before
+    it) and the look-alike alternatives."""
+    rows = ["<table><tr><th class='l'>effect</th><th class='l'>joints</th><th class='l'>parameters</th>"
+            "<th class='l'>95% CI</th><th>train reduction</th><th>held-out reduction</th>"
+            "<th class='l'>scored by</th><th class='l'>alternatives</th></tr>"]
+    for h in hypotheses:
+        params, cis = _with_units(h)
+        rows.append(f"<tr><td class='l'>{h['effect']}</td><td class='l'>{','.join(h['joints'])}</td>"
+                    f"<td class='l'>{html.escape(params)}</td><td class='l'>{html.escape(cis)}</td>"
+                    f"<td>{100 * h['train_error_reduction']:.0f}%</td><td>{_percent(h['heldout_error_reduction'])}</td>"
+                    f"<td class='l'>{html.escape(str(h.get('scored_by', '—')))}</td>"
+                    f"<td class='l'>{', '.join(h['alternatives'])}</td></tr>")
+    return "".join(rows) + "</table>"
+
+
 def _img(png: bytes, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
 
@@ -157,16 +175,8 @@ def write_report(recording, patch: ModelPatch, out, *, diagnosis=None, title: st
     parts += [f"<li>{html.escape(s)}</li>" for s in loc.sentences]
     parts.append("</ul>")
     if diagnosis is not None:
-        parts.append("<h2>Diagnosis: candidate effects, best first</h2><table><tr><th class='l'>effect</th>"
-                     "<th class='l'>joints</th><th class='l'>parameters</th><th class='l'>95% CI</th>"
-                     "<th>train reduction</th><th>held-out reduction</th><th class='l'>alternatives</th></tr>")
-        for h in diagnosis.hypotheses[:15]:
-            params, cis = _with_units(h)
-            parts.append(f"<tr><td class='l'>{h['effect']}</td><td class='l'>{','.join(h['joints'])}</td>"
-                         f"<td class='l'>{html.escape(params)}</td><td class='l'>{html.escape(cis)}</td>"
-                         f"<td>{100 * h['train_error_reduction']:.0f}%</td><td>{_percent(h['heldout_error_reduction'])}</td>"
-                         f"<td class='l'>{', '.join(h['alternatives'])}</td></tr>")
-        parts.append("</table><ul>" + "".join(f"<li>{html.escape(f)}</li>" for f in diagnosis.findings[-len(diagnosis.explained_fraction) - 1:]) + "</ul>")
+        parts.append("<h2>Diagnosis: candidate effects, best first</h2>" + _hypothesis_table(diagnosis.hypotheses[:15]))
+        parts.append("<ul>" + "".join(f"<li>{html.escape(f)}</li>" for f in diagnosis.findings[-len(diagnosis.explained_fraction) - 1:]) + "</ul>")
     if pd_results:
         parts.append("<h2>The paper's identification: per-joint servo gains, CMA-ES vs least squares</h2>"
                      "<p>kp and kd scales fitted alone (no other effect) to Σ‖q<sub>sim</sub> − q<sub>real</sub>‖² "

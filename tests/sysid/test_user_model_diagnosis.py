@@ -172,6 +172,27 @@ def test_a_drag_outside_the_library_is_unexplained_and_nothing_spurious_is_store
     assert saved["effects"] == []
 
 
+def test_a_drag_outside_the_library_on_the_elbow_leaves_the_shoulder_a_knock_on_with_no_effect(arm, tmp_path, capsys):
+    """Polynomial drag on the elbow, the elbow swung while the shoulder holds (issue 43: no spurious effect).
+    The shoulder fails too, as a knock-on of the elbow's motion (2.3 mrad against a 2 mrad failure floor);
+    since no library effect fits the elbow, re-localization never cleared it and a kd_scale × 2.13 was
+    selected on it. With the elbow moving exactly as measured the model reproduces the shoulder, so the
+    shoulder is a knock-on of the unexplained elbow: no effect or hypothesis on it, nothing selected."""
+    truth = edited_arm(arm, cubic_drag("elbow", 0.5), "dragged_elbow")
+    rec = arm_recording(arm, truth, ["elbow"], seed=1)
+    diag, saved = _diagnosed(arm, tmp_path, rec, capsys)
+    assert diag["findings"][0] == "The model fails on 2 of 3 joints: shoulder, elbow.", diag["findings"]
+    assert diag["verdict"] == "unexplained", diag["findings"]
+    assert diag["selected"] == [] and diag["suggestions"] == [], diag["selected"]
+    assert not any("shoulder" in h["joints"] for h in diag["hypotheses"]), diag["hypotheses"]
+    assert any(f.startswith("shoulder: a knock-on of elbow, no effect of its own") and f.endswith("unexplained.")
+               for f in diag["findings"]), diag["findings"]
+    assert not any(f.startswith("shoulder:") and "explains" in f for f in diag["findings"]), diag["findings"]
+    assert any(f.startswith("elbow: nothing explains") for f in diag["findings"]), diag["findings"]
+    assert any(f.startswith("Unexplained: on elbow ") for f in diag["findings"]), diag["findings"]
+    assert saved["effects"] == []
+
+
 def test_a_recording_of_the_user_model_read_on_the_built_in_robot_is_refused(arm, tmp_path, capsys):
     """The user's recording names the user model's joints: diagnosing it without ``--model`` fails with a
     message naming them, not with a diagnosis of the built-in robot."""
@@ -182,3 +203,20 @@ def test_a_recording_of_the_user_model_read_on_the_built_in_robot_is_refused(arm
     assert "rec.npz: joint_names[" in capsys.readouterr().err
     rec = load_recording(tmp_path / "rec.npz", robot=ModelSource(arm).robot())
     assert rec.joint_names == ("shoulder", "elbow", "finger")
+
+
+def test_the_reports_hypothesis_table_says_which_cost_scored_each_hypothesis():
+    """The HTML report's hypothesis table has a "scored by" column: windowed (friction) or replay, and "—"
+    for a diagnosis written before hypotheses said so."""
+    from adadex.sysid.report import _hypothesis_table
+
+    def hyp(effect, value, **more):
+        name = get_effect(effect).param_names[0]
+        return {"effect": effect, "joints": ["finger"], "params": {name: [value]}, "ci95": {name: [[value, value]]},
+                "train_error_reduction": 0.9, "heldout_error_reduction": 0.9, "alternatives": [], **more}
+
+    table = _hypothesis_table([hyp("coulomb_friction", 0.02, scored_by="windowed"),
+                               hyp("damping", 0.05, scored_by="replay"), hyp("armature", 0.01)])
+    assert "<th class='l'>scored by</th>" in table
+    rows = table.split("<tr>")[2:]
+    assert ["windowed" in rows[0], "replay" in rows[1], "<td class='l'>—</td>" in rows[2]] == [True] * 3, rows

@@ -71,7 +71,7 @@ from adadex.errors import ConfigError, check_number, from_known_keys
 from adadex.io import atomic_write_text, check_output_dir, mark_output_dir
 from adadex.train.config import (CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, SimConfig,
                                  TrainConfig, randomization_with)
-from adadex.train.schema import ENV_CODE_ONLY, RANDOMIZATION_CODE_ONLY, changes
+from adadex.train.schema import ENV_CODE_ONLY, RANDOMIZATION_CODE_ONLY, changes, check_fields, field_default
 from adadex.train.stages import STAGE, run_in_processes, run_stage
 
 #: modulator rows of the table → the channel set each trains
@@ -108,11 +108,6 @@ def _modulator_default(name: str):
     return field(default=f.default)
 
 
-def _field_default(cls, name: str):
-    f = next(f for f in dataclasses.fields(cls) if f.name == name)
-    return f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
-
-
 def _group(owner, name: str, cls, where: str):
     """``owner.name`` as a ``cls``: one as is, or a mapping of ``cls`` fields that change the field's
     default (``{"total_frames": 512}`` keeps the stage's other PPO settings); a key that is not a field, or
@@ -122,12 +117,8 @@ def _group(owner, name: str, cls, where: str):
         return value
     if not isinstance(value, Mapping):
         raise ConfigError(f"{where} must be a mapping of {cls.__name__} fields, got {value!r}")
-    known = [f.name for f in dataclasses.fields(cls)]
-    unknown = sorted(set(value) - set(known))
-    if unknown:
-        raise ConfigError(f"{where}: unknown setting{'s' if len(unknown) > 1 else ''} "
-                          f"{', '.join(map(repr, unknown))} (known: {', '.join(known)})")
-    base = _field_default(type(owner), name)
+    check_fields(cls, value, where)
+    base = field_default(type(owner), name)
     try:
         return dataclasses.replace(base, **value) if isinstance(base, cls) else cls(**value)
     except ConfigError as e:

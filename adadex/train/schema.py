@@ -42,6 +42,25 @@ def _plain(v):
     return v
 
 
+def field_default(cls, name: str):
+    """Dataclass ``cls``'s default of field ``name`` (a ``default_factory`` called), or :data:`MISSING`
+    for a required field."""
+    f = next(f for f in dataclasses.fields(cls) if f.name == name)
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else MISSING
+
+
+def check_fields(cls, values: Mapping, where: str, *, drop=()) -> None:
+    """Refuse, in one :class:`ConfigError` naming ``where`` and the known fields, the keys of ``values``
+    that are not fields of dataclass ``cls`` (or are in ``drop``)."""
+    known = sorted(f.name for f in dataclasses.fields(cls) if f.name not in drop)
+    unknown = sorted(set(values) - set(known))
+    if unknown:
+        raise ConfigError(f"{where}: unknown setting{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))} "
+                          f"(known: {', '.join(known)})")
+
+
 def defaults_of(cls, *, drop=(), expand: Mapping | None = None, **values) -> dict:
     """The node of dataclass ``cls``: ``{field: default}``, a nested dataclass's default as its own
     mapping, a required field as :data:`MISSING`; fields in ``drop`` left out; ``expand`` maps a field
@@ -51,13 +70,7 @@ def defaults_of(cls, *, drop=(), expand: Mapping | None = None, **values) -> dic
     for f in dataclasses.fields(cls):
         if f.name in drop:
             continue
-        if f.default is not dataclasses.MISSING:
-            v = f.default
-        elif f.default_factory is not dataclasses.MISSING:
-            v = f.default_factory()
-        else:
-            v = MISSING
-        node[f.name] = _plain(v)
+        node[f.name] = _plain(field_default(cls, f.name))
     node.update(expand or {})
     unknown = set(values) - set(node)
     if unknown:
@@ -76,11 +89,8 @@ def changes(cls, values: Mapping | None, where: str, *, drop=()) -> dict:
     """The entries of ``values`` that differ from dataclass ``cls``'s defaults (lists and tuples alike);
     a key that is not a field of ``cls`` (or is in ``drop``) is refused naming ``where``."""
     values = dict(values or {})
+    check_fields(cls, values, where, drop=drop)
     base = defaults_of(cls, drop=drop)
-    unknown = sorted(set(values) - set(base))
-    if unknown:
-        raise ConfigError(f"{where}: unknown setting{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))} "
-                          f"(known: {', '.join(sorted(base))})")
     return {k: v for k, v in values.items() if _plain(v) != base[k]}
 
 

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from adadex.errors import AdadexError, CheckpointError  # noqa: F401  (CheckpointError: importable from here too)
+from adadex.errors import CheckpointError
 from adadex.io import atomic_write
 
 CHECKPOINT = "checkpoint.pt"

@@ -46,7 +46,6 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import Bounded, Composite, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
-from torchrl.envs.utils import ExplorationType
 from torchrl.objectives import ClipPPOLoss, LossModule
 from torchrl.objectives.value import GAE
 

@@ -10,7 +10,6 @@ import torch
 from adadex.data.retarget import (
     _MATCHED,
     DEFAULT_WEIGHTS,
-    ROBOT_POINTS,
     TABLE_CLEARANCE_POINTS,
     Retargeter,
     hand_length,

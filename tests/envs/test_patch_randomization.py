@@ -12,7 +12,7 @@ from adadex.envs.randomization import EffectRange, Randomization
 from adadex.envs.replay import replay_policy
 from adadex.envs.tracking import TrackingEnv
 from adadex.eval.metrics import from_rollout, summarize
-from adadex.sim.effects import EFFECTS, get_effect
+from adadex.sim.effects import EFFECTS
 from adadex.sim.patch import ModelPatch, patched_scene
 from adadex.sim.robot import JOINT_NAMES, joint_index
 

@@ -7,7 +7,7 @@ import pytest
 from adadex.envs.randomization import EffectRange, Randomization
 from adadex.envs.tracking import TrackingEnv
 from adadex.sim.effects import EffectError
-from adadex.sim.patch import EffectInstance, ModelPatch, patched_scene
+from adadex.sim.patch import ModelPatch, patched_scene
 
 ROBOT_BODIES = ["link1", "link2", "link3", "link4", "link5", "link6", "palm", "if_bs", "if_px", "th_ds"]
 

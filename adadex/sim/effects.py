@@ -33,13 +33,16 @@ randomization (paper Table 3 scales masses, friction, stiffness and damping) and
 look-alikes of screened effects (``payload_mass``, ``kd_scale``).
 
 Sized to the model: every parameter with a physical unit declares the joint quantity it scales
-with (``scales_with``: the servo's ``kp`` or ``kv``, or the joint's ``armature``). On the built-in
+with (``scales_with``: the servo's ``kp`` or ``kv``, the joint's ``armature``, or for a length the
+``reach`` of the link the joint moves, :func:`link_reach`). On the built-in
 robot the bounds and nominal sizes are the tuned per-group tables below; on any other model
 (:class:`~adadex.sim.model_source.RobotTable`) each joint takes the built-in group nearest in
 ``kp`` (log scale) and that group's sizes times the ratio of its own quantity to the group's, so a
 3 N·m/rad finger servo gets bounds half the built-in finger's and a 300 N·m/rad arm servo three
-quarters of the built-in wrist's. Hooks receive ``jid`` as positions in the robot's table; model
-hooks map them to the compiled model's joint, dof and actuator ids (:func:`robot_ids`).
+quarters of the built-in wrist's; a length is sized by the link's reach against the group's
+:data:`REACH` (a payload's offset on a forearm reaching 27.5 cm may reach ±27.5 cm, on a 6.8 cm finger ±6.8 cm).
+Hooks receive ``jid`` as positions in the robot's table; model hooks map them to the compiled model's
+joint, dof and actuator ids (:func:`robot_ids`).
 
 Example
 -------
@@ -53,6 +56,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import functools
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import ClassVar
@@ -78,7 +82,8 @@ class Param:
     lower: dict[str, float]
     upper: dict[str, float]
     #: The joint quantity the sizes scale with on a model other than the built-in: "kp", "kv",
-    #: "armature", or None (dimensionless, seconds, radians).
+    #: "armature", "reach" (a length on the link: :func:`link_reach`), or None (dimensionless, seconds,
+    #: radians).
     scales_with: str | None = None
 
     def bounds(self, joint: str, robot=None) -> tuple[float, float]:
@@ -112,6 +117,9 @@ def sizing(joint: str, robot, scales_with: str | None) -> tuple[str, float]:
     group = min(GAINS, key=lambda g: abs(np.log(kp / GAINS[g].kp)))
     if scales_with is None:
         return group, 1.0
+    if scales_with == "reach":     # a length: the link's own against the one the group's sizes are made for
+        own = float(_reaches(robot.model_id, robot.path)[i]) if robot.path is not None else 0.0
+        return group, (own / REACH[group] if own > 0 else 1.0)
     ref = getattr(GAINS[group], scales_with)
     own = float(getattr(robot, scales_with)[i])
     if own <= 0:  # a servo without damping or a joint without armature: size as the stiffness says
@@ -134,6 +142,44 @@ _IDS: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
 def _per_group(arm_shoulder: float, arm_wrist: float, hand: float) -> dict[str, float]:
     return {"arm_shoulder": arm_shoulder, "arm_wrist": arm_wrist, "finger": hand, "thumb": hand}
+
+
+#: The link reach (m) each built-in group's lengths are made for: a payload's offset is bounded by ± this
+#: (on the built-in arm's long shoulder links, its wrist links, the finger links). On another model a
+#: length scales with the link's own reach (:func:`link_reach`) against its group's.
+REACH = _per_group(0.2, 0.1, 0.02)
+
+
+def link_reach(m: mujoco.MjModel, jnt: int) -> float:
+    """The reach (m) of the link joint ``jnt`` (model joint id) moves (:func:`link_bodies`): the largest
+    distance from the joint's axis point to the link — the far side of its geoms' bounding spheres, the
+    origins and joint anchors of the links it carries, its bodies' centres of mass. Why: where on a link a
+    load can hang is a matter of the link's size, not of its servo's group (a user robot's links have
+    lengths of their own). The link is rigid, so the model's reference pose gives it; 0 for a link with
+    nothing beyond its axis point."""
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    mujoco.mj_comPos(m, d)
+    bodies = link_bodies(m, [jnt])[0]
+    inside = np.isin(np.arange(m.nbody), bodies)
+    carried = np.flatnonzero(inside[m.body_parentid] & ~inside)
+    carried = carried[carried != 0]
+    geoms = np.flatnonzero(inside[m.geom_bodyid])
+    origin = d.xanchor[jnt]
+    far = [np.linalg.norm(d.geom_xpos[geoms] - origin, axis=1) + m.geom_rbound[geoms],
+           np.linalg.norm(d.xpos[carried] - origin, axis=1),
+           np.linalg.norm(d.xanchor[np.isin(m.jnt_bodyid, carried)] - origin, axis=1),
+           np.linalg.norm(d.xipos[bodies] - origin, axis=1)]
+    return float(max((float(f.max()) for f in far if f.size), default=0.0))
+
+
+@functools.lru_cache(maxsize=16)
+def _reaches(model_id: str, path) -> np.ndarray:
+    """:func:`link_reach` of every joint of a model's robot table, in table order (cached per model)."""
+    from adadex.sim.model_source import ModelSource
+
+    m = ModelSource(path).compile()
+    return np.array([link_reach(m, int(j)) for j in _robot_ids(m)[0]])
 
 
 def _same(v: float) -> dict[str, float]:
@@ -524,7 +570,10 @@ class PayloadMass(Effect):
     times its lever arm to the load in the sag and times its square in the inertia, so one mass at a
     fixed point cannot fit a load a few centimetres from it (a mass at the flange, fitted at c, came out
     as 0.752 kg on arm_j5's link for 0.6 kg). The offset's nominal size is its prior scale in the
-    diagnosis (5 cm, 3 cm, 5 mm on shoulder, wrist and hand links).
+    diagnosis (5 cm, 3 cm, 5 mm on shoulder, wrist and hand links; bounds ±20, ±10, ±2 cm). On another
+    model both scale with the link's own reach (:func:`link_reach`: the bounds ± the reach, the prior a
+    quarter of it, 0.3 on links sized as the built-in wrist's): a prior and bounds sized for the built-in
+    wrist held a load 5 cm beyond a 25 cm forearm's centre of mass at +2.5 cm (0.340 kg for 0.3 kg).
 
     The mass is attached to the joint's own body: its mass grows by m, its centre of mass
     (``body_ipos``) moves to the mass-weighted mean of the old one and the point, and its inertia
@@ -543,7 +592,7 @@ class PayloadMass(Effect):
     params = (Param("mass", "kg", 0.0, _per_group(0.5, 0.3, 0.02),
                     _same(0.0), _per_group(5.0, 3.0, 0.2), "kp"),
               Param("offset", "m", 0.0, _per_group(0.05, 0.03, 0.005),
-                    _per_group(-0.2, -0.1, -0.02), _per_group(0.2, 0.1, 0.02)))
+                    _per_group(-0.2, -0.1, -0.02), _per_group(0.2, 0.1, 0.02), "reach"))
     lookalikes = ("armature",)
 
     def apply_model(self, m, base, jid, values):

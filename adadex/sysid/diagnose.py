@@ -51,6 +51,13 @@ removes :data:`LOAD_SCREEN_AT` of it (:func:`_load_first`) — and kept when it 
 failing joints' held-out error (:data:`LOAD_FIRST_AT`); the joints it explains are its knock-ons, and
 only the others are then fitted joint by joint (a 0.6 kg mass on the palm is one ``payload_mass`` on the
 palm's link, not a payload on the shoulder, armature on the elbow and 13 finger hypotheses).
+With one failing joint the search runs once that joint's own fit has chosen a payload or armature, its
+look-alike (:func:`_load_on_one_joint`): the joint-by-joint fit hangs the mass at its own link's centre of
+mass, while the load may hang off it or on a link below (a mass 5 cm beyond the upper arm's centre of mass
+came out 64 % heavy there; one at a finger's centre of mass, felt only on the shoulder, as armature plus a
+payload on the shoulder); the search's load, in mass and place, replaces that selection when it explains
+the joint's held-out error as well as a payload chosen on the same link, or clearly better than armature
+or a payload on the joint's own link.
 
 A joint with too few sequences to hold any out (fewer than three of its own) is scored on its
 training sequences only: the diagnosis lists it in ``train_only_joints``, says so in its findings,
@@ -455,19 +462,13 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         cand, reds = load
         selected_per_joint[cand.joint] = [cand]
         first_rounds[cand.joint] = [cand]
-        still = _still_failing(setting, failing, _patch_of(selected_per_joint, base_patch))
+        carried[cand.joint], load_gone = _carried_by_load(setting, failing, cand, reds, explained_at)
         lap("relocalize")
-        # the joints it explains: those that no longer fail are its knock-ons (no effect of their own, not
-        # scored), those it explains well enough are scored on it; the others are fitted on top of it
-        load_gone = [j for j in failing if j not in still and j != cand.joint]
-        carried[cand.joint] = [j for j in failing if j not in still or reds[j] >= explained_at or j == cand.joint]
         knock_on = [j for j in carried[cand.joint] if j != cand.joint]
         explained.update({j: reds[j] for j in carried[cand.joint]})
         pending = [j for j in failing if j not in carried[cand.joint]]
         bar.update(len(carried[cand.joint]) * len(candidates))
-        findings.append(f"{', '.join(carried[cand.joint])}: one {cand.effect} on the link of {cand.joint} "
-                        f"({_link_names(setting, cand.joint)}; {_load_text(cand)}) explains their errors: it moves with all of them"
-                        + (f"; {', '.join(load_gone)} no longer fail with it (knock-ons)." if load_gone else "."))
+        findings.append(_carried_text(setting, carried[cand.joint], cand, load_gone))
     follows: dict[str, tuple[list[str], float]] = {}   # a joint -> (the joints it follows, its error then, rad)
     while pending:
         joint = pending.pop(0)
@@ -506,6 +507,19 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     for joint in knock_on:
         if joint not in carried:
             selected_per_joint[joint] = []
+    # one failing joint whose own fit chose a payload (or armature): where does a load hang, in mass and place?
+    load = (_load_on_one_joint(setting, failing, selected_per_joint, explained, explained_at, tie)
+            if joints is None and len(failing) == 1 and "payload_mass" in candidates else None)
+    lap("load")
+    if load is not None:
+        cand, reds, gone = load
+        selected_per_joint = {**{j: [] for j in selected_per_joint}, cand.joint: [cand]}
+        first_rounds.setdefault(cand.joint, []).insert(0, cand)
+        carried[cand.joint], load_gone = list(failing), gone
+        knock_on = [j for j in failing if j != cand.joint]
+        moves, follows = {}, {}
+        explained.update({j: reds[j] for j in failing})
+        findings.append(_carried_text(setting, failing, cand, load_gone))
     load = (_single_load_alternative(setting, selected_per_joint, explained, tie, candidates)
             if joints is None and not carried else None)
     if load is not None:
@@ -1014,6 +1028,55 @@ def _load_first(setting: _Setting, failing: list[str], explained_at: float):
     return Candidate(effect="payload_mass", joint=k, value=x, ci95=ci, train_error_reduction=1.0 - c,
                      heldout_error_reduction=red, score=red - COMPLEXITY_PENALTY * len(eff.params),
                      extra=(s,), extra_ci95=(sci,)), reds
+
+
+def _carried_by_load(setting: _Setting, failing: list[str], cand: Candidate, reds: dict,
+                     explained_at: float) -> tuple[list[str], list[str]]:
+    """The failing joints a load found on its own carries, and those of them that no longer fail with it.
+    Those that no longer fail are its knock-ons (no effect of their own, not scored), those it explains
+    to ``explained_at`` (``reds``: held-out reduction per failing joint) are scored on it; the others are
+    fitted on top of it. One replay of the failing joints' own sequences."""
+    still = _still_failing(setting, failing, _patch_of({cand.joint: [cand]}, setting.base_patch))
+    gone = [j for j in failing if j not in still and j != cand.joint]
+    return [j for j in failing if j not in still or reds[j] >= explained_at or j == cand.joint], gone
+
+
+def _carried_text(setting: _Setting, carried: list[str], cand: Candidate, gone: list[str]) -> str:
+    """The finding of a load that explains the errors of ``carried`` (``gone``: those that no longer fail)."""
+    return (f"{', '.join(carried)}: one {cand.effect} on the link of {cand.joint} "
+            f"({_link_names(setting, cand.joint)}; {_load_text(cand)}) explains their errors: it moves with all of them"
+            + (f"; {', '.join(gone)} no longer fail with it (knock-ons)." if gone else "."))
+
+
+def _load_on_one_joint(setting: _Setting, failing: list[str], selected_per_joint: dict, explained: dict,
+                       explained_at: float, tie: float):
+    """The load search (:func:`_load_first`) for the one failing joint whose own fit chose a payload or its
+    look-alike (armature): ``(candidate, held-out reduction per failing joint, the failing joints that no
+    longer fail with it)``, or None.
+
+    The joint-by-joint fit puts a payload's mass at the joint's own link's centre of mass. A load off it
+    (5 cm beyond the upper arm's) or on a link below (a finger's, its own joint too lightly loaded to fail)
+    needs another mass there, or passes for armature; the search fits mass and place on every link at or
+    below the joint against every recorded joint (a joint that does not fail tells where the load is
+    not). Its load replaces the joint's selection when every failing joint is carried by it
+    (:func:`_carried_by_load`) and it explains the joint's held-out error as well (to ``tie``) as the
+    payload chosen there, when it hangs on the same link (the same hypothesis, placed); else by ``tie``
+    better: a joint's own armature is not taken for a load that merely matches it, nor a payload on its
+    own link moved to a link below that fits the joint's error no better (with the joint alone recorded,
+    a load anywhere below it can)."""
+    joint = failing[0]
+    chosen = [c.effect for c in selected_per_joint.get(joint, [])]
+    if not any(e == "payload_mass" or "payload_mass" in get_effect(e).lookalikes for e in chosen):
+        return None
+    found = _load_first(setting, failing, explained_at)
+    if found is None:
+        return None
+    cand, reds = found
+    margin = -tie if "payload_mass" in chosen and cand.joint == joint else tie
+    if reds[joint] < explained.get(joint, 0.0) + margin:
+        return None
+    carried, gone = _carried_by_load(setting, failing, cand, reds, explained_at)
+    return (cand, reds, gone) if set(failing) <= set(carried) else None
 
 
 #: the steps, in the load's mass and in its offset's nominal size, at which each training sequence's error

@@ -51,6 +51,15 @@ removes :data:`LOAD_SCREEN_AT` of it (:func:`_load_first`) — and kept when it 
 failing joints' held-out error (:data:`LOAD_FIRST_AT`); the joints it explains are its knock-ons, and
 only the others are then fitted joint by joint (a 0.6 kg mass on the palm is one ``payload_mass`` on the
 palm's link, not a payload on the shoulder, armature on the elbow and 13 finger hypotheses).
+A source first, when no load is: with :data:`SOURCE_MIN_FAILING` failing joints or more, one library effect
+on one joint, or with one value on two joints of adjacent links, is screened on every recorded joint's
+error at once before any joint is fitted (:func:`_source_first`: a few grid points per candidate, one
+replay each of the sequence where each failing joint errs most, on the worst joints and on those whose
+imposed motion moves the rest), fitted when it halves the failing joints' error on average, a further
+source added while it lowers that clearly, and kept when together they explain :data:`SOURCE_FIRST_AT` of
+the failing joints' held-out error; the joints they explain are their knock-ons, as a load's (a shoulder
+too weak to hold the arm, torque limit 0.3 on arm_j2 and arm_j3, fails 20 of 22 joints: one torque limit on
+the two, not an effect on each; ``benchmarks/sysid_diagnosis.py --worst``).
 With one failing joint the search runs once that joint's own fit has chosen a payload or armature, its
 look-alike (:func:`_load_on_one_joint`): the joint-by-joint fit hangs the mass at its own link's centre of
 mass, while the load may hang off it or on a link below (a mass 5 cm beyond the upper arm's centre of mass
@@ -133,7 +142,7 @@ from adadex.progress import progress_bar
 from adadex.sim.effects import EFFECT_NAMES, get_effect, robot_ids
 from adadex.sim.patch import EffectInstance, ModelPatch
 from adadex.sysid.compare import FAIL_ABS, FAIL_RATIO, compare, heldout_mask, localize, noise_floor
-from adadex.sysid.fit import (WINDOW_S, WINDOWED_EFFECTS, CoupledFitter, JointFitter, window_length,
+from adadex.sysid.fit import (WINDOW_S, WINDOWED_EFFECTS, CoupledFitter, JointFitter, _compass, window_length,
                               window_mse_per_sequence, window_rows)
 from adadex.sysid.replay import Replayer
 
@@ -218,11 +227,13 @@ class Diagnosis:
         train_only_joints: the failing joints with too few sequences to hold any out, scored on their
             training sequences only (default ``[]``).
         model: the id of the model the diagnosis replayed on (default ``"builtin"``).
-        stage_times_s: wall time per stage, s (``localize``, ``load``, ``knock_on_check``, ``fit``,
+        stage_times_s: wall time per stage, s (``localize``, ``load``, ``source``, ``knock_on_check``, ``fit``,
             ``relocalize``, ``joint_refit_and_scoring``; default ``{}``).
         suggestions: effects the data point to but cannot pin down (their value sits on a bound), each
             a dict like a selected effect's with the ``excite`` command that would identify it and its
             ``finding``; never selected (default ``[]``).
+        stage_cpu_s: the same stages' process CPU time, s (every thread of the process, the replay
+            pool's included; default ``{}``).
 
     >>> d = Diagnosis(verdict="explained", baseline_error={}, hypotheses=[], explained_fraction={"arm_j3": 0.9},
     ...               findings=[], wall_time_s=0.0, selected=[{"effect": "damping", "joints": ["arm_j3"],
@@ -244,6 +255,9 @@ class Diagnosis:
     #: effects the data point to but cannot pin down (their value sits on a bound), each with the
     #: ``adadex sysid excite`` command that would identify it; never selected
     suggestions: list[dict] = field(default_factory=list)
+    #: process CPU time per stage, s (the stages of ``stage_times_s``; every thread of the process, the
+    #: replay pool's included; default ``{}``)
+    stage_cpu_s: dict = field(default_factory=dict)
 
     def patch(self, robot=None) -> ModelPatch:
         """The selected effects as a model patch (of ``robot``'s model; default the built-in)."""
@@ -262,7 +276,7 @@ class Diagnosis:
                 "selected": self.selected, "explained_fraction": self.explained_fraction,
                 "findings": self.findings, "wall_time_s": self.wall_time_s,
                 "train_only_joints": self.train_only_joints, "model": self.model,
-                "stage_times_s": self.stage_times_s, "suggestions": self.suggestions}
+                "stage_times_s": self.stage_times_s, "suggestions": self.suggestions, "stage_cpu_s": self.stage_cpu_s}
 
     def save(self, directory) -> Path:
         return atomic_write_text(Path(directory) / "diagnosis.json", json.dumps(self.to_dict(), indent=2))
@@ -420,15 +434,17 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     rep = Replayer(recording, nthread=nthread)
     base_patch = base_patch if base_patch is not None else ModelPatch(robot=rep.robot)
     noise = noise_floor(recording.joint_pos)
-    times = {"localize": 0.0, "load": 0.0, "knock_on_check": 0.0, "fit": 0.0, "relocalize": 0.0,
+    times = {"localize": 0.0, "load": 0.0, "source": 0.0, "knock_on_check": 0.0, "fit": 0.0, "relocalize": 0.0,
              "joint_refit_and_scoring": 0.0}
-    tick = time.perf_counter()
+    cpu = dict.fromkeys(times, 0.0)
+    tick, cpu_tick = time.perf_counter(), time.process_time()
 
     def lap(stage: str) -> None:
-        nonlocal tick
-        now = time.perf_counter()
+        nonlocal tick, cpu_tick
+        now, cpu_now = time.perf_counter(), time.process_time()
         times[stage] += now - tick
-        tick = now
+        cpu[stage] += cpu_now - cpu_tick
+        tick, cpu_tick = now, cpu_now
 
     baseline, failing, findings, base_mse = _localize_failing_joints(recording, base_patch, rep, noise)
     lap("localize")
@@ -438,7 +454,8 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         return Diagnosis(verdict="nothing_missing", baseline_error=baseline, hypotheses=[], selected=[],
                          explained_fraction={}, findings=findings, wall_time_s=time.perf_counter() - t0,
                          train_only_joints=[], model=rep.robot.model_id,
-                         stage_times_s={k: round(v, 3) for k, v in times.items()})
+                         stage_times_s={k: round(v, 3) for k, v in times.items()},
+                         stage_cpu_s={k: round(v, 3) for k, v in cpu.items()})
 
     seq_meta = list(recording.meta.get("sequences") or [{} for _ in range(recording.num_sequences)])
     setting = _Setting(replayer=rep, base_patch=base_patch, joint_names=list(recording.joint_names), noise=noise,
@@ -469,6 +486,26 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
         pending = [j for j in failing if j not in carried[cand.joint]]
         bar.update(len(carried[cand.joint]) * len(candidates))
         findings.append(_carried_text(setting, carried[cand.joint], cand, load_gone))
+    # A source first: one effect (or a few) felt on most failing joints (a shoulder that cannot hold the arm)
+    source = (_source_first(setting, failing, explained_at, candidates)
+              if joints is None and load is None and len(failing) >= SOURCE_MIN_FAILING else None)
+    lap("source")
+    if source is not None:
+        cands, reds = source
+        srcs = [c.joint for c in cands]
+        still = _still_failing(setting, failing, _patch_of({c.joint: [c] for c in cands}, base_patch))
+        load_gone = [j for j in failing if j not in still and j not in srcs]
+        explained_by = [j for j in failing if j not in still or reds[j] >= explained_at or j in srcs]
+        lap("relocalize")
+        for c in cands:
+            selected_per_joint[c.joint] = [c]
+            first_rounds[c.joint] = [c]
+            carried[c.joint] = explained_by
+        knock_on = [j for j in explained_by if j not in srcs]
+        explained.update({j: reds[j] for j in explained_by})
+        pending = [j for j in failing if j not in explained_by]
+        bar.update(len(explained_by) * len(candidates))
+        findings.append(_source_text(cands, explained_by, load_gone))
     follows: dict[str, tuple[list[str], float]] = {}   # a joint -> (the joints it follows, its error then, rad)
     while pending:
         joint = pending.pop(0)
@@ -559,7 +596,11 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
                         f"and one payload_mass on the link of {load_cand.joint} ({_link_names(setting, load_cand.joint)}; "
                         f"{_load_text(load_cand)}) explain their held-out errors better than the effects chosen joint by "
                         f"joint ({mean:.0%} against {before_mean:.0%} on average): softer servos that carry a load.")
-    loaded = {j: selected_per_joint[k] for k, aff in carried.items() for j in aff if j not in load_gone}
+    loaded: dict[str, list[Candidate]] = {}     # a carried joint -> the effects of every source that carries it
+    for k, aff in carried.items():
+        for j in aff:
+            if j not in load_gone:
+                loaded[j] = loaded.get(j, []) + list(selected_per_joint[k])
     own_knock_on = [j for j in knock_on if j not in loaded]
     if own_knock_on:
         findings.append(f"{', '.join(own_knock_on)}: no effect of their own; their error follows from the effects "
@@ -589,7 +630,8 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     return Diagnosis(verdict=verdict, baseline_error=baseline, hypotheses=hypotheses, selected=selected,
                      explained_fraction=explained, findings=findings + sentences,
                      wall_time_s=time.perf_counter() - t0, train_only_joints=train_only, model=rep.robot.model_id,
-                     stage_times_s={k: round(v, 3) for k, v in times.items()}, suggestions=suggestions)
+                     stage_times_s={k: round(v, 3) for k, v in times.items()},
+                         stage_cpu_s={k: round(v, 3) for k, v in cpu.items()}, suggestions=suggestions)
 
 
 def _follower_text(setting: _Setting, joint: str, lead: list[str], rms: float, unexplained: list[str]) -> str:
@@ -859,6 +901,202 @@ LOAD_SHORTLIST = 4
 #: friction on a finger 0.36 (with a mass on the shoulder's own link)
 LOAD_SCREEN_AT = 0.5
 
+#: a source found first (:func:`_source_first`) is kept when it explains this fraction of the failing joints'
+#: held-out excess error on average (as a load found first, :data:`LOAD_FIRST_AT`)
+SOURCE_FIRST_AT = 0.6
+#: the screen's candidate must halve the failing joints' error on average (each joint counted alike: the mean
+#: of its MSE ratio) before any source is fitted; a further source must lower that mean by this much more
+SOURCE_SCREEN_AT = 0.5
+SOURCE_NEXT_AT = 0.1
+#: the joints screened as sources: this many worst by error over noise, and the joints of this many joints or
+#: pairs of joints of adjacent links whose measured motion, imposed, lowers the other failing joints' error most
+SOURCE_JOINTS = 3
+#: nothing is screened unless imposing some joint's measured motion (or two adjacent joints') leaves the other
+#: failing joints at most this fraction of their error on average (mean MSE ratio): a torque-limited shoulder
+#: 0.38–0.58 (its joint or pair), 22 independent faults 0.89 at best (benchmarks/sysid_diagnosis.py)
+SOURCE_IMPOSED_AT = 0.75
+#: at most this many sources found first, and the candidates fitted per source
+MAX_SOURCES = 3
+SOURCE_SHORTLIST = 2
+#: points of the scan between the best screened point's neighbours, and the half-width (fraction of the
+#: bounds) of the scan (2 × SOURCE_SCAN − 1 points) that starts the sources' joint refit
+SOURCE_SCAN = 9
+SOURCE_REFIT_SPAN = 0.02
+#: the least number of failing joints for a source to be looked for first
+SOURCE_MIN_FAILING = 3
+
+
+def _grid_values(effect: str, joint: str, robot, points: int = 9) -> np.ndarray:
+    """:meth:`~adadex.sysid.fit.JointFitter.grid`'s points without the absent value."""
+    eff = get_effect(effect)
+    lo, hi = (float(b[0, 0]) for b in eff.bounds([joint], robot))
+    absent = float(eff.absent_values()[0])
+    ramp = np.linspace(0, 1, points)
+    xs = np.geomspace(lo, hi, points) if lo > 0 else (lo + (hi - lo) * ramp if lo < 0 else lo + (hi - lo) * ramp ** 2)
+    return np.array([x for x in xs if abs(x - absent) > 1e-3 * (hi - lo)])
+
+
+def _source_first(setting: _Setting, failing: list[str], explained_at: float, candidates):
+    """One source — a library effect on one joint, or a few such effects found one after another — that
+    explains most failing joints' error at once, before any joint is fitted: ``(candidates, held-out
+    reduction per failing joint)`` or None.
+
+    A shoulder that cannot hold the arm (a torque limit) moves every joint of the robot: 20 of 22 joints
+    fail, and fitted joint by joint each is given an effect of its own. Here every candidate effect on a
+    few candidate source joints is screened on the residual of every recorded joint in units of its noise
+    (the likelihood), on the training sequence where each failing joint errs most (one replay per grid
+    point: four interior points of the fit's coarse grid, as a saturation — a torque limit — has no slope
+    at its absent value for a finite-difference step to see). First, one replay per failing joint
+    and per pair of failing joints of adjacent links with their measured motion imposed
+    (:meth:`~adadex.sysid.replay.Replayer.simulate_imposed`): unless one leaves the other failing joints at
+    most :data:`SOURCE_IMPOSED_AT` of their error on average (mean MSE ratio), no joint's motion explains
+    the others' and nothing more is done (22 independent faults: 0.89 at best, 3 s). The candidate source
+    joints: the :data:`SOURCE_JOINTS` failing joints with the largest error over noise, and those of the
+    :data:`SOURCE_JOINTS` best imposed joints or pairs. A candidate is scored by the mean over the failing
+    joints of its MSE ratio to the starting patch's (each joint counts alike: a source explains many
+    joints, not the largest error); nothing is fitted unless the best halves it
+    (:data:`SOURCE_SCREEN_AT`). The :data:`SOURCE_SHORTLIST` best are fitted on that residual (Brent
+    between the best grid point's neighbours), the best kept; a further source is screened on top of it
+    and kept while it lowers the mean ratio by :data:`SOURCE_NEXT_AT` (two limited shoulder joints are two
+    torque limits). The sources' values are then refitted together, each with the others in place, on the
+    failing joints' training sequences: Brent to :data:`COUPLED_XTOL` of the bounds and a compass polish
+    (a knock-on error hangs on a sensitive value), once from a scan of ± :data:`SOURCE_REFIT_SPAN` of the
+    bounds around the value and once from the fit's grid over the whole bounds, the better kept. They are
+    kept if together they explain :data:`SOURCE_FIRST_AT` of the failing joints' held-out excess error on
+    average and no value sits on a bound or at its absent value."""
+    rep, robot, names = setting.replayer, setting.replayer.robot, setting.joint_names
+    effects = [n for n in candidates if n != "payload_mass" and n not in WINDOWED_EFFECTS
+               and len(get_effect(n).params) == 1]
+    if not effects:
+        return None
+    base = setting.base_patch
+    few = np.unique(np.concatenate([_most_telling(setting, j, 1) for j in failing])).astype(np.int64)
+    fcols = [names.index(j) for j in failing]
+    measured = rep.rec.joint_pos[few]
+    scale = 1.0 / np.maximum(setting.noise, 1e-9)
+
+    def per_joint(sim: np.ndarray) -> np.ndarray:
+        return np.mean(((sim - measured) * scale) ** 2, axis=(0, 1))
+
+    b0 = per_joint(rep.simulate(base, sequences=few))
+    fb = np.maximum(b0[fcols], 1e-12)
+
+    def ratio(patch: ModelPatch) -> float:
+        """Mean over the failing joints of the MSE ratio to the starting patch's (capped at 2)."""
+        return float(np.mean(np.minimum(per_joint(rep.simulate(patch, sequences=few))[fcols] / fb, 2.0)))
+
+    # whose measured motion, imposed, reproduces the others' error: a joint (or two of adjacent links) that moves them
+    pairs = [[j, k] for i, j in enumerate(failing) for k in failing[i + 1:] if _adjacent(setting, j, k)]
+    moving = []
+    for js in [[j] for j in failing] + pairs:
+        rest = [names.index(k) for k in failing if k not in js]
+        if rest:
+            e = per_joint(rep.simulate_imposed(base, imposed=js, sequences=few))
+            moving.append((float(np.mean(np.minimum(e[rest] / np.maximum(b0[rest], 1e-12), 2.0))), js))
+    moving.sort(key=lambda t: t[0])
+    if not moving or moving[0][0] > SOURCE_IMPOSED_AT:
+        return None        # no joint's motion explains the others': each fails for a reason of its own
+    own = np.array([np.sqrt(np.mean(setting.base_mse[_own_sequences(setting, j), names.index(j)]))
+                    / max(float(setting.noise[names.index(j)]), 1e-9) for j in failing]) \
+        if setting.base_mse is not None else np.zeros(len(failing))
+    worst = [failing[i] for i in np.argsort(-own)[:SOURCE_JOINTS]]
+    joints = list(dict.fromkeys(worst + [j for r, js in moving[:SOURCE_JOINTS] if r <= SOURCE_IMPOSED_AT
+                                         for j in js]))
+
+    # each candidate effect on one of those joints, or on two of them that move adjacent links with one value
+    # (a shoulder whose two joints are both too weak to hold the arm: either alone leaves the other failing)
+    groups = [[j] for j in joints] + [[j, k] for i, j in enumerate(joints) for k in joints[i + 1:]
+                                      if _adjacent(setting, j, k)]
+    sources: list[Candidate] = []
+    patch, current = base, 1.0
+    for _ in range(MAX_SOURCES):
+        if current <= SOURCE_NEXT_AT:
+            break          # what is left is too little for a further source to lower it by SOURCE_NEXT_AT
+        screened = []
+        for e in effects:
+            for js in groups:
+                if any(c.joint in js for c in sources) or not _same_bounds(e, js, robot):
+                    continue
+                xs = _grid_values(e, js[0], robot)
+                pts = xs[1::2] if xs.size >= 8 else xs
+                rs = [ratio(patch.with_effect(e, js, [[float(x)]] * len(js))) for x in pts]
+                i = int(np.argmin(rs))
+                screened.append((rs[i], e, js, float(pts[i])))
+        screened.sort(key=lambda t: t[0])
+        need = 1.0 - SOURCE_SCREEN_AT if not sources else current - SOURCE_NEXT_AT
+        if not screened or screened[0][0] > need:
+            break
+        best = None
+        for r0, e, js, x0 in screened[:SOURCE_SHORTLIST]:
+            xs = _grid_values(e, js[0], robot)
+            k = int(np.argmin(np.abs(xs - x0)))
+            a, b = float(xs[max(k - 1, 0)]), float(xs[min(k + 1, xs.size - 1)])
+            lo, hi = (float(v[0, 0]) for v in get_effect(e).bounds([js[0]], robot))
+
+            def cost(x: float) -> float:
+                return ratio(patch.with_effect(e, js, [[float(x)]] * len(js)))
+
+            # a scan, then Brent between the best point's neighbours: the cost of a limit the arm barely holds
+            # at is a narrow well beside a cliff (0.3: 0.001; 0.295: 0.03; 0.305: 0.34), which Brent over
+            # the grid's bracket alone steps over
+            ys = np.linspace(a, b, SOURCE_SCAN)
+            cs = [cost(y) for y in ys]
+            i = int(np.argmin(cs))
+            x, r = float(ys[i]), float(cs[i])
+            res = minimize_scalar(cost, bounds=(float(ys[max(i - 1, 0)]), float(ys[min(i + 1, ys.size - 1)])),
+                                  method="bounded", options={"xatol": 1e-4 * (hi - lo), "maxiter": 25})
+            if res.fun < r:
+                x, r = float(res.x), float(res.fun)
+            # a compass search from there, down to Brent's tolerance: it steps into the well Brent stops beside
+            x, r = _compass(cost, x, r, float(ys[max(i - 1, 0)]), float(ys[min(i + 1, ys.size - 1)]),
+                            0.5 * float(ys[1] - ys[0]), 1e-4 * (hi - lo))
+            if r0 < r:
+                x, r = x0, r0
+            if best is None or r < best[0]:
+                best = (r, e, js, x)
+        r, e, js, x = best
+        if r > need:
+            break
+        sources += [Candidate(effect=e, joint=j, value=x, ci95=(x, x), train_error_reduction=1.0 - r,
+                              heldout_error_reduction=0.0, score=0.0) for j in js]
+        patch, current = patch.with_effect(e, js, [[x]] * len(js)), r
+    if not sources:
+        return None
+    # the values together, each with the others in place, on every failing joint's training sequences
+    seqs = np.unique(np.concatenate([setting.sequences(j)[0] for j in failing])).astype(np.int64)
+    for c in sources:
+        others = base
+        for o in sources:
+            if o is not c:
+                others = others.with_effect(o.effect, [o.joint], [[o.value]])
+        lo, hi = (float(v[0, 0]) for v in get_effect(c.effect).bounds([c.joint], robot))
+        fitter = CoupledFitter(rep, c.joint, failing, seqs, [setting.noise[k] for k in fcols], others)
+        # a scan around the value first (the true limit's well sits beside a cliff: Brent from a bracket
+        # centred off it steps over it), then Brent between the best point's neighbours and a compass polish
+        steps = np.linspace(-1.0, 1.0, 2 * SOURCE_SCAN - 1)
+        xs = np.unique(np.clip(c.value + SOURCE_REFIT_SPAN * (hi - lo) * steps, lo, hi))
+        grid = (xs, np.array([fitter.mse(fitter.patch_with(c.effect, float(x))) for x in xs]))
+        # and from the fit's own grid over the whole bounds, as a joint's refit against its knock-ons: which of
+        # the two brackets holds the well depends on where the cliff is (a 0.35 limit on arm_j2 alone: the
+        # whole bounds' bracket; 0.3 on both shoulder joints: the scan's)
+        r = min(fitter.fit(c.effect, xtol_frac=COUPLED_XTOL, maxiter=100, grid=grid),
+                fitter.fit(c.effect, xtol_frac=COUPLED_XTOL, maxiter=100), key=lambda f: f.mse_after)
+        c.value, c.ci95 = r.value, r.ci95
+    full = _patch_of({c.joint: [c] for c in sources}, base) if len({c.joint for c in sources}) == len(sources) \
+        else None
+    if full is None or any(on_bound(c.effect, c.joint, c.value, c.ci95, robot)
+                           or _is_absent(c.effect, c.value, c.joint, robot) for c in sources):
+        return None
+    before = _heldout_mse(setting, base, failing)
+    after = _heldout_mse(setting, full, failing)
+    reds = {j: _reduction(before[j], after[j], setting.noise2(j)) for j in failing}
+    red = float(np.mean(list(reds.values())))
+    if red < SOURCE_FIRST_AT:
+        return None
+    for c in sources:
+        c.heldout_error_reduction, c.score = red, red - COMPLEXITY_PENALTY
+    return sources, reds
+
 
 def _shared_effect_and_load(setting: _Setting, failing: list[str], selected_per_joint: dict, explained: dict,
                             explained_at: float, tie: float):
@@ -1046,6 +1284,30 @@ def _carried_text(setting: _Setting, carried: list[str], cand: Candidate, gone: 
     return (f"{', '.join(carried)}: one {cand.effect} on the link of {cand.joint} "
             f"({_link_names(setting, cand.joint)}; {_load_text(cand)}) explains their errors: it moves with all of them"
             + (f"; {', '.join(gone)} no longer fail with it (knock-ons)." if gone else "."))
+
+
+def _same_bounds(effect: str, joints: list[str], robot) -> bool:
+    """Whether ``effect`` has the same bounds on every joint of ``joints`` (one value can be shared)."""
+    b = [tuple(float(v[0, 0]) for v in get_effect(effect).bounds([j], robot)) for j in joints]
+    return all(x == b[0] for x in b)
+
+
+def _adjacent(setting: _Setting, a: str, b: str) -> bool:
+    """Whether joints ``a`` and ``b`` move the same link or a link and its parent."""
+    m = setting.replayer.model_for(setting.base_patch)[0]
+    robot = setting.replayer.robot
+    jnt = robot_ids(m, [list(robot.names).index(a), list(robot.names).index(b)])[0]
+    ba, bb = (int(m.jnt_bodyid[i]) for i in jnt)
+    return ba == bb or int(m.body_parentid[ba]) == bb or int(m.body_parentid[bb]) == ba
+
+
+def _source_text(cands: list[Candidate], carried: list[str], gone: list[str]) -> str:
+    """The finding of sources found first (:func:`_source_first`) that explain the errors of ``carried``."""
+    what = " and ".join(f"{c.effect} on {c.joint} ({get_effect(c.effect).param_names[0]} = {c.value:.4g} "
+                        f"{get_effect(c.effect).params[0].unit})".replace(" )", ")") for c in cands)
+    return (f"{', '.join(carried)}: {what} explain{'s' if len(cands) == 1 else ''} their errors, found first: "
+            f"one source felt on all of them" + (f"; {', '.join(gone)} no longer fail with it (knock-ons)."
+                                                  if gone else "."))
 
 
 def _load_on_one_joint(setting: _Setting, failing: list[str], selected_per_joint: dict, explained: dict,
@@ -1427,22 +1689,21 @@ def _score_jointly(setting: _Setting, selected_per_joint: dict, carried=None) ->
     full = _patch_of(selected_per_joint, setting.base_patch)
     explained = {}
     carried = carried or {}
-    for joint, chosen in sorted(selected_per_joint.items(), key=lambda kv: kv[0] in carried):
-        if joint in carried:
-            if joint not in setting.joint_names:     # a load on a link whose joint is not recorded
-                chosen[-1].heldout_error_reduction = float(np.mean([explained[j] for j in carried[joint]]))
-                continue
+    for joint, chosen in selected_per_joint.items():
+        if joint not in setting.joint_names:     # a load on a link whose joint is not recorded
+            continue
         held = setting.scored(joint)
         hf = JointFitter(setting.replayer, joint, held, setting.base_patch)
         windowed = _windowed(chosen)
         mse = hf.window_mse_per_sequence if windowed else hf.mse_per_sequence
-        red = _reduction(mse(setting.base_patch), mse(full), setting.noise2(joint))
-        explained[joint] = red
-        if joint in carried:
-            red = float(np.mean([explained[j] for j in carried[joint]]))
+        explained[joint] = _reduction(mse(setting.base_patch), mse(full), setting.noise2(joint))
         if chosen:
-            chosen[-1].heldout_error_reduction = red
+            chosen[-1].heldout_error_reduction = explained[joint]
             chosen[-1].scored_by = _scored_by(windowed)
+    for joint, chosen in selected_per_joint.items():     # a load or source: the mean over the joints it carries
+        if joint in carried and chosen:
+            chosen[-1].heldout_error_reduction = float(np.mean([explained[j] for j in carried[joint]
+                                                                if j in explained]))
     return explained
 
 

@@ -19,8 +19,19 @@ where the payload has one, and where the mass truly hangs in the payload's terms
 along the link's distal axis from the link's centre of mass, ``true_off_axis_m`` off that axis;
 :func:`adadex.sim.effects.payload_point`), the explained fractions, the verdict and the wall time.
 
+``--worst``: the worst case, one source felt on 15+ joints (:data:`WORST`): a torque-limited shoulder
+(arm_j2 and arm_j3 at 0.3 of their effort, ``assets/gaps/weak_shoulder.json``: the shoulder cannot hold the
+loaded pose, so every sequence moves the arm) and a shoulder limited on arm_j2 alone at 0.35 (it barely
+holds); recorded as the sim2real recipe's ``small`` preset excites (every joint, sine at 0.5/1.5/3 Hz,
+chirp and multisine, amplitude 0.5, loaded pose, 3 s each at 60 Hz; sensor noise 0.2 mrad), diagnosed
+with every library effect. ``--case NAME`` (repeatable) runs only those. Reported per case: the failing
+joints, the selected effects and their values against the truth, the verdict, wall and process-CPU time
+of the whole diagnosis, the wall time of each of its stages (and their CPU time where the diagnosis reports
+``stage_cpu_s``), and how many replays (and sequences replayed) each step of the diagnosis ran.
+
     python benchmarks/sysid_diagnosis.py [--seed 0] [--out FILE]
     python benchmarks/sysid_diagnosis.py --payloads [--case palm] [--out FILE]
+    python benchmarks/sysid_diagnosis.py --worst [--case shoulder] [--out FILE]
 """
 
 from __future__ import annotations
@@ -116,6 +127,106 @@ def payload_cases(seed: int, threads: int, only=None) -> dict:
     return {"benchmark": "sysid_diagnosis", "mode": "payloads", "seed": seed, "cases": rows,
             "all_within_5pct": all(r["ok"] for r in rows)}
 
+#: (case, {effect: (joints, value)}): one source felt on 15+ joints (module docstring, ``--worst``)
+WORST = (
+    ("shoulder", {"torque_limit": (("arm_j2", "arm_j3"), 0.3)}),
+    ("shoulder_j2", {"torque_limit": (("arm_j2",), 0.35)}),
+)
+
+
+class _Counter:
+    """Counts the replays (calls, and sequences replayed) of every :class:`~adadex.sysid.replay.Replayer` while
+    installed, by the step of :mod:`adadex.sysid.diagnose` that asked (the outermost function under
+    ``diagnose``: ``_source_first``, ``_forward_selection``, ``_follows``, …) and the kind of replay."""
+
+    def __init__(self):
+        from adadex.sysid.replay import Replayer
+
+        self.calls, self.seqs = {}, {}
+        self._orig = {}
+        for name in ("simulate", "simulate_windows", "simulate_imposed"):
+            orig = getattr(Replayer, name)
+            self._orig[name] = orig
+            setattr(Replayer, name, self._wrap(name, orig))
+
+    def _wrap(self, name, orig):
+        import inspect
+
+        def wrapped(rep, *args, **kwargs):
+            frame = inspect.currentframe().f_back
+            while frame is not None and not frame.f_code.co_filename.endswith(("diagnose.py",)):
+                frame = frame.f_back
+            # the outermost diagnose.py function below diagnose() names the step
+            site, f = "other", frame
+            while f is not None and f.f_code.co_filename.endswith("diagnose.py"):
+                if f.f_code.co_name != "diagnose":
+                    site = f.f_code.co_name
+                f = f.f_back
+            seqs = kwargs.get("sequences")
+            n = len(rep.rec.joint_pos) if seqs is None else len(np.atleast_1d(seqs))
+            key = f"{site}.{name}"
+            self.calls[key] = self.calls.get(key, 0) + 1
+            self.seqs[key] = self.seqs.get(key, 0) + n
+            return orig(rep, *args, **kwargs)
+        return wrapped
+
+    def close(self):
+        from adadex.sysid.replay import Replayer
+
+        for name, orig in self._orig.items():
+            setattr(Replayer, name, orig)
+
+
+def worst_cases(seed: int, threads: int, only=None) -> dict:
+    """Diagnose each of :data:`WORST` (or those named in ``only``); see the module docstring."""
+    from adadex.train.sim2real import PRESETS
+
+    small = PRESETS["small"]
+    plan = design_excitation(JOINT_NAMES, freqs=small.freqs, amps=small.amps, kinds=small.kinds, poses=small.poses,
+                             duration=small.duration)
+    rows = []
+    for case, effects in WORST:
+        if only and case not in only:
+            continue
+        truth = ModelPatch()
+        for effect, (joints, value) in effects.items():
+            truth = truth.with_effect(effect, list(joints), value)
+        rec = simulate_recording(plan, truth, noise=2e-4, seed=seed, nthread=threads)
+        counter = _Counter()
+        w0, c0 = time.perf_counter(), time.process_time()
+        try:
+            d = diagnose(rec, nthread=threads, progress=False)
+        finally:
+            counter.close()
+        secs, cpu = time.perf_counter() - w0, time.process_time() - c0
+        sel = [(h["effect"], h["joints"], h["params"]) for h in d.selected]
+        found = {}
+        for effect, (joints, value) in effects.items():
+            h = next((h for h in d.selected if h["effect"] == effect), None)
+            got = dict(zip(h["joints"], list(h["params"].values())[0])) if h else {}
+            found[effect] = {j: {"truth": value, "fitted": got.get(j),
+                                 "rel_error": None if got.get(j) is None else abs(got[j] - value) / value}
+                             for j in joints}
+        exact = sorted((e, tuple(sorted(j))) for e, (j, _) in effects.items())
+        same = sorted((h["effect"], tuple(sorted(h["joints"]))) for h in d.selected) == exact
+        within = all(v["rel_error"] is not None and v["rel_error"] <= 0.1 for f in found.values() for v in f.values())
+        ok = same and within and d.verdict == "explained"
+        rows.append({"case": case, "truth": {e: [list(j), v] for e, (j, v) in effects.items()},
+                     "sequences": rec.num_sequences, "failing": sorted(d.explained_fraction),
+                     "num_failing": len(d.explained_fraction), "selected": sel, "truth_vs_fitted": found,
+                     "only_the_truth_selected": same, "within_10pct": within,
+                     "explained_min": min(d.explained_fraction.values()) if d.explained_fraction else None,
+                     "verdict": d.verdict, "suggestions": [s["effect"] for s in d.suggestions],
+                     "seconds": secs, "cpu_seconds": cpu, "stage_seconds": d.stage_times_s,
+                     "stage_cpu_seconds": d.to_dict().get("stage_cpu_s"),
+                                          "replays": counter.calls, "sequences_replayed": counter.seqs, "ok": ok})
+        print(f"{case}: {len(d.explained_fraction)} failing; selected {sel}; {'OK' if ok else 'WRONG'}; "
+              f"verdict {d.verdict}; {secs:.0f} s wall, {cpu:.0f} s CPU; stages {d.stage_times_s}; "
+              f"replays {counter.calls}", flush=True)
+    return {"benchmark": "sysid_diagnosis", "mode": "worst", "seed": seed, "recording": "sim2real small preset",
+            "cases": rows, "all_ok": all(r["ok"] for r in rows)}
+
+
 #: Sizes that leave a clear mark; the library's nominal values otherwise.
 VISIBLE = {("payload_mass", "finger"): 0.1, ("payload_mass", "thumb"): 0.1, ("payload_mass", "arm_shoulder"): 1.5,
            ("payload_mass", "arm_wrist"): 1.0, ("armature", "arm_wrist"): 0.08, ("coulomb_friction", "arm_wrist"): 1.5}
@@ -143,12 +254,19 @@ def main(argv=None) -> dict:
     p.add_argument("--force", action="store_true",
                    help="replace --out even if it is not an earlier result of this benchmark")
     p.add_argument("--payloads", action="store_true", help="the hidden-payload cases instead (module docstring)")
-    p.add_argument("--case", action="append", choices=[c[0] for c in PAYLOADS],
-                   help="with --payloads: only this case (repeatable); default all")
+    p.add_argument("--worst", action="store_true", help="the worst cases instead (module docstring)")
+    p.add_argument("--case", action="append", choices=[c[0] for c in PAYLOADS] + [c[0] for c in WORST],
+                   help="with --payloads or --worst: only this case (repeatable); default all")
     a = p.parse_args(argv)
     if a.payloads and a.out == p.get_default("out"):
         a.out = RESULTS / "sysid_payloads.json"
+    if a.worst and a.out == p.get_default("out"):
+        a.out = RESULTS / "sysid_worst.json"
     check_result(a.out, name="sysid_diagnosis", force=a.force)      # before any work: refuse a file not ours
+    if a.worst:
+        out = worst_cases(a.seed, a.threads, a.case)
+        write_result(a.out, out, name="sysid_diagnosis", force=a.force, indent=2)
+        return out
     if a.payloads:
         out = payload_cases(a.seed, a.threads, a.case)
         write_result(a.out, out, name="sysid_diagnosis", force=a.force, indent=2)
@@ -159,9 +277,9 @@ def main(argv=None) -> dict:
     t0 = time.perf_counter()
     rec = simulate_recording(plan, truth, noise=2e-4, seed=a.seed, nthread=a.threads)
     t_sim = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     d = diagnose(rec, nthread=a.threads)
-    t_diag = time.perf_counter() - t0
+    t_diag, c_diag = time.perf_counter() - t0, time.process_time() - c0
 
     rows = []
     for e in truth.effects:
@@ -185,7 +303,8 @@ def main(argv=None) -> dict:
            "params_within_10pct": float(np.mean([e <= 0.1 for e in rel_errs])) if rel_errs else None,
            "heldout_reduction_median": float(np.median([r["heldout_error_reduction"] for r in rows
                                                         if r["heldout_error_reduction"] is not None])),
-           "simulate_seconds": t_sim, "diagnosis_seconds": t_diag, "stage_seconds": d.stage_times_s,
+           "simulate_seconds": t_sim, "diagnosis_seconds": t_diag, "diagnosis_cpu_seconds": c_diag,
+           "stage_seconds": d.stage_times_s, "stage_cpu_seconds": d.to_dict().get("stage_cpu_s"),
            "target_seconds": 300,
            "target_met": bool(t_diag <= 300), "cases": rows}
     write_result(a.out, out, name="sysid_diagnosis", force=a.force, indent=2)
@@ -197,7 +316,7 @@ def main(argv=None) -> dict:
               f"{(r['heldout_error_reduction'] if r['heldout_error_reduction'] is not None else float('nan')):13.3f}")
     print("stages (s): " + ", ".join(f"{k} {v:.1f}" for k, v in d.stage_times_s.items()))
     print(f"verdict {d.verdict}; top-1 accuracy {acc:.2f}; parameters within 10 %: {out['params_within_10pct']}; "
-          f"median rel. error {out['param_rel_error_median']}; diagnosis {t_diag:.0f} s for {rec.num_sequences} "
+          f"median rel. error {out['param_rel_error_median']}; diagnosis {t_diag:.0f} s ({c_diag:.0f} s CPU) for {rec.num_sequences} "
           f"sequences (target 300 s: {'met' if out['target_met'] else 'NOT met'}); wrote {a.out}")
     return out
 

@@ -59,3 +59,44 @@ def test_the_source_is_found_first_and_the_knock_ons_are_not_fitted_one_by_one(w
     # a joint-by-joint fit of the failing joints replays over a thousand times; the source-first screen a few hundred
     assert replays < 600, replays
     assert any("found first" in f for f in d.findings), d.findings
+
+
+#: more joints and longer sequences than ``weak_shoulder``: the arm falls further, and the free replay turns
+#: chaotic around the true limit
+CHAOTIC_EXCITED = ["arm_j1", "arm_j2", "arm_j3", "arm_j4", "arm_j5", "arm_j6", "if_pip", "th_mcp", "mf_pip",
+                   "rf_mcp", "if_rot", "th_ipl"]
+
+
+@pytest.fixture(scope="module")
+def chaotic_shoulder():
+    truth = ModelPatch().with_effect("torque_limit", ["arm_j2", "arm_j3"], LIMIT)
+    plan = design_excitation(CHAOTIC_EXCITED, freqs=(0.5, 1.5), amps=(0.5,), kinds=("sine", "chirp", "multisine"),
+                             poses=("loaded",), duration=3.0)
+    rec = simulate_recording(plan, truth, noise=2e-4, seed=0)
+    return rec, diagnose(rec, candidates=CANDIDATES, progress=False)
+
+
+def test_a_free_replay_near_a_limit_the_arm_barely_holds_is_chaotic_and_the_windowed_cost_is_not(chaotic_shoulder):
+    from adadex.sysid.compare import noise_floor
+    from adadex.sysid.fit import CoupledFitter
+
+    rec, _ = chaotic_shoulder
+    names = list(rec.joint_names)
+    f = CoupledFitter(Replayer(rec), "arm_j2", names, np.arange(0, rec.num_sequences, 4), noise_floor(rec.joint_pos))
+    limit = {x: ModelPatch().with_effect("torque_limit", ["arm_j2", "arm_j3"], x) for x in (LIMIT - 1e-4, LIMIT,
+                                                                                         LIMIT + 1e-4)}
+    free = {x: f.mse(p) for x, p in limit.items()}
+    windowed = {x: f.window_mse(p) for x, p in limit.items()}
+    assert min(free[LIMIT - 1e-4], free[LIMIT + 1e-4]) > 100 * free[LIMIT], free
+    assert max(windowed[LIMIT - 1e-4], windowed[LIMIT + 1e-4]) < 1.5 * windowed[LIMIT], windowed
+
+
+def test_a_chaotic_source_is_fitted_and_scored_on_windows(chaotic_shoulder):
+    _, d = chaotic_shoulder
+    assert len(d.explained_fraction) >= 8, d.explained_fraction
+    assert [(h["effect"], sorted(h["joints"])) for h in d.selected] == [("torque_limit", ["arm_j2", "arm_j3"])], \
+        d.selected
+    np.testing.assert_allclose(d.selected[0]["params"]["fraction"], LIMIT, rtol=0.01)
+    assert set(d.selected[0]["scored_by"]) == {"windowed"}
+    assert d.verdict == "explained", d.findings
+    assert any("a free replay of torque_limit is chaotic" in f for f in d.findings), d.findings

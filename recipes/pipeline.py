@@ -1,6 +1,6 @@
 """The paper's Table 1 in one command — see pipeline.yaml and adadex.train.pipeline.
 
-    python recipes/pipeline.py preset=small out=runs/table1     # 2 seeds; wall time measured in README
+    python recipes/pipeline.py preset=small out=runs/table1     # 3 seeds; wall time in docs/table1.md
     python recipes/pipeline.py preset=tiny out=/tmp/t1          # every stage at toy size, minutes
     python recipes/pipeline.py preset=small out=runs/t1 modulator.ppo.total_frames=500000 env.window=120
 

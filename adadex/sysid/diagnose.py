@@ -1352,7 +1352,8 @@ def _source_text(cands: list[Candidate], carried: list[str], gone: list[str]) ->
     what = " and ".join(f"{c.effect} on {c.joint} ({get_effect(c.effect).param_names[0]} = {c.value:.4g} "
                         f"{get_effect(c.effect).params[0].unit})".replace(" )", ")") for c in cands)
     return (f"{', '.join(carried)}: {what} explain{'s' if len(cands) == 1 else ''} their errors, found first: "
-            f"one source felt on all of them" + (f"; {', '.join(gone)} no longer fail with it (knock-ons)."
+            f"one source felt on all of them" + (f"; {', '.join(gone)} no longer fail{'s' if len(gone) == 1 else ''} "
+                                                  "with it (knock-ons)."
                                                   if gone else "."))
 
 

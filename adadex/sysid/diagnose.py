@@ -1073,12 +1073,7 @@ def _source_first(setting: _Setting, failing: list[str], explained_at: float, ca
     # the values together, each with the others in place, on the two sequences where each failing joint errs most
     seqs = np.unique(np.concatenate([_most_telling(setting, j, 2) for j in failing])).astype(np.int64)
     for c in sources:
-        others = base
-        for o in sources:
-            if o is not c:
-                others = others.with_effect(o.effect, [o.joint], [[o.value]])
-        lo, hi = (float(v[0, 0]) for v in get_effect(c.effect).bounds([c.joint], robot))
-        fitter = CoupledFitter(rep, c.joint, failing, seqs, [setting.noise[k] for k in fcols], others)
+        fitter, lo, hi = _source_fitter(setting, sources, c, failing, seqs, base)
         # a scan around the value first (the true limit's well sits beside a cliff: Brent from a bracket
         # centred off it steps over it), then Brent between the best point's neighbours and a compass polish
         steps = np.linspace(-1.0, 1.0, 2 * SOURCE_SCAN - 1)
@@ -1123,20 +1118,26 @@ def _source_first(setting: _Setting, failing: list[str], explained_at: float, ca
     return sources, reds
 
 
+def _source_fitter(setting: _Setting, sources: list[Candidate], c: Candidate, failing: list[str], seqs,
+                   base: ModelPatch):
+    """``(fitter, lo, hi)``: a :class:`~adadex.sysid.fit.CoupledFitter` of source ``c`` against every failing
+    joint on ``seqs``, the other sources in place, and the bounds of its effect on its joint."""
+    others = base
+    for o in sources:
+        if o is not c:
+            others = others.with_effect(o.effect, [o.joint], [[o.value]])
+    lo, hi = (float(v[0, 0]) for v in get_effect(c.effect).bounds([c.joint], setting.replayer.robot))
+    noise = [setting.noise[setting.joint_names.index(j)] for j in failing]
+    return CoupledFitter(setting.replayer, c.joint, failing, seqs, noise, others), lo, hi
+
+
 def _refit_windowed(setting: _Setting, sources: list[Candidate], failing: list[str], seqs, base: ModelPatch) -> None:
     """The sources' values (updated in place) on the windowed cost of every failing joint on ``seqs``, each
     with the others in place (:data:`SOURCE_WINDOWED_PASSES` rounds of coordinate descent when there are
     several): Brent over ± :data:`SOURCE_REFIT_SPAN` of the bounds around its value, to 1e-5 of them, and the
     windowed Gauss–Newton interval."""
-    rep, robot = setting.replayer, setting.replayer.robot
-    fcols = [setting.joint_names.index(j) for j in failing]
     for c in [c for _ in range(SOURCE_WINDOWED_PASSES if len(sources) > 1 else 1) for c in sources]:
-        others = base
-        for o in sources:
-            if o is not c:
-                others = others.with_effect(o.effect, [o.joint], [[o.value]])
-        lo, hi = (float(v[0, 0]) for v in get_effect(c.effect).bounds([c.joint], robot))
-        fitter = CoupledFitter(rep, c.joint, failing, seqs, [setting.noise[k] for k in fcols], others)
+        fitter, lo, hi = _source_fitter(setting, sources, c, failing, seqs, base)
         a, b = max(lo, c.value - SOURCE_REFIT_SPAN * (hi - lo)), min(hi, c.value + SOURCE_REFIT_SPAN * (hi - lo))
         res = minimize_scalar(lambda x: fitter.window_mse(fitter.patch_with(c.effect, float(x))), bounds=(a, b),
                               method="bounded", options={"xatol": 1e-5 * (hi - lo), "maxiter": 40})

@@ -59,7 +59,10 @@ imposed motion moves the rest), fitted when it halves the failing joints' error 
 source added while it lowers that clearly, and kept when together they explain :data:`SOURCE_FIRST_AT` of
 the failing joints' held-out error; the joints they explain are their knock-ons, as a load's (a shoulder
 too weak to hold the arm, torque limit 0.3 on arm_j2 and arm_j3, fails 20 of 22 joints: one torque limit on
-the two, not an effect on each; ``benchmarks/sysid_diagnosis.py --worst``).
+the two, not an effect on each; ``benchmarks/sysid_diagnosis.py --worst``). Near a limit the arm barely
+holds, the free replay is chaotic in the value (1e-4 off the truth, a thousand times the noise): when it
+leaves a failing joint unexplained, the sources are refitted and scored on the windowed cost, with the
+joints they carry (:attr:`Candidate.chaotic`), and that is kept when it explains more.
 With one failing joint the search runs once that joint's own fit has chosen a payload or armature, its
 look-alike (:func:`_load_on_one_joint`): the joint-by-joint fit hangs the mass at its own link's centre of
 mass, while the load may hang off it or on a link below (a mass 5 cm beyond the upper arm's centre of mass

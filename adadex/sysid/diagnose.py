@@ -145,8 +145,8 @@ from adadex.progress import progress_bar
 from adadex.sim.effects import EFFECT_NAMES, get_effect, robot_ids
 from adadex.sim.patch import EffectInstance, ModelPatch
 from adadex.sysid.compare import FAIL_ABS, FAIL_RATIO, compare, heldout_mask, localize, noise_floor
-from adadex.sysid.fit import (WINDOW_S, WINDOWED_EFFECTS, CoupledFitter, JointFitter, _compass, window_length,
-                              window_mse_per_sequence, window_rows)
+from adadex.sysid.fit import (WINDOW_S, WINDOWED_EFFECTS, CoupledFitter, JointFitter, _compass, grid_points,
+                              window_length, window_mse_per_sequence, window_rows)
 from adadex.sysid.replay import Replayer
 
 COMPLEXITY_PENALTY = 0.02
@@ -937,16 +937,6 @@ SOURCE_WINDOWED_PASSES = 3
 SOURCE_MIN_FAILING = 3
 
 
-def _grid_values(effect: str, joint: str, robot, points: int = 9) -> np.ndarray:
-    """:meth:`~adadex.sysid.fit.JointFitter.grid`'s points without the absent value."""
-    eff = get_effect(effect)
-    lo, hi = (float(b[0, 0]) for b in eff.bounds([joint], robot))
-    absent = float(eff.absent_values()[0])
-    ramp = np.linspace(0, 1, points)
-    xs = np.geomspace(lo, hi, points) if lo > 0 else (lo + (hi - lo) * ramp if lo < 0 else lo + (hi - lo) * ramp ** 2)
-    return np.array([x for x in xs if abs(x - absent) > 1e-3 * (hi - lo)])
-
-
 def _source_first(setting: _Setting, failing: list[str], explained_at: float, candidates):
     """One source — a library effect on one joint, or a few such effects found one after another — that
     explains most failing joints' error at once, before any joint is fitted: ``(candidates, held-out
@@ -1028,7 +1018,7 @@ def _source_first(setting: _Setting, failing: list[str], explained_at: float, ca
             for js in groups:
                 if any(c.joint in js for c in sources) or not _same_bounds(e, js, robot):
                     continue
-                xs = _grid_values(e, js[0], robot)
+                xs = grid_points(e, js[0], robot, absent=False)
                 pts = xs[1::2] if xs.size >= 8 else xs
                 rs = [ratio(patch.with_effect(e, js, [[float(x)]] * len(js))) for x in pts]
                 i = int(np.argmin(rs))
@@ -1039,7 +1029,7 @@ def _source_first(setting: _Setting, failing: list[str], explained_at: float, ca
             break
         best = None
         for r0, e, js, x0 in screened[:SOURCE_SHORTLIST]:
-            xs = _grid_values(e, js[0], robot)
+            xs = grid_points(e, js[0], robot, absent=False)
             k = int(np.argmin(np.abs(xs - x0)))
             a, b = float(xs[max(k - 1, 0)]), float(xs[min(k + 1, xs.size - 1)])
             lo, hi = (float(v[0, 0]) for v in get_effect(e).bounds([js[0]], robot))

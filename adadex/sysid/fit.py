@@ -128,17 +128,7 @@ class JointFitter:
         return xs, np.array([self.mse(self.patch_with(effect, float(x))) for x in xs])
 
     def _grid_points(self, effect: str, points: int) -> np.ndarray:
-        eff = get_effect(effect)
-        lo, hi = (float(b[0, 0]) for b in eff.bounds([self.joint], self.rep.robot))
-        absent = float(eff.absent_values()[0])
-        ramp = np.linspace(0, 1, points)
-        if lo > 0:
-            xs = np.geomspace(lo, hi, points)
-        elif lo < 0:
-            xs = lo + (hi - lo) * ramp
-        else:
-            xs = lo + (hi - lo) * ramp ** 2
-        return np.unique(np.concatenate([xs, [absent]]))
+        return grid_points(effect, self.joint, self.rep.robot, points)
 
     def fit(self, effect: str, *, points: int = 9, xtol_frac: float = 1e-3, grid=None,
             mse_before: float | None = None, maxiter: int = 30, bracket=None) -> FitResult:
@@ -276,6 +266,23 @@ class CoupledFitter(JointFitter):
 
     def _errors(self, sim: np.ndarray) -> np.ndarray:
         return (sim[..., self.cols] - self.measured) * self.scale
+
+
+def grid_points(effect: str, joint: str, robot=None, points: int = 9, absent: bool = True) -> np.ndarray:
+    """The coarse grid of ``effect`` on ``joint`` over its bounds: geometric for scale-like parameters
+    (positive lower bound), quadratic (dense near 0) for sizes that start at 0, linear for signed ones;
+    with the absent value added (``absent``), or with the points next to it left out."""
+    eff = get_effect(effect)
+    lo, hi = (float(b[0, 0]) for b in eff.bounds([joint], robot))
+    none = float(eff.absent_values()[0])
+    ramp = np.linspace(0, 1, points)
+    if lo > 0:
+        xs = np.geomspace(lo, hi, points)
+    elif lo < 0:
+        xs = lo + (hi - lo) * ramp
+    else:
+        xs = lo + (hi - lo) * ramp ** 2
+    return np.unique(np.concatenate([xs, [none]])) if absent else xs[np.abs(xs - none) > 1e-3 * (hi - lo)]
 
 
 def window_length(dt: float) -> int:

@@ -639,7 +639,7 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
                      explained_fraction=explained, findings=findings + sentences,
                      wall_time_s=time.perf_counter() - t0, train_only_joints=train_only, model=rep.robot.model_id,
                      stage_times_s={k: round(v, 3) for k, v in times.items()},
-                         stage_cpu_s={k: round(v, 3) for k, v in cpu.items()}, suggestions=suggestions)
+                     stage_cpu_s={k: round(v, 3) for k, v in cpu.items()}, suggestions=suggestions)
 
 
 def _follower_text(setting: _Setting, joint: str, lead: list[str], rms: float, unexplained: list[str]) -> str:
@@ -960,7 +960,7 @@ def _source_first(setting: _Setting, failing: list[str], explained_at: float, ca
     between the best grid point's neighbours), the best kept; a further source is screened on top of it
     and kept while it lowers the mean ratio by :data:`SOURCE_NEXT_AT` (two limited shoulder joints are two
     torque limits). The sources' values are then refitted together, each with the others in place, on the
-    failing joints' training sequences: Brent to :data:`COUPLED_XTOL` of the bounds and a compass polish
+    two training sequences where each failing joint errs most: Brent to :data:`COUPLED_XTOL` of the bounds and a compass polish
     (a knock-on error hangs on a sensitive value), once from a scan of ± :data:`SOURCE_REFIT_SPAN` of the
     bounds around the value and once from the fit's grid over the whole bounds, the better kept. They are
     kept if together they explain :data:`SOURCE_FIRST_AT` of the failing joints' held-out excess error on
@@ -1345,10 +1345,10 @@ def _source_text(cands: list[Candidate], carried: list[str], gone: list[str]) ->
     """The finding of sources found first (:func:`_source_first`) that explain the errors of ``carried``."""
     what = " and ".join(f"{c.effect} on {c.joint} ({get_effect(c.effect).param_names[0]} = {c.value:.4g} "
                         f"{get_effect(c.effect).params[0].unit})".replace(" )", ")") for c in cands)
+    tail = (f"; {', '.join(gone)} no longer fail{'s' if len(gone) == 1 else ''} with it (knock-ons)."
+            if gone else ".")
     return (f"{', '.join(carried)}: {what} explain{'s' if len(cands) == 1 else ''} their errors, found first: "
-            f"one source felt on all of them" + (f"; {', '.join(gone)} no longer fail{'s' if len(gone) == 1 else ''} "
-                                                  "with it (knock-ons)."
-                                                  if gone else "."))
+            f"one source felt on all of them{tail}")
 
 
 def _load_on_one_joint(setting: _Setting, failing: list[str], selected_per_joint: dict, explained: dict,

@@ -296,20 +296,23 @@ class EvaluationStage:
     (``evaluation.*``).
 
     Attributes:
-        repeats: randomized evaluation: episodes per test reference, each on its own Table 3 draw
-            (default 16: with 47 references and 3 seeds, enough that a row's paired difference to the
-            tracker has a bootstrap half-width ≤ 1.5 completion points; docs/table1.md).
+        repeats: Table 1's randomized evaluations: episodes per test reference, each on its own Table 3
+            draw (default 16: with 47 references and 3 seeds, enough that a row's paired difference to
+            the tracker has a bootstrap half-width ≤ 1.5 completion points; docs/table1.md).
+        check_repeats: the same for the data-scaling study (Fig. 6) and the generalist-against-teachers
+            check, which compare fewer, larger differences (default 4).
         scaling_fractions: the reference fractions of the data-scaling study, each in (0, 1]
             (default (0.125, 0.25, 0.5, 1.0)).
         smoothness_samples: observations ρ is measured on (Fig. 12; default 512).
     """
 
     repeats: int = 16
+    check_repeats: int = 4
     scaling_fractions: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)
     smoothness_samples: int = 512
 
     def __post_init__(self):
-        for k in ("repeats", "smoothness_samples"):
+        for k in ("repeats", "check_repeats", "smoothness_samples"):
             check_number(f"PipelineConfig.evaluation.{k}", getattr(self, k), low=1, integer=True)
         self.scaling_fractions = tuple(sorted({float(f) for f in self.scaling_fractions}))
         for f in self.scaling_fractions:
@@ -633,7 +636,7 @@ class Pipeline:
         return g
 
     def evaluate(self, policy, split: str, condition: str, eval_seed: int, *, references=None,
-                 keep_rollouts=False) -> dict:
+                 keep_rollouts=False, repeats: int | None = None) -> dict:
         from adadex.eval.evaluate import evaluate
 
         refs = references or episode_references(self.ds, (split, "test"), self.env_config.window)
@@ -642,7 +645,7 @@ class Pipeline:
                               f"{self.env_config.window}-frame window")
         randomized = condition == "randomized"
         c = self.cfg
-        return evaluate(policy, self.ds, split=None, references=refs * (c.evaluation.repeats if randomized else 1),
+        return evaluate(policy, self.ds, split=None, references=refs * ((repeats or c.evaluation.repeats) if randomized else 1),
                         max_worlds=c.collector.worlds, env_transform=policy.primer, config=self.env_config,
                         randomize=c.randomization_config() if randomized else None, seed=eval_seed, progress=False,
                         nthread=c.collector.env_threads, keep_rollouts=keep_rollouts, backend=c.backend)
@@ -684,7 +687,7 @@ class Pipeline:
 
             def run(path=path, refs=refs):
                 r = {row: self.evaluate(self.policy(row, {row: p}), "unseen_trajectory", "randomized", 30_000 + seed,
-                                        references=list(refs))
+                                        references=list(refs), repeats=self.cfg.evaluation.check_repeats)
                      for row, p in (("teacher", path), ("tracker", tracker))}
                 a, b = (np.asarray(r[row]["per_episode"]["completion"]) * 100 for row in ("tracker", "teacher"))
                 d = paired_bootstrap(a, b, np.asarray(r["teacher"]["per_episode"]["reference"]), seed=seed)
@@ -693,7 +696,7 @@ class Pipeline:
                         "generalist_completion_pct": r["tracker"]["summary"]["completion_pct"],
                         "generalist_minus_teacher": d["estimate"], "generalist_minus_teacher_ci95": d["ci95"]}
 
-            out.append(self._stage(folder, {"teacher": path, "tracker": tracker, "repeats": self.cfg.evaluation.repeats,
+            out.append(self._stage(folder, {"teacher": path, "tracker": tracker, "repeats": self.cfg.evaluation.check_repeats,
                                             "seed": seed}, run,
                                    label=f"seed {seed} generalist against teacher {k + 1} on its references"))
         return out
@@ -705,9 +708,10 @@ class Pipeline:
         for f in self.cfg.evaluation.scaling_fractions:
             path = tracker if f == 1.0 else self.distill(seed, root / "scaling" / f"frac_{f:g}", rollouts, f)
             folder = root / "scaling" / f"frac_{f:g}" / "eval"
-            settings = {"tracker": path, "repeats": self.cfg.evaluation.repeats, "seed": seed}
+            settings = {"tracker": path, "repeats": self.cfg.evaluation.check_repeats, "seed": seed}
             out[f] = self._stage(folder, settings, lambda p=path: {"summary": self.evaluate(
-                self.policy("tracker", {"tracker": p}), "unseen_trajectory", "randomized", 20_000 + seed)["summary"]},
+                self.policy("tracker", {"tracker": p}), "unseen_trajectory", "randomized", 20_000 + seed,
+                repeats=self.cfg.evaluation.check_repeats)["summary"]},
                 label=f"seed {seed} evaluate the {f:g}-fraction generalist")["summary"]
         return out
 

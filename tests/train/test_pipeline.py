@@ -281,6 +281,32 @@ def test_randomization_changes_reach_training_rollouts_and_evaluation(tiny_datas
     assert seen["rollouts"].object_xy_std == 0.02
 
 
+def test_table_rows_draw_repeats_and_the_checks_draw_check_repeats(tiny_dataset, tmp_path, monkeypatch):
+    """Table 1's randomized rows run ``evaluation.repeats`` episodes per test reference (nominal ones one),
+    the teacher check and the data-scaling study ``evaluation.check_repeats``."""
+    import importlib
+
+    evaluate_module = importlib.import_module("adadex.eval.evaluate")
+    from adadex.train import pipeline as pipeline_module
+
+    pipe = pipeline_module.Pipeline(PipelineConfig(out=str(tmp_path), evaluation={"repeats": 5, "check_repeats": 2}))
+    pipe.ds = ReferenceDataset(tiny_dataset)
+    counts = []
+
+    def fake_evaluate(policy, ds, **kw):
+        counts.append(len(kw["references"]))
+        return {"summary": {}, "per_reference": []}
+
+    monkeypatch.setattr(evaluate_module, "evaluate", fake_evaluate)
+    for condition in ("randomized", "nominal"):
+        pipe.evaluate(pipe.policy("replay", {}), "unseen_trajectory", condition, 0, references=[0, 1])
+    pipe.evaluate(pipe.policy("replay", {}), "unseen_trajectory", "randomized", 0, references=[0, 1],
+                  repeats=pipe.cfg.evaluation.check_repeats)
+    assert counts == [10, 2, 4]
+    with pytest.raises(ConfigError, match="check_repeats"):
+        PipelineConfig(out=str(tmp_path), evaluation={"check_repeats": 0})
+
+
 def test_pipeline_trackers_are_unanchored_unless_asked(tiny_dataset, tmp_path):
     """The pipeline trains plain residual trackers (the stages' ``policy`` default), while PolicyConfig,
     which the specialist recipes use, keeps its anchor; ``specialist.policy.anchor`` sets it back, other

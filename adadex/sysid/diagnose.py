@@ -104,9 +104,11 @@ below them, fitted to all their sequences; it replaces them when it
 explains their held-out sequences as well (a mass on the hand is one hypothesis, not a payload on the
 shoulder plus armature on the elbow). Softer servos carrying a load (:func:`_shared_effect_and_load`):
 when the failing joints of one chain are not yet explained and one effect was chosen on several of
-them, that effect on all of them with a payload screened on top replaces the selection if it explains
-the held-out error better (kp × 0.3 on six arm joints and 2 kg at the palm, joint by joint kp here,
-damping, friction and kd there, are one softness and one payload). A candidate fitted at (or within 0.1 % of the bounds of) its
+them, that effect on all of them with a load on top replaces the selection if it explains the held-out
+error better (kp × 0.3 on six arm joints and 2 kg at the palm, joint by joint kp here, damping, friction
+and kd there, are one softness and one payload). The load is a payload screened on one link, or links
+heavier than the model's — one ``mass_scale`` shared by every failing joint's links (motors, cables),
+which no payload on one link mimics — whichever explains more. A candidate fitted at (or within 0.1 % of the bounds of) its
 absent value explains nothing
 and is dropped; explained fractions are reported clipped at 0. A selected value whose 95 % interval
 spans half of its bounds is reported as not identifiable from the recording, with the
@@ -589,20 +591,24 @@ def diagnose(recording, *, base_patch: ModelPatch | None = None, candidates=EFFE
     if sum(len(c) for c in selected_per_joint.values()) > 1 or knock_on or removed or follows:
         explained.update(_score_jointly(setting, selected_per_joint, carried))
     explained = {j: max(0.0, v) for j, v in explained.items() if j in failing}
-    shared = (_shared_effect_and_load(setting, failing, selected_per_joint, explained, explained_at, tie)
-              if joints is None and not carried and "payload_mass" in candidates else None)
+    shared = (_shared_effect_and_load(setting, failing, selected_per_joint, explained, explained_at, tie, candidates)
+              if joints is None and not carried and ({"payload_mass", "mass_scale"} & set(candidates)) else None)
     if shared is not None:
-        effect, cands, load_cand, reds, before_mean = shared
+        effect, cands, load, reds, before_mean = shared
         selected_per_joint = {j: [cands[j]] for j in failing}
-        selected_per_joint.setdefault(load_cand.joint, []).append(load_cand)
-        for c in [*cands.values(), load_cand]:
+        for c in load:
+            selected_per_joint.setdefault(c.joint, []).append(c)
+        for c in [*cands.values(), *load]:
             first_rounds.setdefault(c.joint, []).insert(0, c)
         explained, knock_on, suggestions, follows = dict(reds), [], [], {}
         mean = float(np.mean(list(reds.values())))
+        load_text = (f"one payload_mass on the link of {load[0].joint} ({_link_names(setting, load[0].joint)}; "
+                     f"{_load_text(load[0])})" if load[0].effect == "payload_mass" else
+                     f"their links {load[0].value:.3g} × as heavy as the model's (one mass_scale on all of them, "
+                     f"95 % interval {load[0].ci95[0]:.3g}–{load[0].ci95[1]:.3g})")
         findings.append(f"{', '.join(failing)}: {effect} on every one of them "
                         f"({min(c.value for c in cands.values()):.3g}–{max(c.value for c in cands.values()):.3g}) "
-                        f"and one payload_mass on the link of {load_cand.joint} ({_link_names(setting, load_cand.joint)}; "
-                        f"{_load_text(load_cand)}) explain their held-out errors better than the effects chosen joint by "
+                        f"and {load_text} explain their held-out errors better than the effects chosen joint by "
                         f"joint ({mean:.0%} against {before_mean:.0%} on average): softer servos that carry a load.")
     loaded: dict[str, list[Candidate]] = {}     # a carried joint -> the effects of every source that carries it
     for k, aff in carried.items():
@@ -1139,9 +1145,9 @@ def _refit_windowed(setting: _Setting, sources: list[Candidate], failing: list[s
 
 
 def _shared_effect_and_load(setting: _Setting, failing: list[str], selected_per_joint: dict, explained: dict,
-                            explained_at: float, tie: float):
-    """One effect on every failing joint of a chain and one payload, instead of a different effect on each:
-    ``(effect, {joint: candidate}, load candidate, held-out reduction per joint, the selection's mean
+                            explained_at: float, tie: float, candidates=EFFECT_NAMES):
+    """One effect on every failing joint of a chain and one load, instead of a different effect on each:
+    ``(effect, {joint: candidate}, [load candidates], held-out reduction per joint, the selection's mean
     reduction)`` or None.
 
     Softer servos on an arm that carries a load look, joint by joint, like the softness where gravity
@@ -1149,13 +1155,15 @@ def _shared_effect_and_load(setting: _Setting, failing: list[str], selected_per_
     softness of another size where it does (the pitch joints sag as well as lag), and the load screen
     finds no load while the softness dominates. So when the failing joints, all on one chain, are not
     yet explained to within ``tie`` and one effect was chosen on at least two of them, that effect is
-    tried on every failing joint at the median of its values and a payload screened on top
-    (:func:`_load_first` on that model); then the effect is refitted on each joint with the rest in
-    place. The pair replaces the selection when the payload explains most of what the effect alone
-    leaves (:func:`_load_first`'s test), the pair explains the failing joints' held-out error by ``tie``
-    more on average than the selection, the payload explains :data:`MIN_EXPLAINED` of some joint's
+    tried on every failing joint at the median of its values with a load on top: links heavier than the
+    model's (:func:`_heavier_links`) and, with ``payload_mass`` among the ``candidates``, a payload
+    screened on one link (:func:`_load_first` on that model) — the step runs when either load effect is a
+    candidate (``mass_scale`` is not among the default candidates, which fit it joint by joint, but a
+    load shared by a chain's links is one hypothesis, not one per joint); then the effect is refitted on each joint with the
+    rest in place. The better pair replaces the selection when the load explains most of what the effect
+    alone leaves (the load steps' own test), the pair explains the failing joints' held-out error by
+    ``tie`` more on average than the selection, the load explains :data:`MIN_EXPLAINED` of some joint's
     error beyond the refitted effect (it is not spurious there), and no value sits on a bound."""
-    robot = setting.replayer.robot
     counts: dict[str, list[float]] = {}
     for j in failing:
         for c in selected_per_joint.get(j, []):
@@ -1164,21 +1172,45 @@ def _shared_effect_and_load(setting: _Setting, failing: list[str], selected_per_
         return None
     effect, values = max(counts.items(), key=lambda kv: len(kv[1]))
     current = float(np.mean([explained.get(j, 0.0) for j in failing]))
-    if (len(values) < 2 or effect == "payload_mass" or len(get_effect(effect).params) != 1
+    if (len(values) < 2 or effect in ("payload_mass", "mass_scale") or len(get_effect(effect).params) != 1
             or current > 1.0 - tie or not _chain_below(setting, failing)):
         return None
     v = float(np.median(values))
     base = setting.base_patch.with_effect(effect, failing, [v] * len(failing))
-    found = _load_first(dataclasses.replace(setting, base_patch=base), failing, explained_at)
-    if found is None:
+    on_base = dataclasses.replace(setting, base_patch=base)
+    loads = []
+    heavier = _heavier_links(on_base, failing, explained_at)
+    if heavier is not None:
+        loads.append(heavier[0])
+    found = _load_first(on_base, failing, explained_at) if "payload_mass" in candidates else None
+    if found is not None:
+        loads.append([found[0]])
+    pairs = [p for p in (_pair_with_load(setting, failing, effect, v, load, tie, current) for load in loads)
+             if p is not None]
+    if not pairs:
         return None
-    load, _ = found
-    load_values = [[load.value, *load.extra]]
+    cands, load, reds = max(pairs, key=lambda p: float(np.mean(list(p[2].values()))))
+    return effect, cands, load, reds, current
+
+
+def _with_load(patch: ModelPatch, load: list[Candidate]) -> ModelPatch:
+    """``patch`` with a load: one payload (its mass and offset), or one ``mass_scale`` on several joints."""
+    if load[0].effect == "payload_mass":
+        return patch.with_effect("payload_mass", [load[0].joint], [[load[0].value, *load[0].extra]])
+    return patch.with_effect(load[0].effect, [c.joint for c in load], [[c.value] for c in load])
+
+
+def _pair_with_load(setting: _Setting, failing: list[str], effect: str, v: float, load: list[Candidate], tie: float,
+                    current: float):
+    """The effect refitted on each failing joint with ``load`` and the others in place, scored on the
+    held-out sequences: ``({joint: candidate}, load, reductions)``, or None when a value sits on a bound,
+    the pair does not beat ``current`` by ``tie`` or the load is felt nowhere beyond the effect."""
+    robot = setting.replayer.robot
 
     def model(values: dict, with_load: bool = True, skip: str | None = None) -> ModelPatch:
         js = [j for j in failing if j != skip]
         p = setting.base_patch.with_effect(effect, js, [values[j] for j in js]) if js else setting.base_patch
-        return p.with_effect("payload_mass", [load.joint], load_values) if with_load else p
+        return _with_load(p, load) if with_load else p
 
     values = {j: v for j in failing}
     fits = {}
@@ -1202,9 +1234,57 @@ def _shared_effect_and_load(setting: _Setting, failing: list[str], selected_per_
                           heldout_error_reduction=reds[j], score=reds[j] - COMPLEXITY_PENALTY,
                           scored_by=_scored_by(windowed))
              for j, f in fits.items()}
-    load.heldout_error_reduction = mean
-    load.scored_by = _scored_by(windowed)
-    return effect, cands, load, reds, current
+    load = [dataclasses.replace(c, heldout_error_reduction=mean, scored_by=_scored_by(windowed)) for c in load]
+    return cands, load, reds
+
+
+def _heavier_links(setting: _Setting, failing: list[str], explained_at: float):
+    """Links heavier than the model's: one ``mass_scale`` shared by the links of every failing joint
+    (motors, cables and brackets the model leaves out are spread over the arm, which a payload on one
+    link does not mimic), fitted to the failing joints' training sequences (bounded Brent; each joint's
+    error in units of its noise) with a Gauss–Newton interval: ``([one candidate per failing joint],
+    held-out reduction per failing joint)``, or None when the scale sits on a bound or at 1, or explains
+    less than :data:`LOAD_FIRST_AT` of the failing joints' held-out excess error on average."""
+    rep, robot, base = setting.replayer, setting.replayer.robot, setting.base_patch
+    lo, hi = (float(np.max(b)) if k == 0 else float(np.min(b))
+              for k, b in enumerate(get_effect("mass_scale").bounds(failing, robot)))
+    if not lo < 1.0 < hi:
+        return None
+    train = {j: setting.sequences(j)[0] for j in failing}
+    seqs = np.unique(np.concatenate(list(train.values()))).astype(np.int64)
+    rows = {j: np.searchsorted(seqs, t) for j, t in train.items()}
+    cols = {j: setting.joint_names.index(j) for j in failing}
+    measured = rep.rec.joint_pos[seqs]
+
+    def model(x: float) -> ModelPatch:
+        return base.with_effect("mass_scale", failing, [[float(x)]] * len(failing))
+
+    def residual(x: float) -> np.ndarray:
+        sim = rep.simulate(model(x), sequences=seqs)
+        return np.concatenate([(sim[rows[j], :, cols[j]] - measured[rows[j], :, cols[j]]).ravel()
+                               / np.sqrt(setting.noise2(j)) for j in failing])
+
+    r1 = residual(1.0)
+    res = minimize_scalar(lambda x: float(np.sum(residual(x) ** 2)), bounds=(lo, hi), method="bounded",
+                          options={"xatol": 1e-4, "maxiter": 40})
+    x = float(res.x)
+    r = residual(x)
+    c, c1 = float(r @ r), float(r1 @ r1)
+    h = 1e-3 * (hi - lo)
+    J = (residual(min(x + h, hi)) - residual(max(x - h, lo))) / (min(x + h, hi) - max(x - h, lo))
+    sd = float(np.sqrt(c / max(r.size - 1, 1) / max(float(J @ J), 1e-30)))
+    ci = (max(lo, x - 1.96 * sd), min(hi, x + 1.96 * sd))
+    if (c >= c1 or any(on_bound("mass_scale", j, x, ci, robot) or _is_absent("mass_scale", x, j, robot)
+                       for j in failing)):
+        return None
+    before = _heldout_mse(setting, base, failing)
+    after = _heldout_mse(setting, model(x), failing)
+    reds = {j: _reduction(before[j], after[j], setting.noise2(j)) for j in failing}
+    red = float(np.mean(list(reds.values())))
+    if red < LOAD_FIRST_AT:
+        return None
+    return [Candidate(effect="mass_scale", joint=j, value=x, ci95=ci, train_error_reduction=1.0 - c / c1,
+                      heldout_error_reduction=red, score=red - COMPLEXITY_PENALTY) for j in failing], reds
 
 
 def _load_first(setting: _Setting, failing: list[str], explained_at: float):

@@ -85,3 +85,13 @@ def both(*edits):
         for e in edits:
             e(spec)
     return edit
+
+
+def heavier_links(bodies, scale: float):
+    """An edit: the mass and inertia of each of ``bodies`` × ``scale`` (what the model leaves out of them)."""
+    def edit(spec):
+        for name in bodies:
+            b = spec.body(name)
+            b.mass *= scale
+            b.fullinertia = [v * scale for v in b.fullinertia]
+    return edit

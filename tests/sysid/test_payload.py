@@ -104,3 +104,28 @@ def test_softer_servos_carrying_a_load_are_one_softness_and_one_payload(soft_arm
     np.testing.assert_allclose(d.selected[1]["params"]["mass"], SOFT_LOAD, rtol=0.05)
     assert min(d.explained_fraction.values()) >= 0.95, d.explained_fraction
     assert any("softer servos that carry a load" in f for f in d.findings), d.findings
+
+
+HEAVY = 2.0       # the arm's links (link2 … link6) twice as heavy as the model's
+
+
+@pytest.fixture(scope="module")
+def soft_arm_heavy_links():
+    model = hidden.edited_model(hidden.both(hidden.soft_servos(ARM, SOFT),
+                                            hidden.heavier_links([f"link{i}" for i in range(2, 7)], HEAVY)),
+                                "soft_arm_heavy_links")
+    rec = hidden.recording(model, ARM, seed=2, measured=ARM)
+    return diagnose(rec, progress=False)
+
+
+def test_softer_servos_on_heavier_links_are_one_softness_and_one_mass_scale(soft_arm_heavy_links):
+    """Links heavier than the model's all along the arm are no payload on one link: joint by joint the
+    softness explains the yaw and wrist joints and nothing explains the shoulder and elbow; one softness
+    on every arm joint with one mass_scale shared by their links explains them all."""
+    d = soft_arm_heavy_links
+    assert d.verdict == "explained", d.findings
+    assert [(h["effect"], h["joints"]) for h in d.selected] == [("kp_scale", ARM), ("mass_scale", ARM)], d.selected
+    np.testing.assert_allclose(d.selected[0]["params"]["scale"], SOFT, rtol=0.05)
+    np.testing.assert_allclose(d.selected[1]["params"]["scale"], HEAVY, rtol=0.15)
+    assert min(d.explained_fraction.values()) >= 0.9, d.explained_fraction
+    assert any("as heavy as the model's" in f for f in d.findings), d.findings

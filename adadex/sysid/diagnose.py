@@ -1161,7 +1161,8 @@ def _shared_effect_and_load(setting: _Setting, failing: list[str], selected_per_
     finds no load while the softness dominates. So when the failing joints, all on one chain, are not
     yet explained to within ``tie`` — on their own held-out sequences, or on every held-out sequence
     (:func:`_every_heldout_reduction`) — and one effect was chosen on at least two of them, that effect is
-    tried on every failing joint at the median of its values with a load on top: links heavier than the
+    tried on every failing joint — at its value on the joint it explains best alone (where the load does
+    not weigh: the yaw, a wrist), else the median of its values — with a load on top: links heavier than the
     model's (:func:`_heavier_links`) and, with ``payload_mass`` among the ``candidates``, a payload
     screened on one link (:func:`_load_first` on that model) — the step runs when either load effect is a
     candidate (``mass_scale`` is not among the default candidates, which fit it joint by joint, but a
@@ -1186,7 +1187,9 @@ def _shared_effect_and_load(setting: _Setting, failing: list[str], selected_per_
     crossed = float(np.mean(list(_every_heldout_reduction(setting, chosen, failing).values())))
     if current > 1.0 - tie and crossed > 1.0 - tie:
         return None
-    v = float(np.median(values))
+    alone = [j for j in failing if [c.effect for c in selected_per_joint.get(j, [])] == [effect]]
+    best = max(alone, key=lambda j: explained.get(j, 0.0)) if alone else None
+    v = selected_per_joint[best][0].value if best is not None else float(np.median(values))
     base = setting.base_patch.with_effect(effect, failing, [v] * len(failing))
     on_base = dataclasses.replace(setting, base_patch=base)
     loads = []

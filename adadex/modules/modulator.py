@@ -197,6 +197,10 @@ class Modulator(ActorCritic):
             ignores it — the two must agree. Only the first step's reach is then scored by PPO.
         lead_latched: the same for channel L's lead (the env's ``ModulationConfig.lead_latched``).
         gain_latched: the same for channel K's gains (the env's ``ModulationConfig.gain_latched``).
+        context_free: channels whose choice reads no observation — one learned distribution, the same
+            in every episode (:class:`~adadex.modules.nets.GaussianHeads`' ``blind`` heads), e.g.
+            ``("K",)``: a robot's servo gains, chosen at the episode's first step where nothing of its
+            dynamics shows yet; the critic still reads the view. Default none.
     """
 
     kind = "modulator"
@@ -204,7 +208,8 @@ class Modulator(ActorCritic):
     def __init__(self, channels="R+O+T", hidden: Sequence[int] = (512, 256, 128), init_scale=None,
                  loc_bound: float = 0.0, inputs: str = "view", history: int = 3, prior: str | None = None,
                  lambda_palm: float = _DEFAULT_LAMBDA_PALM, hold_steps: int = 0, hold_scale=None,
-                 reach_latched: bool = True, lead_latched: bool = True, gain_latched: bool = True):
+                 reach_latched: bool = True, lead_latched: bool = True, gain_latched: bool = True,
+                 context_free: Sequence[str] = ()):
         super().__init__()
         self.layout = ModulationLayout(channels)
         if not self.layout.dim:
@@ -231,9 +236,16 @@ class Modulator(ActorCritic):
                         if key in record.keys:
                             fixed += range(sl.start, sl.stop)
         latched = (self.view.slices()["phase"].start, fixed) if fixed else None
+        context_free = tuple(dict.fromkeys(str(c) for c in context_free))
+        unknown = [c for c in context_free if c not in self.layout.channels]
+        if unknown:
+            raise ConfigError(f"Modulator.context_free: channels {unknown} are not among {self.layout.name}")
+        if context_free:                 # only then: checkpoints without it keep their config
+            self.config["context_free"] = list(context_free)
         self.actor = make_actor(self.obs_key, obs_dim, self.layout.channel_sizes, -1.0, 1.0, hidden,
                                 namespace="modulator", init_scale=[scales[c] for c in self.layout.channels],
-                                loc_bound=loc_bound, bounds=shift, latched=latched)
+                                loc_bound=loc_bound, bounds=shift, latched=latched,
+                                blind=[self.layout.channels.index(c) for c in context_free])
         self.critic = make_critic(self.obs_key, obs_dim, hidden)
 
     def _shift(self, prior, lambda_palm, hold_steps, hold_scale):

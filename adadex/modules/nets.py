@@ -85,6 +85,13 @@ class GaussianHeads(nn.Module):
     then carry no parameter's log-probability, so PPO's ratio and gradient come only from the entries
     that act, instead of from noise the environment throws away.
 
+    ``blind`` (optional): indices of heads that read no observation — their loc and scale are the
+    head's bias, one learned distribution for every input (the weights stay, unused, so the state
+    dict is the same). For a choice that is the robot's and not the moment's (channel K's gains,
+    latched at an episode's first step, where nothing the robot does is visible yet): a few
+    hundred episodes teach one value reliably, where a trunk over the view fits their noise
+    (docs/sim2real.md).
+
     Args:
         obs_dim: the observation's size (normalized by a :class:`Normalizer` first).
         head_sizes: output entries of each head; loc and scale are (…, sum(head_sizes)).
@@ -94,12 +101,17 @@ class GaussianHeads(nn.Module):
         activation: the trunk's activation class (default ``nn.ELU``).
         loc_bound: > 0: ``loc = b·tanh(loc/b)`` (default 0: unbounded).
         latched: ``(i, entries)`` (above), or None.
+        blind: indices of the heads that read no observation (above; default none).
     """
 
     def __init__(self, obs_dim: int, head_sizes: Sequence[int], hidden: Sequence[int], *,
                  init_gain: float = 0.01, init_scale: float | Sequence[float] = 1.0, activation=nn.ELU,
-                 loc_bound: float = 0.0, latched: tuple[int, slice | Sequence[int]] | None = None):
+                 loc_bound: float = 0.0, latched: tuple[int, slice | Sequence[int]] | None = None,
+                 blind: Sequence[int] = ()):
         super().__init__()
+        self.blind = frozenset(int(i) for i in blind)
+        if not self.blind <= set(range(len(head_sizes))):
+            raise ConfigError(f"GaussianHeads: blind heads {sorted(self.blind)} are not among 0…{len(head_sizes) - 1}")
         self.loc_bound = float(loc_bound)
         self.latched = None if latched is None else int(latched[0])
         if latched is not None:           # not persistent: the state dict is the same with or without it
@@ -122,7 +134,9 @@ class GaussianHeads(nn.Module):
 
     def forward(self, obs: torch.Tensor):
         z = self.trunk(self.norm(obs))
-        locs, scales = zip(*(extract(h(z)) for extract, h in zip(self.extracts, self.heads)))
+        zero = torch.zeros_like(z) if self.blind else None
+        locs, scales = zip(*(extract(h(zero if i in self.blind else z))
+                             for i, (extract, h) in enumerate(zip(self.extracts, self.heads))))
         loc = torch.cat(locs, -1)
         if self.loc_bound > 0:
             loc = self.loc_bound * torch.tanh(loc / self.loc_bound)
@@ -137,7 +151,8 @@ class GaussianHeads(nn.Module):
 def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, high: float, hidden: Sequence[int], *,
                namespace: str, action_key="action", init_scale: float | Sequence[float] = 1.0,
                bounds: TensorDictModule | None = None, loc_bound: float = 0.0,
-               torchrl_tanh_loc: bool = False, latched: tuple[int, slice | Sequence[int]] | None = None) -> ProbabilisticActor:
+               torchrl_tanh_loc: bool = False, latched: tuple[int, slice | Sequence[int]] | None = None,
+               blind: Sequence[int] = ()) -> ProbabilisticActor:
     """A TanhNormal actor reading ``obs_key`` (flat), writing ``action_key`` and its log-prob, with
     the distribution parameters under ``(namespace, "loc")`` / ``(namespace, "scale")``.
 
@@ -151,6 +166,7 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
     weight change: PPO's ratio overflows (seen after 3.6 M frames of a specialist).
 
     ``latched`` (optional): entries fixed to N(0, 1) where an observation entry is > 0 (:class:`GaussianHeads`).
+    ``blind`` (optional): heads that read no observation, one learned distribution each (:class:`GaussianHeads`).
 
     ``torchrl_tanh_loc`` bounds it with TorchRL's ``TanhNormal(tanh_loc=True)`` instead, as checkpoints
     saved before 2026-11-25 did. That is not the same for per-sample bounds: TorchRL 0.14 then also
@@ -173,12 +189,13 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
         loc_bound: bound of the pre-tanh mean (above; default 0: none).
         torchrl_tanh_loc: bound it TorchRL's way instead (above; default False).
         latched: ``(observation index, entries)`` fixed to N(0, 1) where that entry is > 0, or None.
+        blind: indices of the heads that read no observation (default none).
 
     Returns:
         the ``ProbabilisticActor`` (TanhNormal, writing the log-prob; :class:`SamplingPolicy` samples it faster).
     """
     net = GaussianHeads(obs_dim, head_sizes, hidden, init_scale=init_scale,
-                        loc_bound=0.0 if torchrl_tanh_loc else loc_bound, latched=latched)
+                        loc_bound=0.0 if torchrl_tanh_loc else loc_bound, latched=latched, blind=blind)
     loc, scale = (namespace, "loc"), (namespace, "scale")
     module = TensorDictModule(net, in_keys=[obs_key], out_keys=[loc, scale])
     dim = sum(head_sizes)

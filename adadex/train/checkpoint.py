@@ -157,6 +157,9 @@ RESUME_NEUTRAL = frozenset({
 _PATH_SETTINGS = frozenset({"dataset", "modulator.tracker", "rollouts"})
 
 _ABSENT = "(not set)"
+#: settings added after runs were saved without them, with the value that computes what those runs did:
+#: a checkpoint without the setting resumes under this value, and only under it
+_BEFORE_ADDED = {"modulator.context_free": []}
 
 
 def _flat(d, prefix: str = "") -> dict:
@@ -182,8 +185,10 @@ def _same(key: str, a, b) -> bool:
 def changed_settings(stored: dict, config: dict) -> dict[str, tuple]:
     """The settings (dotted names) in which ``config`` differs from a checkpoint's ``stored`` config, leaving
     out :data:`RESUME_NEUTRAL`: name → (checkpoint's value, this run's). A setting the checkpoint does not
-    have (it predates the setting) counts as changed: what the run computed then is not known to match."""
+    have (it predates the setting) counts as changed: what the run computed then is not known to match —
+    except a setting of :data:`_BEFORE_ADDED` at the value that computes what the run did before it."""
     a, b = _flat(stored), _flat(config)
+    a = {**{k: v for k, v in _BEFORE_ADDED.items() if k in b}, **a}
     return {k: (a.get(k, _ABSENT), b.get(k, _ABSENT)) for k in sorted(a.keys() | b.keys())
             if k not in RESUME_NEUTRAL and not _same(k, a.get(k, _ABSENT), b.get(k, _ABSENT))}
 

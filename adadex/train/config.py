@@ -274,6 +274,9 @@ class ModulatorSettings:
             PPO's ratios stay exact); 0 (default): no held noise.
         hold_scale: the held noise's scale per channel (``{"C": 0.1}``) or entry (``{"palm": 0.2}``),
             or one number; required when ``hold_steps`` > 0 (default ``None``).
+        context_free: channels whose choice reads no observation: one learned distribution for every
+            episode (e.g. ``["K"]``, a robot's servo gains); default none. See
+            :class:`~adadex.modules.modulator.Modulator`.
     """
 
     tracker: str
@@ -287,6 +290,7 @@ class ModulatorSettings:
     prior: str | None = None
     hold_steps: int = 0
     hold_scale: Any = None                 # float | dict | None
+    context_free: tuple[str, ...] = ()
 
     def __post_init__(self):
         from adadex.modules.modulator import INPUTS, ModulationLayout, channel_scales
@@ -301,6 +305,12 @@ class ModulatorSettings:
                               f"modulator.hold_scale (e.g. {{palm: 0.1}})")
 
         self.hidden = tuple(int(h) for h in self.hidden)
+        self.context_free = tuple(str(c) for c in self.context_free)
+        layout = ModulationLayout(self.channels)
+        unknown = [c for c in self.context_free if c not in layout.channels]
+        if unknown:
+            raise ConfigError(f"ModulatorSettings.context_free (modulator.context_free): channels {unknown} are not "
+                              f"among {layout.name}")
         if isinstance(self.init_scale, Mapping):
             self.init_scale = {str(k): v for k, v in self.init_scale.items()}
         try:

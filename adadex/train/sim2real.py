@@ -91,6 +91,9 @@ class Sim2RealPreset:
     hidden: tuple[int, ...]         # the modulator's layers
     #: channel K, a feedback gain latched per episode: the edit that recovers a sagging arm (docs/sim2real.md)
     channels: str = "K"
+    #: channels whose choice reads no observation: one learned value for every episode
+    #: (``ModulatorSettings.context_free``)
+    context_free: tuple[str, ...] = ()
     gamma: float = 0.998            # PPO's discount and GAE λ: a choice latched at an episode's first step is
     lmbda: float = 1.0              # credited with the episode's return (docs/modulation.md, channel A)
     reward: dict = field(default_factory=lambda: {"w_object_success": 3.0})
@@ -129,6 +132,14 @@ PRESETS = {
 PRESET_FIELDS = tuple(f.name for f in dataclasses.fields(Sim2RealPreset))
 
 
+def _check_context_free(p: Sim2RealPreset) -> None:
+    from adadex.modules.channels import ModulationLayout
+
+    unknown = [c for c in p.context_free if c not in ModulationLayout(p.channels).channels]
+    if unknown:
+        raise ConfigError(f"channels {unknown} are not among channels={p.channels}")
+
+
 def preset(name: str, **changes) -> Sim2RealPreset:
     """The preset ``name`` with ``changes`` (fields whose value is not None; ``reward`` changes the
     preset's reward settings it names), checked before any work: a bad value is one
@@ -151,7 +162,8 @@ def preset(name: str, **changes) -> Sim2RealPreset:
         check_number(key, getattr(p, key), low=1, integer=True)
     for key, check in (("window", lambda: TrackingConfig(window=p.window)),
                        ("reward", lambda: RewardConfig(**p.reward)),
-                       ("channels", lambda: ModulationLayout(p.channels))):
+                       ("channels", lambda: ModulationLayout(p.channels)),
+                       ("context_free", lambda: _check_context_free(p))):
         try:
             check()
         except (ConfigError, ValueError, TypeError) as e:
@@ -355,10 +367,11 @@ def train_modulator(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomi
     from adadex.modules.tracker import Tracker
     from adadex.train.config import ModulatorSettings
 
-    m = ModulatorSettings(tracker=str(tracker), channels=p.channels, hidden=p.hidden)
+    m = ModulatorSettings(tracker=str(tracker), channels=p.channels, hidden=p.hidden, context_free=p.context_free)
     return _train(folder, dataset=dataset, p=p, randomization=randomization, seed=seed, name=name,
                   progress=progress, modulator=m,
-                  inputs={"channels": p.channels, "tracker": fingerprint(Tracker.load(tracker))})
+                  inputs={"channels": p.channels, "tracker": fingerprint(Tracker.load(tracker)),
+                          **({"context_free": list(p.context_free)} if p.context_free else {})})
 
 
 def finetune_tracker(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomization, seed: int,

@@ -236,3 +236,29 @@ def test_modulator_needs_a_channel_and_round_trips(tmp_path):
     assert again.channels == ("R", "T") and again.config == mod.config
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         assert torch.equal(mod(_obs())["action"], again(_obs())["action"])
+
+
+def test_a_context_free_channel_learns_one_choice_for_every_view(tmp_path):
+    """Channel K's gains context-free: the same distribution whatever the view, moved by training
+    (its head's bias), while the other channel still reads the view; saved and loaded as it was."""
+    torch.manual_seed(0)
+    mod = Modulator("T+K", hidden=(16, 16), inputs="observation", context_free=["K"])
+    k = mod.layout.split(torch.arange(mod.layout.dim))
+    gain = next(v for key, v in k.items() if key[-1] == "gain")
+    head = mod.actor._sampling_parts[0].heads[mod.layout.channels.index("K")]
+    with torch.no_grad():
+        for h in mod.actor._sampling_parts[0].heads:
+            h.weight.normal_()
+            h.bias.normal_()
+    out = mod.actor(_obs(8))
+    loc, scale = out["modulator", "loc"], out["modulator", "scale"]
+    assert torch.equal(loc[:, gain], loc[:1, gain].expand(8, -1))
+    assert torch.equal(scale[:, gain], scale[:1, gain].expand(8, -1))
+    assert not torch.equal(loc[:, :22], loc[:1, :22].expand(8, -1))     # T reads the view
+    loc[:, gain].sum().backward()
+    assert head.weight.grad.abs().sum() == 0 and head.bias.grad.abs().sum() > 0
+    again = Modulator.load(mod.save(tmp_path / "m.pt"))
+    assert again.config["context_free"] == ["K"]
+    assert torch.equal(again.actor(_obs(8))["modulator", "loc"], loc.detach())
+    with pytest.raises(ValueError, match="context_free.*'R'"):
+        Modulator("T+K", hidden=(16, 16), inputs="observation", context_free=["R"])

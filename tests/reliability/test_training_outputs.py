@@ -201,3 +201,15 @@ def test_one_error_contract(capsys):
     err = capsys.readouterr().err.splitlines()
     assert err[-1].startswith("adadex sim: internal error (a bug in adadex") and "ZeroDivisionError" in err[-1]
     assert issubclass(OutputExistsError, AdadexError) and issubclass(CheckpointError, AdadexError)
+
+
+def test_a_setting_added_later_resumes_older_runs_only_at_the_value_they_ran_with():
+    """A checkpoint saved before ``modulator.context_free`` existed ran without it (= []): resuming with
+    [] goes on, with ["K"] is refused naming it; a setting of unknown past (any other) stays refused."""
+    from adadex.train.checkpoint import changed_settings
+
+    old = {"modulator": {"channels": "K", "hidden": [8]}}
+    assert changed_settings(old, {"modulator": {"channels": "K", "hidden": [8], "context_free": []}}) == {}
+    assert changed_settings(old, {"modulator": {"channels": "K", "hidden": [8], "context_free": ["K"]}}) == {
+        "modulator.context_free": ([], ["K"])}
+    assert "modulator.history" in changed_settings(old, {"modulator": {"channels": "K", "hidden": [8], "history": 3}})

@@ -201,6 +201,8 @@ class Modulator(ActorCritic):
             in every episode (:class:`~adadex.modules.nets.GaussianHeads`' ``blind`` heads), e.g.
             ``("K",)``: a robot's servo gains, chosen at the episode's first step where nothing of its
             dynamics shows yet; the critic still reads the view. Default none.
+        context_free_rate: how fast such a choice learns: its head's bias enters × this
+            (:class:`~adadex.modules.nets.GaussianHeads`' ``blind_rate``; default 30).
     """
 
     kind = "modulator"
@@ -209,7 +211,7 @@ class Modulator(ActorCritic):
                  loc_bound: float = 0.0, inputs: str = "view", history: int = 3, prior: str | None = None,
                  lambda_palm: float = _DEFAULT_LAMBDA_PALM, hold_steps: int = 0, hold_scale=None,
                  reach_latched: bool = True, lead_latched: bool = True, gain_latched: bool = True,
-                 context_free: Sequence[str] = ()):
+                 context_free: Sequence[str] = (), context_free_rate: float = 30.0):
         super().__init__()
         self.layout = ModulationLayout(channels)
         if not self.layout.dim:
@@ -241,11 +243,12 @@ class Modulator(ActorCritic):
         if unknown:
             raise ConfigError(f"Modulator.context_free: channels {unknown} are not among {self.layout.name}")
         if context_free:                 # only then: checkpoints without it keep their config
-            self.config["context_free"] = list(context_free)
+            self.config.update(context_free=list(context_free), context_free_rate=float(context_free_rate))
         self.actor = make_actor(self.obs_key, obs_dim, self.layout.channel_sizes, -1.0, 1.0, hidden,
                                 namespace="modulator", init_scale=[scales[c] for c in self.layout.channels],
                                 loc_bound=loc_bound, bounds=shift, latched=latched,
-                                blind=[self.layout.channels.index(c) for c in context_free])
+                                blind=[self.layout.channels.index(c) for c in context_free],
+                                blind_rate=context_free_rate)
         self.critic = make_critic(self.obs_key, obs_dim, hidden)
 
     def _shift(self, prior, lambda_palm, hold_steps, hold_scale):

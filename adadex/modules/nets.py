@@ -21,7 +21,7 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 
-from adadex.errors import ArrayError, CheckpointError, ConfigError, ConfigTypeError
+from adadex.errors import ArrayError, CheckpointError, ConfigError, ConfigTypeError, check_number
 from adadex.io import atomic_write
 
 
@@ -85,12 +85,15 @@ class GaussianHeads(nn.Module):
     then carry no parameter's log-probability, so PPO's ratio and gradient come only from the entries
     that act, instead of from noise the environment throws away.
 
-    ``blind`` (optional): indices of heads that read no observation — their loc and scale are the
-    head's bias, one learned distribution for every input (the weights stay, unused, so the state
-    dict is the same). For a choice that is the robot's and not the moment's (channel K's gains,
-    latched at an episode's first step, where nothing the robot does is visible yet): a few
-    hundred episodes teach one value reliably, where a trunk over the view fits their noise
-    (docs/sim2real.md).
+    ``blind`` (optional): indices of heads that read no observation — their loc and scale are
+    ``blind_rate ·`` the head's bias, one learned distribution for every input (the weights stay,
+    unused, so the state dict is the same). For a choice that is the robot's and not the moment's
+    (channel K's gains, latched at an episode's first step, where nothing the robot does is visible
+    yet): a few hundred episodes teach one value, where a trunk over the view fits their noise.
+    Why the rate: Adam moves each parameter by about its learning rate a step, whatever the
+    gradient's size, so a lone bias moves its output far slower than a trunk of thousands of
+    parameters moves its own; at PPO's 3e-4 a K head's bias ended 250 k frames at a gain of 0.03,
+    and ×30 at the arm gain a fixed-gain sweep finds best (docs/sim2real.md).
 
     Args:
         obs_dim: the observation's size (normalized by a :class:`Normalizer` first).
@@ -102,14 +105,16 @@ class GaussianHeads(nn.Module):
         loc_bound: > 0: ``loc = b·tanh(loc/b)`` (default 0: unbounded).
         latched: ``(i, entries)`` (above), or None.
         blind: indices of the heads that read no observation (above; default none).
+        blind_rate: their bias's scale (above; default 30).
     """
 
     def __init__(self, obs_dim: int, head_sizes: Sequence[int], hidden: Sequence[int], *,
                  init_gain: float = 0.01, init_scale: float | Sequence[float] = 1.0, activation=nn.ELU,
                  loc_bound: float = 0.0, latched: tuple[int, slice | Sequence[int]] | None = None,
-                 blind: Sequence[int] = ()):
+                 blind: Sequence[int] = (), blind_rate: float = 30.0):
         super().__init__()
         self.blind = frozenset(int(i) for i in blind)
+        self.blind_rate = float(check_number("GaussianHeads blind_rate", blind_rate, strict_low=True))
         if not self.blind <= set(range(len(head_sizes))):
             raise ConfigError(f"GaussianHeads: blind heads {sorted(self.blind)} are not among 0…{len(head_sizes) - 1}")
         self.loc_bound = float(loc_bound)
@@ -134,8 +139,7 @@ class GaussianHeads(nn.Module):
 
     def forward(self, obs: torch.Tensor):
         z = self.trunk(self.norm(obs))
-        zero = torch.zeros_like(z) if self.blind else None
-        locs, scales = zip(*(extract(h(zero if i in self.blind else z))
+        locs, scales = zip(*(extract(self.blind_rate * h.bias.expand(*z.shape[:-1], -1) if i in self.blind else h(z))
                              for i, (extract, h) in enumerate(zip(self.extracts, self.heads))))
         loc = torch.cat(locs, -1)
         if self.loc_bound > 0:
@@ -152,7 +156,7 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
                namespace: str, action_key="action", init_scale: float | Sequence[float] = 1.0,
                bounds: TensorDictModule | None = None, loc_bound: float = 0.0,
                torchrl_tanh_loc: bool = False, latched: tuple[int, slice | Sequence[int]] | None = None,
-               blind: Sequence[int] = ()) -> ProbabilisticActor:
+               blind: Sequence[int] = (), blind_rate: float = 30.0) -> ProbabilisticActor:
     """A TanhNormal actor reading ``obs_key`` (flat), writing ``action_key`` and its log-prob, with
     the distribution parameters under ``(namespace, "loc")`` / ``(namespace, "scale")``.
 
@@ -190,12 +194,14 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
         torchrl_tanh_loc: bound it TorchRL's way instead (above; default False).
         latched: ``(observation index, entries)`` fixed to N(0, 1) where that entry is > 0, or None.
         blind: indices of the heads that read no observation (default none).
+        blind_rate: the scale of their bias (:class:`GaussianHeads`; default 30).
 
     Returns:
         the ``ProbabilisticActor`` (TanhNormal, writing the log-prob; :class:`SamplingPolicy` samples it faster).
     """
     net = GaussianHeads(obs_dim, head_sizes, hidden, init_scale=init_scale,
-                        loc_bound=0.0 if torchrl_tanh_loc else loc_bound, latched=latched, blind=blind)
+                        loc_bound=0.0 if torchrl_tanh_loc else loc_bound, latched=latched, blind=blind,
+                        blind_rate=blind_rate)
     loc, scale = (namespace, "loc"), (namespace, "scale")
     module = TensorDictModule(net, in_keys=[obs_key], out_keys=[loc, scale])
     dim = sum(head_sizes)

@@ -91,9 +91,9 @@ class Sim2RealPreset:
     hidden: tuple[int, ...]         # the modulator's layers
     #: channel K, a feedback gain latched per episode: the edit that recovers a sagging arm (docs/sim2real.md)
     channels: str = "K"
-    #: channels whose choice reads no observation: one learned value for every episode
-    #: (``ModulatorSettings.context_free``)
-    context_free: tuple[str, ...] = ()
+    #: channels whose choice reads no observation — one learned value for every episode, the robot's
+    #: (``ModulatorSettings.context_free``); those that ``channels`` lacks are left out
+    context_free: tuple[str, ...] = ("K",)
     gamma: float = 0.998            # PPO's discount and GAE λ: a choice latched at an episode's first step is
     lmbda: float = 1.0              # credited with the episode's return (docs/modulation.md, channel A)
     reward: dict = field(default_factory=lambda: {"w_object_success": 3.0})
@@ -133,11 +133,18 @@ PRESET_FIELDS = tuple(f.name for f in dataclasses.fields(Sim2RealPreset))
 
 
 def _check_context_free(p: Sim2RealPreset) -> None:
+    from adadex.modules.channels import CHANNELS
+
+    unknown = [c for c in p.context_free if c not in CHANNELS]
+    if unknown:
+        raise ConfigError(f"{unknown} are not channels (known: {', '.join(CHANNELS)})")
+
+
+def _context_free(p: Sim2RealPreset) -> tuple[str, ...]:
+    """The preset's context-free channels among those it trains."""
     from adadex.modules.channels import ModulationLayout
 
-    unknown = [c for c in p.context_free if c not in ModulationLayout(p.channels).channels]
-    if unknown:
-        raise ConfigError(f"channels {unknown} are not among channels={p.channels}")
+    return tuple(c for c in p.context_free if c in ModulationLayout(p.channels).channels)
 
 
 def preset(name: str, **changes) -> Sim2RealPreset:
@@ -367,11 +374,11 @@ def train_modulator(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomi
     from adadex.modules.tracker import Tracker
     from adadex.train.config import ModulatorSettings
 
-    m = ModulatorSettings(tracker=str(tracker), channels=p.channels, hidden=p.hidden, context_free=p.context_free)
+    m = ModulatorSettings(tracker=str(tracker), channels=p.channels, hidden=p.hidden, context_free=_context_free(p))
     return _train(folder, dataset=dataset, p=p, randomization=randomization, seed=seed, name=name,
                   progress=progress, modulator=m,
                   inputs={"channels": p.channels, "tracker": fingerprint(Tracker.load(tracker)),
-                          **({"context_free": list(p.context_free)} if p.context_free else {})})
+                          **({"context_free": list(_context_free(p))} if _context_free(p) else {})})
 
 
 def finetune_tracker(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomization, seed: int,

@@ -138,6 +138,10 @@ def test_end_to_end_tiny_identifies_from_recordings_alone(tmp_path, tiny_dataset
     assert any(float(h.weight.detach().abs().max()) > 0 for h in tuned.actor._sampling_parts[0].heads)
     assert "train_finetuned_identified" in result["stage_minutes"]
     assert "recovered_fraction_finetuned_identified_real" in result and "identified_vs_finetuned_points" in result
+    from adadex.modules.modulator import Modulator
+
+    trained = Modulator.load(out / "train" / "modulator_identified" / "modulator.pt")
+    assert trained.channels == ("K",) and trained.config["context_free"] == ["K"]    # the robot's gains: one value
     identified = {e["effect"] for e in result["identified_patch"]["effects"]}
     assert "actuator_delay" in identified, result["identified_patch"]
     assert result["diagnosis"]["verdict"] == "explained"
@@ -163,6 +167,7 @@ def test_refusals(tmp_path):
         "unknown preset": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o5'}", "preset=huge"], tmp_path / "o5"),
         "missing tracker": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o6'}", "tracker=nope.pt"], tmp_path / "o6"),
         "bad backend": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o7'}", "backend=gpu"], tmp_path / "o7"),
+        "bad context_free": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o8'}", "context_free=[X]"], tmp_path / "o8"),
     }
     r = run_recipes(cases, ROOT, "offline")
     assert "no such patch file" in refused(r["missing real"], "real=")
@@ -173,4 +178,5 @@ def test_refusals(tmp_path):
     refused(r["unknown preset"], "preset=huge", "tiny")
     refused(r["missing tracker"], "tracker=nope.pt")
     refused(r["bad backend"], "backend=gpu", "rollout")
+    refused(r["bad context_free"], "context_free", "'X'", "known: R")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine", "notes.json"]      # nothing made

@@ -79,7 +79,8 @@ MODULATOR_ROWS = {"R": "R", "RT": "R+T", "ROT": "R+O+T", "O": "O"}
 EVAL_SPLITS = ("unseen_trajectory", "unseen_object")
 #: the :class:`ModulatorSettings` fields a :class:`ModulatorStage` sets for every modulator row (the
 #: tracker, the channels and ``modulation`` are the pipeline's)
-MODULATOR_SETTINGS = ("hidden", "init_scale", "loc_bound", "inputs", "history", "prior", "hold_steps", "hold_scale")
+MODULATOR_SETTINGS = ("hidden", "init_scale", "loc_bound", "inputs", "history", "prior", "hold_steps", "hold_scale",
+                      "context_free")
 
 
 def _pipeline_ppo(total_frames: int) -> PPOConfig:
@@ -218,6 +219,8 @@ class ModulatorStage:
         hold_steps: > 0: held exploration noise, redrawn every this many steps
             (:attr:`ModulatorSettings.hold_steps`).
         hold_scale: the held noise's scale per channel or entry (:attr:`ModulatorSettings.hold_scale`).
+        context_free: channels whose choice reads no observation (:attr:`ModulatorSettings.context_free`),
+            in the rows that train them (default none).
     """
 
     ppo: PPOConfig = field(default_factory=lambda: _pipeline_ppo(250_000))
@@ -231,6 +234,7 @@ class ModulatorStage:
     prior: str | None = _modulator_default("prior")
     hold_steps: int = _modulator_default("hold_steps")
     hold_scale: Any = _modulator_default("hold_scale")
+    context_free: tuple[str, ...] = _modulator_default("context_free")
 
     def __post_init__(self):
         from adadex.modules.channels import ModulationConfig
@@ -245,6 +249,13 @@ class ModulatorStage:
         except (ConfigError, ValueError, TypeError) as e:
             raise ConfigError(f"PipelineConfig.modulator.modulation: {e}") from None
         self.hidden = tuple(int(h) for h in self.hidden)
+        self.context_free = tuple(str(c) for c in self.context_free)
+        from adadex.modules.channels import CHANNELS
+
+        unknown = [c for c in self.context_free if c not in CHANNELS]
+        if unknown:
+            raise ConfigError(f"PipelineConfig.modulator.context_free: {unknown} are not channels "
+                              f"(known: {', '.join(CHANNELS)})")
         for mapping in ("init_scale", "hold_scale"):
             if isinstance(getattr(self, mapping), Mapping):
                 setattr(self, mapping, {str(k): v for k, v in getattr(self, mapping).items()})
@@ -253,7 +264,7 @@ class ModulatorStage:
         for row in MODULATOR_ROWS:
             try:
                 ModulatorSettings(tracker="", channels=self.row_channels(row), modulation=dict(self.modulation),
-                                  **self.settings())
+                                  **self.settings(row))
             except ConfigError as e:
                 if not str(e).startswith("ModulatorSettings.tracker:"):
                     raise ConfigError(f"PipelineConfig.modulator (row {row}): {e}") from None
@@ -262,9 +273,12 @@ class ModulatorStage:
         """The channels a modulator row trains: :data:`MODULATOR_ROWS` with ``reference_channel`` for R."""
         return "+".join(self.reference_channel if c == "R" else c for c in MODULATOR_ROWS[row].split("+"))
 
-    def settings(self) -> dict:
-        """The :data:`MODULATOR_SETTINGS` fields, as :class:`ModulatorSettings` takes them."""
-        return {k: getattr(self, k) for k in MODULATOR_SETTINGS}
+    def settings(self, row: str) -> dict:
+        """The :data:`MODULATOR_SETTINGS` fields for ``row``, as :class:`ModulatorSettings` takes them
+        (``context_free``: those of the row's channels)."""
+        out = {k: getattr(self, k) for k in MODULATOR_SETTINGS}
+        out["context_free"] = tuple(c for c in self.context_free if c in self.row_channels(row).split("+"))
+        return out
 
 
 @dataclass
@@ -602,7 +616,7 @@ class Pipeline:
         for row in MODULATOR_ROWS:
             channels = stage.row_channels(row)
             m = ModulatorSettings(tracker=tracker, channels=channels, modulation=dict(stage.modulation),
-                                  **stage.settings())
+                                  **stage.settings(row))
             # the run's policy settings are the specialists' (a modulator run trains no tracker)
             tc = self._train_config(root / "modulators" / row, seed, stage.ppo, self.cfg.specialist.policy,
                                     modulator=m)

@@ -290,6 +290,21 @@ class Modulator(ActorCritic):
     def channels(self) -> tuple[str, ...]:
         return self.layout.channels
 
+    def context_free_actions(self) -> dict[str, list[float]]:
+        """The deterministic action of each context-free channel's entries (``tanh`` of the learned
+        mean, in [−1, 1]; the same for every observation), by entry name, e.g. ``{"gain": [arm, hand]}``;
+        empty when no channel is context-free."""
+        net = self.actor._sampling_parts[0]
+        out = {}
+        for c in self.config.get("context_free", ()):
+            head = net.heads[self.layout.channels.index(c)]
+            loc = torch.tanh(net.blind_rate * head.bias.detach()[:head.out_features // 2])
+            first = min(sl.start for key, sl, _ in self.layout.segments if key in CHANNELS[c].keys)
+            for key, sl, _ in self.layout.segments:
+                if key in CHANNELS[c].keys:
+                    out[key[-1]] = loc[sl.start - first:sl.stop - first].tolist()
+        return out
+
     @classmethod
     def upgrade_config(cls, config: dict) -> dict:
         """Checkpoints saved before the view read the tracker's observation alone."""

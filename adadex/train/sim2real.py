@@ -753,6 +753,11 @@ def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "smal
     stage("evaluate", t0)
     minutes["total"] = round((time.perf_counter() - t_all) / 60, 2)
 
+    choices = {k: Modulator.load(v).context_free_actions() for k, v in modulators.items()}
+    for k, v in choices.items():
+        if v:
+            print(f"  {k} learned (context-free, the action in [-1, 1]): "
+                  + ", ".join(f"{e} {[round(x, 3) for x in a]}" for e, a in v.items()), flush=True)
     stats = row_statistics(evaluations, seed=seed)
     d = ident["diagnosis"]
     result = {"real": str(real), "preset": preset_name, "seed": seed, "tracker": str(tracker), "dataset": str(data),
@@ -762,6 +767,8 @@ def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "smal
               "diagnosis": {k: d.get(k) for k in ("verdict", "selected", "explained_fraction", "findings",
                                                    "wall_time_s")},
               "identified_patch": patch.to_dict(), "sysid": {"stages": ident["stages"]},
+              # what each context-free choice learned (K: the gains are max_gain · clip(a, 0, 1), arm and hand)
+              "context_free_actions": choices,
               "stage_minutes": minutes,
               "per_episode": {k: v["per_episode"] for k, v in evaluations.items()}}
     atomic_write_text(out / "sim2real.json", json.dumps(result, indent=1, default=_json_default))

@@ -258,6 +258,9 @@ def test_a_context_free_channel_learns_one_choice_for_every_view(tmp_path):
     loc[:, gain].sum().backward()
     assert head.weight.grad is None and head.bias.grad.abs().sum() > 0
     assert torch.allclose(loc[0, gain], 30.0 * head.bias[:2])       # the bias × context_free_rate
+    assert torch.allclose(torch.tensor(mod.context_free_actions()["gain"]), torch.tanh(loc[0, gain]).detach())
+    with set_exploration_type(ExplorationType.DETERMINISTIC):       # what a deterministic run takes
+        assert torch.allclose(mod(_obs(3))["action"][:, gain], torch.tanh(loc[:3, gain]).detach(), atol=1e-6)
     again = Modulator.load(mod.save(tmp_path / "m.pt"))
     assert again.config["context_free"] == ["K"]
     assert torch.equal(again.actor(_obs(8))["modulator", "loc"], loc.detach())

@@ -142,6 +142,8 @@ def test_end_to_end_tiny_identifies_from_recordings_alone(tmp_path, tiny_dataset
 
     trained = Modulator.load(out / "train" / "modulator_identified" / "modulator.pt")
     assert trained.channels == ("K",) and trained.config["context_free"] == ["K"]    # the robot's gains: one value
+    gains = result["context_free_actions"]["modulator_identified"]["gain"]
+    assert gains == trained.context_free_actions()["gain"] and all(-1 <= g <= 1 for g in gains)
     identified = {e["effect"] for e in result["identified_patch"]["effects"]}
     assert "actuator_delay" in identified, result["identified_patch"]
     assert result["diagnosis"]["verdict"] == "explained"

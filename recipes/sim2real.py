@@ -34,12 +34,13 @@ CONFIG = Path(__file__).with_name("sim2real.yaml")
 
 def keys() -> dict:
     """What the recipe accepts: sim2real.yaml's keys and every :class:`Sim2RealPreset` field (a change to
-    the preset's value; ``reward.*``: :class:`RewardConfig` fields)."""
+    the preset's value; ``reward.*``: :class:`RewardConfig` fields; ``modulation.*``: :class:`ModulationConfig`
+    fields)."""
     from adadex.train.config_store import keys as node_keys
     from adadex.train.sim2real import PRESET_FIELDS
 
-    return yaml_keys(CONFIG, **{k: None for k in PRESET_FIELDS if k not in ("dataset", "reward")},
-                     reward=node_keys("adadex_reward"))
+    return yaml_keys(CONFIG, **{k: None for k in PRESET_FIELDS if k not in ("dataset", "reward", "modulation")},
+                     reward=node_keys("adadex_reward"), modulation=node_keys("adadex_modulation"))
 
 
 def preset_changes(cfg) -> dict:

@@ -103,11 +103,13 @@ EDITS = ("observation", "action")
 @dataclass(frozen=True)
 class Field:
     """One config field of a channel (a field of :class:`ModulationConfig`): name, default, meaning.
-    Number fields are checked ≥ 0 and finite; boolean fields are switches."""
+    Number fields are checked ≥ 0 and finite (and below ``below`` where it is set); boolean fields are
+    switches."""
 
     name: str
     default: float | bool
     doc: str
+    below: float | None = None
 
 
 @dataclass(frozen=True)
@@ -241,8 +243,13 @@ CHANNELS: Mapping[str, Channel] = _registry(
                  "arm's and the hand's joints apart (the stiffness a soft or loaded servo lacks)",
             entries=((GAIN, (2,)),),
             state=((GAIN_STATE, (3,)),),
-            fields=(Field("max_gain", 2.0, "the gain is g = max_gain · clip(a, 0, 1): the action gains "
-                                           "clip(g · (reference − joint position), ±gain_bound) at the current frame"),
+            fields=(Field("max_gain", 2.0, "the gain is g = max_gain · clip(a, −max_softening / max_gain, 1): the action "
+                                           "gains clip(g · (reference − joint position), ±gain_bound) at the current "
+                                           "frame"),
+                    Field("max_softening", 0.0, "the lowest gain is −max_softening (< 1): a negative gain softens "
+                                                "the servo to kp × (1 + g) (a grip softer than the model's knocks "
+                                                "the object less, docs/sim2real.md); 0: the gain only stiffens",
+                          below=1.0),
                     Field("gain_bound", 0.1, "the gain's correction of each joint's target is within ±this (rad)"),
                     Field("gain_latched", True, "the gains chosen at an episode's first step hold for the whole "
                                                 "episode (a servo's softness is the robot's, not the moment's); "
@@ -356,9 +363,13 @@ def _config_class(channels: Mapping[str, Channel]) -> type:
     """The frozen dataclass of every channel's fields, in registry order; number fields validated."""
     fields = [f for c in channels.values() for f in c.fields]
     numbers = tuple(f.name for f in fields if not isinstance(f.default, bool))
+    below = {f.name: f.below for f in fields if f.below is not None}
 
     def __post_init__(self):
         check_numbers("ModulationConfig", self, numbers)
+        for name, bound in below.items():
+            if not getattr(self, name) < bound:
+                raise ConfigError(f"ModulationConfig.{name} must be < {bound:g}, got {getattr(self, name)}")
 
     cls = dataclasses.make_dataclass(
         "ModulationConfig", [(f.name, type(f.default), dataclasses.field(default=f.default)) for f in fields],

@@ -249,13 +249,12 @@ class ModulatorStage:
         except (ConfigError, ValueError, TypeError) as e:
             raise ConfigError(f"PipelineConfig.modulator.modulation: {e}") from None
         self.hidden = tuple(int(h) for h in self.hidden)
-        self.context_free = tuple(str(c) for c in self.context_free)
-        from adadex.modules.channels import CHANNELS
+        from adadex.modules.channels import parse_channels
 
-        unknown = [c for c in self.context_free if c not in CHANNELS]
-        if unknown:
-            raise ConfigError(f"PipelineConfig.modulator.context_free: {unknown} are not channels "
-                              f"(known: {', '.join(CHANNELS)})")
+        try:
+            self.context_free = parse_channels(self.context_free)
+        except ConfigError as e:
+            raise ConfigError(f"PipelineConfig.modulator.context_free: {e}") from None
         for mapping in ("init_scale", "hold_scale"):
             if isinstance(getattr(self, mapping), Mapping):
                 setattr(self, mapping, {str(k): v for k, v in getattr(self, mapping).items()})

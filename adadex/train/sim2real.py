@@ -97,6 +97,9 @@ class Sim2RealPreset:
     gamma: float = 0.998            # PPO's discount and GAE λ: a choice latched at an episode's first step is
     lmbda: float = 1.0              # credited with the episode's return (docs/modulation.md, channel A)
     reward: dict = field(default_factory=lambda: {"w_object_success": 3.0})
+    #: :class:`~adadex.modules.channels.ModulationConfig` changes for every modulator, trained and
+    #: evaluated alike (e.g. ``{"max_softening": 0.5}``: K may also soften a servo)
+    modulation: dict = field(default_factory=dict)
     split: str = "unseen_trajectory"
     #: ``adadex sysid excite`` settings (every joint is excited)
     freqs: tuple[float, ...] = (0.5, 1.5, 3.0)
@@ -132,14 +135,6 @@ PRESETS = {
 PRESET_FIELDS = tuple(f.name for f in dataclasses.fields(Sim2RealPreset))
 
 
-def _check_context_free(p: Sim2RealPreset) -> None:
-    from adadex.modules.channels import CHANNELS
-
-    unknown = [c for c in p.context_free if c not in CHANNELS]
-    if unknown:
-        raise ConfigError(f"{unknown} are not channels (known: {', '.join(CHANNELS)})")
-
-
 def _context_free(p: Sim2RealPreset) -> tuple[str, ...]:
     """The preset's context-free channels among those it trains."""
     from adadex.modules.channels import ModulationLayout
@@ -148,12 +143,12 @@ def _context_free(p: Sim2RealPreset) -> tuple[str, ...]:
 
 
 def preset(name: str, **changes) -> Sim2RealPreset:
-    """The preset ``name`` with ``changes`` (fields whose value is not None; ``reward`` changes the
-    preset's reward settings it names), checked before any work: a bad value is one
+    """The preset ``name`` with ``changes`` (fields whose value is not None; ``reward`` and ``modulation``
+    change the preset's settings they name), checked before any work: a bad value is one
     :class:`ConfigError` naming the key."""
     from adadex.envs.reward import RewardConfig
     from adadex.envs.tracking import TrackingConfig
-    from adadex.modules.channels import ModulationLayout
+    from adadex.modules.channels import ModulationConfig, ModulationLayout, parse_channels
     from adadex.train.config import SimConfig
 
     if name not in PRESETS:
@@ -162,19 +157,22 @@ def preset(name: str, **changes) -> Sim2RealPreset:
     if unknown:
         raise ConfigError(f"{unknown[0]}: not a Sim2RealPreset field (known: {', '.join(PRESET_FIELDS)})")
     changes = {k: v for k, v in changes.items() if v is not None}
-    if "reward" in changes:
-        changes["reward"] = {**PRESETS[name].reward, **dict(changes["reward"])}
+    for group in ("reward", "modulation"):
+        if group in changes:
+            changes[group] = {**getattr(PRESETS[name], group), **dict(changes[group])}
     p = dataclasses.replace(PRESETS[name], **changes)
     for key in ("eval_repeats", "worlds", "frames", "frames_per_batch", "minibatch_size", "epochs"):
         check_number(key, getattr(p, key), low=1, integer=True)
     for key, check in (("window", lambda: TrackingConfig(window=p.window)),
                        ("reward", lambda: RewardConfig(**p.reward)),
+                       ("modulation", lambda: ModulationConfig(**p.modulation)),
                        ("channels", lambda: ModulationLayout(p.channels)),
-                       ("context_free", lambda: _check_context_free(p))):
+                       ("context_free", lambda: parse_channels(p.context_free))):
         try:
             check()
         except (ConfigError, ValueError, TypeError) as e:
             raise ConfigError(f"{key}={getattr(p, key)}: {e}") from None
+    p = dataclasses.replace(p, context_free=parse_channels(p.context_free))
     # a bad backend or device is refused before any work, named as the recipe's keys
     for key in ("gamma", "lmbda"):
         check_number(key, getattr(p, key), high=1.0)
@@ -374,11 +372,13 @@ def train_modulator(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomi
     from adadex.modules.tracker import Tracker
     from adadex.train.config import ModulatorSettings
 
-    m = ModulatorSettings(tracker=str(tracker), channels=p.channels, hidden=p.hidden, context_free=_context_free(p))
+    m = ModulatorSettings(tracker=str(tracker), channels=p.channels, hidden=p.hidden, context_free=_context_free(p),
+                          modulation=dict(p.modulation))
     return _train(folder, dataset=dataset, p=p, randomization=randomization, seed=seed, name=name,
                   progress=progress, modulator=m,
                   inputs={"channels": p.channels, "tracker": fingerprint(Tracker.load(tracker)),
-                          **({"context_free": list(_context_free(p))} if _context_free(p) else {})})
+                          **({"context_free": list(_context_free(p))} if _context_free(p) else {}),
+                          **({"modulation": dict(p.modulation)} if p.modulation else {})})
 
 
 def finetune_tracker(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomization, seed: int,
@@ -660,6 +660,7 @@ def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "smal
     from adadex.envs.tracking import TrackingConfig, episode_references
     from adadex.data.reference import ReferenceDataset
     from adadex.io import atomic_write_text, mark_output_dir
+    from adadex.modules.channels import ModulationConfig
     from adadex.modules.modulator import Modulator
     from adadex.modules.tracker import Tracker
     from adadex.transforms.policy import make_policy
@@ -737,9 +738,10 @@ def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "smal
 
     torch.manual_seed(seed)
     untrained = Modulator(p.channels, hidden=p.hidden)
+    edits = ModulationConfig(**p.modulation)
     policies = {"tracker_real": make_policy(loaded, None, channels="none"),
-                "modulator_untrained_real": make_policy(loaded, untrained),
-                **{f"{k}_real": make_policy(loaded, Modulator.load(v)) for k, v in modulators.items()},
+                "modulator_untrained_real": make_policy(loaded, untrained, config=edits),
+                **{f"{k}_real": make_policy(loaded, Modulator.load(v), config=edits) for k, v in modulators.items()},
                 "finetuned_identified_real": make_policy(Tracker.load(finetuned).freeze(), None, channels="none")}
     evaluations = {}
     t0 = time.perf_counter()

@@ -299,13 +299,13 @@ class LatchedChoice:
         """``value`` (…, n), this step's choice: latched at the episode's first step when the switch is on."""
         return latch(td, self.channel.state[0][0], value) if self.latched else value
 
-    def arm_and_hand(self, td: TensorDictBase, scale: float) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """Channels L and K: this step's choice ``scale · clip(a, 0, 1)`` for the arm and for the hand,
+    def arm_and_hand(self, td: TensorDictBase, scale: float, low: float = 0.0) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Channels L and K: this step's choice ``scale · clip(a, low, 1)`` for the arm and for the hand,
         (…, 2), and per joint, (…, 22); None where the channel's entries are absent."""
         a = self._inputs(td)
         if a is None:
             return None
-        value = self.choose(td, scale * a[0].clamp(0.0, 1.0))
+        value = self.choose(td, scale * a[0].clamp(low, 1.0))
         return value, torch.where(_ARM.to(value.device), value[..., :1], value[..., 1:2])
 
 
@@ -569,8 +569,9 @@ class ActionModulation(ChannelTransform, channel="T"):
 class GainModulation(LatchedChoice, ChannelTransform, channel="K"):
     """Channel K, a feedback gain: the tracker's action gains ``clip(g · (q_ref,t − q_t), ±gain_bound)``,
     the joints' tracking error at the current frame (against the reference the tracker reads) times a
-    gain ``g = max_gain · clip(a, 0, 1)`` — the first entry for the arm's six joints, the second for the
-    hand's. Untrained (a = 0) it is the tracker alone.
+    gain ``g = max_gain · clip(a, −max_softening / max_gain, 1)`` — the first entry for the arm's six joints,
+    the second for the hand's. Untrained (a = 0) it is the tracker alone. A negative gain (``max_softening``
+    > 0) softens the servo: its pull ``kp · (q_ref + g · (q_ref − q) − q)`` is ``kp · (1 + g) · (q_ref − q)``.
 
     Why a channel: a servo softer than the model's, or one carrying a load, sags below its target by
     a steady error that kinematic replay never corrects (a 2 kg payload with arm kp × 0.3 costs replay
@@ -583,8 +584,7 @@ class GainModulation(LatchedChoice, ChannelTransform, channel="K"):
 
     Args:
         config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`);
-            this one reads ``max_gain``, ``gain_bound`` (rad)
-            and ``gain_latched``.
+            this one reads ``max_gain``, ``max_softening``, ``gain_bound`` (rad) and ``gain_latched``.
         action_key: the tracker's action entry it edits (default ``"action"``).
     """
 
@@ -593,7 +593,8 @@ class GainModulation(LatchedChoice, ChannelTransform, channel="K"):
         self.action_key = action_key
 
     def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
-        chosen = self.arm_and_hand(td, self.config.max_gain)     # the gains (latched)
+        c = self.config
+        chosen = self.arm_and_hand(td, c.max_gain, -c.max_softening / c.max_gain)     # the gains (latched)
         if chosen is None:
             return td
         _, per_joint = chosen

@@ -180,5 +180,5 @@ def test_refusals(tmp_path):
     refused(r["unknown preset"], "preset=huge", "tiny")
     refused(r["missing tracker"], "tracker=nope.pt")
     refused(r["bad backend"], "backend=gpu", "rollout")
-    refused(r["bad context_free"], "context_free", "'X'", "known: R")
+    refused(r["bad context_free"], "context_free", "'X'", "R/L")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine", "notes.json"]      # nothing made

@@ -59,6 +59,23 @@ def test_no_gain_is_replay_and_a_gain_adds_the_tracking_error(tiny_dataset):
     assert (bounded[target][:, 1] - replay[target][:, 1]).abs().max() <= 1e-4 + 1e-6
 
 
+def test_a_negative_gain_softens_only_as_far_as_max_softening_allows(tiny_dataset):
+    """``max_softening`` lets K's gain go below 0 (kp × (1 + g)): a = −0.25 is g = 2 · −0.25 = −0.5,
+    a = −1 stops at −max_softening; with the default (0) a negative action is the tracker itself."""
+    target = ("next", "proprio", "joint_target")
+    plain = _rollout(tiny_dataset, [[0.0, 0.0]], config=WIDE, steps=2)
+    assert torch.equal(_rollout(tiny_dataset, [[-0.25, -1.0]], config=WIDE, steps=2)[target], plain[target])
+    soft = ModulationConfig(gain_bound=10.0, max_softening=0.3)
+    td = _rollout(tiny_dataset, [[-0.1, -1.0]], config=soft, steps=2)       # g = −0.2 (arm), −0.3 (hand)
+    error = td[REF_JOINT_POS][:, 1, 0] - td[JOINT_POS][:, 1]
+    gain = torch.cat([torch.full((6,), -0.2), torch.full((16,), -0.3)])
+    lim = torch.as_tensor(joint_limits(), dtype=torch.float32)
+    expected = torch.maximum(torch.minimum(plain[target][:, 1] + gain * error, lim[:, 1]), lim[:, 0])
+    torch.testing.assert_close(td[target][:, 1], expected, atol=1e-5, rtol=0)
+    assert (td[target][:, 1] - plain[target][:, 1]).abs().max() > 1e-4
+    torch.testing.assert_close(td["next", GAIN_STATE][:, 0, :2], torch.tensor([-0.2, -0.3]).expand(4, 2))
+
+
 def test_the_first_steps_gains_hold_for_the_episode_and_the_view_shows_them(tiny_dataset):
     latched = _rollout(tiny_dataset, [[0.5, 0.25], [1.0, 0.0], [0.0, 1.0]])
     torch.testing.assert_close(latched["next", GAIN_STATE], torch.tensor([1.0, 0.5, 1.0]).expand(4, 8, 3))

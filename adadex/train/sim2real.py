@@ -769,7 +769,8 @@ def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "smal
               "diagnosis": {k: d.get(k) for k in ("verdict", "selected", "explained_fraction", "findings",
                                                    "wall_time_s")},
               "identified_patch": patch.to_dict(), "sysid": {"stages": ident["stages"]},
-              # what each context-free choice learned (K: the gains are max_gain · clip(a, 0, 1), arm and hand)
+              # what each context-free choice learned (K: the arm's and the hand's gains are
+              # max_gain · clip(a, −max_softening / max_gain, 1))
               "context_free_actions": choices,
               "stage_minutes": minutes,
               "per_episode": {k: v["per_episode"] for k, v in evaluations.items()}}

@@ -260,8 +260,14 @@ class TrackingEnv(EnvBase):
                  latent_fn: Callable[[str], np.ndarray] = encoder_latent,
                  randomize: Randomization | None = None, patch=None, effects=None,
                  nthread: int = 2, seed: int = 0, draw: str = "random", references=None, device=None,
-                 scenes: dict | None = None, backend: str = "rollout"):
+                 scenes: dict | None = None, backend: str = "rollout", group_size: int = 1):
         num_worlds = int(check_number("TrackingEnv num_worlds", num_worlds, low=1, integer=True))
+        group_size = int(check_number("TrackingEnv group_size", group_size, low=1, integer=True))
+        if num_worlds % group_size:
+            raise ConfigError(f"TrackingEnv group_size={group_size} must divide num_worlds={num_worlds}")
+        if group_size > 1 and draw != "random":
+            raise ConfigError(f"TrackingEnv group_size={group_size} needs draw='random' (got {draw!r}): a group "
+                              f"shares one random draw")
         device = env_device(check_backend(backend), device)
         super().__init__(device=device, batch_size=torch.Size([num_worlds]))
         #: the step's array namespace: numpy on the host (rollout backend), torch on the sim's device (warp)
@@ -272,6 +278,8 @@ class TrackingEnv(EnvBase):
         if draw not in ("random", "cycle"):
             raise ConfigError(f"draw must be 'random' or 'cycle', got {draw!r}")
         self.draw = draw
+        #: worlds per group of common random numbers (1: every world draws alone)
+        self.group_size = group_size
         self._resets = np.zeros(num_worlds, dtype=np.int64)
         self.randomize = randomize
         self.patch = _as_patch(patch, effects)
@@ -305,6 +313,7 @@ class TrackingEnv(EnvBase):
         B = num_worlds
         self._base = self._array(np.zeros(B, dtype=np.int64))       # frame index of each world's episode start
         self._t = self._array(np.zeros(B, dtype=np.int64))
+        self._group_t = self._array(np.zeros(B, dtype=np.int64))    # steps since the group last started together
         self._ref_index = self._array(np.zeros(B, dtype=np.int64))
         self._latent = self._array(np.zeros((B, LATENT_DIM), dtype=np.float32))
         # object pose seen at each episode's first frame
@@ -427,17 +436,34 @@ class TrackingEnv(EnvBase):
         """(B, 5) frame indices of the reference at t + REF_OFFSETS, held at the window's last frame."""
         return self._base[:, None] + (self._t[:, None] + self._offsets).clip(max=self.config.window - 1)
 
+    def _draw_units(self, worlds: np.ndarray) -> np.ndarray:
+        """For each of ``worlds`` (being reset), the index of the draw it takes: the worlds of a whole
+        group (``group_size`` consecutive worlds, all of them in ``worlds``) share one; any other world
+        draws alone (a world restarting by itself after its episode ended early)."""
+        G = self.group_size
+        if G == 1:
+            return np.arange(len(worlds))
+        blocks = np.asarray(worlds) // G
+        counts = dict(zip(*np.unique(blocks, return_counts=True)))
+        ids: dict = {}
+        return np.asarray([ids.setdefault(("group", b) if counts[b] == G else ("world", w), len(ids))
+                           for w, b in zip(worlds, blocks)], dtype=np.int64)
+
     def _start_worlds(self, worlds: np.ndarray) -> None:
-        """Draw references for ``worlds`` and put them at their episode start."""
+        """Draw references for ``worlds`` and put them at their episode start (a whole group of
+        ``group_size`` worlds: one draw for all of them)."""
+        unit = self._draw_units(worlds)
+        first = np.unique(unit, return_index=True)[1]              # a world of each draw, in draw order
         if self.draw == "random":
-            picks = self._rng.choice(self.references, size=len(worlds))
+            picks = self._rng.choice(self.references, size=len(first))[unit]
         else:
             B = self.batch_size[0]
             picks = [self.references[(w + B * self._resets[w]) % len(self.references)] for w in worlds]
         self._resets[worlds] += 1
         models, bases, latents, offsets = [], [], [], []
         cfg = self.randomize
-        for w, r in zip(worlds, picks):
+        for j in first:
+            w, r = worlds[j], picks[j]
             e = self.dataset.entries[r]
             bases.append(e["offset"] + e["window_start"])
             latents.append(np.asarray(self.latent_fn(e["object"]), dtype=np.float32))
@@ -448,17 +474,24 @@ class TrackingEnv(EnvBase):
             else:
                 model = self._scene(e["object"], float(self._scale[w]))
             models.append(model)
+        for j, u in enumerate(unit):                # the group's other worlds take its draw
+            self._scale[worlds[j]] = self._scale[worlds[first[u]]]
+            self.world_patches[worlds[j]] = self.world_patches[worlds[first[u]]]
         self._assign(self._ref_index, worlds, np.asarray(picks, dtype=np.int64))
-        self._assign(self._base, worlds, np.asarray(bases, dtype=np.int64))
-        self._assign(self._latent, worlds, np.stack(latents))
+        self._assign(self._base, worlds, np.asarray(bases, dtype=np.int64)[unit])
+        self._assign(self._latent, worlds, np.stack(latents)[unit])
         if offsets:
-            self._assign(self._action_offset, worlds, np.stack(offsets))
-        self.sim.set_models(worlds, models)
+            self._assign(self._action_offset, worlds, np.stack(offsets)[unit])
+        self.sim.set_models(worlds, [models[u] for u in unit])
         self._assign(self._t, worlds, 0)
-        self._put_at_start(worlds, np.asarray(bases, dtype=np.int64), perturb=cfg is not None)
+        whole = worlds[np.bincount(unit)[unit] > 1] if self.group_size > 1 else worlds
+        self._assign(self._group_t, whole, 0)
+        self._put_at_start(worlds, np.asarray(bases, dtype=np.int64)[unit], perturb=cfg is not None, unit=unit)
 
-    def _put_at_start(self, worlds: np.ndarray, b: np.ndarray, perturb: bool = False) -> None:
-        """Put ``worlds`` at the reference frames ``b`` (their episodes' first frames)."""
+    def _put_at_start(self, worlds: np.ndarray, b: np.ndarray, perturb: bool = False,
+                      unit: np.ndarray | None = None) -> None:
+        """Put ``worlds`` at the reference frames ``b`` (their episodes' first frames); ``perturb``: with
+        the object displaced, one draw per ``unit`` (default: one per world)."""
         q = np.clip(self._ref_q[b].astype(np.float64), self._limits[:, 0], self._limits[:, 1])
         obj = self._ref_obj[b].astype(np.float64)
         obj[:, 2] += self.config.object_lift
@@ -467,8 +500,10 @@ class TrackingEnv(EnvBase):
             obj[j, 2] += (scale - 1.0) / scale * resting_height(self.sim.models[w])
         if perturb and self.randomize is not None:
             cfg = self.randomize
-            obj[:, :2] += self._rng.normal(0, cfg.object_xy_std, (len(worlds), 2))
-            yaw = Rotation.from_euler("z", self._rng.normal(0, cfg.object_yaw_std, (len(worlds), 1)))
+            unit = np.arange(len(worlds)) if unit is None else unit
+            n = int(unit.max()) + 1
+            obj[:, :2] += self._rng.normal(0, cfg.object_xy_std, (n, 2))[unit]
+            yaw = Rotation.from_euler("z", self._rng.normal(0, cfg.object_yaw_std, (n, 1))[unit])
             obj[:, 3:] = quat(yaw * rotation(obj[:, 3:]))
         qpos = np.zeros((len(worlds), self.sim.models[0].nq))
         qpos[:, :NUM_JOINTS] = q
@@ -529,6 +564,7 @@ class TrackingEnv(EnvBase):
         self._q_target = (self._q_target + action).clip(self._lo, self._hi)
         readout = self._sim_step(self._servo_command())
         self._t += 1
+        self._group_t += 1
         # MuJoCo flags diverging worlds; an object flung faster than any tabletop motion is one too.
         unstable = readout.unstable | flung(readout.object_vel, cfg.max_object_speed)
         if unstable.any():                      # on the device, a read back
@@ -547,6 +583,8 @@ class TrackingEnv(EnvBase):
         if cfg.terminate_palm_error > 0:
             terminated = terminated | (err["T_h"] > cfg.terminate_palm_error)
         truncated = self._t >= cfg.window - 1
+        if self.group_size > 1:          # a world restarted alone ends with its group, which then starts together
+            truncated = truncated | (self._group_t >= cfg.window - 1)
         terms["termination"] = cfg.reward.w_termination * to_float(terminated, reward)
         reward = reward - terms["termination"]
         t = self._tensor
@@ -621,10 +659,16 @@ class TrackingEnv(EnvBase):
 
     def _noise(self, rng, sigma: float, shape: tuple, f32: bool = False):
         """Gaussian noise for a step array: from a numpy generator (float32 if ``f32``; moved to the
-        device for the warp backend), or drawn on the device from a torch generator (float32)."""
+        device for the warp backend), or drawn on the device from a torch generator (float32). The
+        worlds of a group (``group_size``) meet the same noise."""
+        G = self.group_size
+        drawn = (shape[0] // G, *shape[1:])
         if isinstance(rng, torch.Generator):
-            return sigma * torch.randn(shape, generator=rng, device=self.device)
-        n = rng.normal(0, sigma, shape)
+            n = sigma * torch.randn(drawn, generator=rng, device=self.device)
+            return n.repeat_interleave(G, dim=0) if G > 1 else n
+        n = rng.normal(0, sigma, drawn)
+        if G > 1:
+            n = np.repeat(n, G, axis=0)
         return self._array(n.astype(np.float32) if f32 else n)
 
     def _readout(self):

@@ -23,6 +23,8 @@ from adadex.errors import ConfigError, check_number, check_numbers, from_known_k
 
 #: how PPO normalizes observations (:attr:`PPOConfig.obs_norm`)
 OBS_NORMS = ("running", "first_batch")
+#: how PPO credits an action (:attr:`PPOConfig.advantage`)
+ADVANTAGES = ("gae", "group")
 
 
 @dataclass
@@ -60,6 +62,13 @@ class PPOConfig:
         anneal_lr: decay the learning rate linearly from ``lr`` at the first frame to ``lr_min`` at
             ``total_frames`` (each iteration's rate follows the frame counter, so a resumed run
             continues on the schedule; :meth:`annealed_lr`). Excludes ``desired_kl`` (default off).
+        advantage: what each step's action is credited with: ``"gae"`` (default) — GAE over the critic's
+            values; ``"group"`` — GAE's value target (the λ-return) less the mean of the same over the
+            other worlds of its group at the same step (``collector.group_size`` ≥ 2 worlds that start
+            together on one reference and one randomization draw, meeting the same noise): a
+            leave-one-out baseline (RLOO, as GRPO's group baseline) that needs no critic and, on worlds
+            that differ only in the policy's own samples, sees the effect of the action and little else
+            — what a choice latched for the episode needs (docs/modulation.md).
         obs_norm: observation normalization: ``"first_batch"`` (default) — fitted once, on the first
             batch; ``"running"`` — every normalizer holds the mean and standard deviation of all
             observations collected so far, merged after each iteration's update
@@ -90,6 +99,7 @@ class PPOConfig:
     lr_min: float = 1e-6
     lr_max: float = 1e-2
     anneal_lr: bool = False
+    advantage: str = "gae"
     obs_norm: str = "first_batch"
     device: str = "cpu"
 
@@ -107,6 +117,8 @@ class PPOConfig:
                               f"lr_max={self.lr_max}")
         for k in ("gamma", "lmbda"):
             check_number(f"PPOConfig.{k}", getattr(self, k), high=1.0)
+        if self.advantage not in ADVANTAGES:
+            raise ConfigError(f"PPOConfig.advantage must be one of {ADVANTAGES}, got {self.advantage!r}")
         if self.obs_norm not in OBS_NORMS:
             raise ConfigError(f"PPOConfig.obs_norm must be one of {OBS_NORMS}, got {self.obs_norm!r}")
         if self.anneal_lr and self.desired_kl > 0:
@@ -145,6 +157,10 @@ class CollectorConfig:
             thread, with no hand-off to a pool thread — faster for the 1-thread workers of a split
             (``workers=2 worlds=32``; docs/training-log.md, "Speed").
         ray_address: the Ray cluster to join (default ``None``: start a local one).
+        group_size: worlds of a group that share their episodes' draws — the reference, Table 3's
+            physics, the object's displacement and every step's noise — and start together (default 1:
+            every world draws alone); must divide ``worlds``. Common random numbers for
+            ``ppo.advantage="group"`` (:class:`~adadex.envs.tracking.TrackingEnv`'s ``group_size``).
         start_method: how local worker processes start (``multiprocessing``): ``"forkserver"``
             (default) forks each from a server process that imported torch, TorchRL and MuJoCo once,
             so only the first pays the imports; ``"spawn"`` (TorchRL's default) starts each as a new
@@ -157,11 +173,15 @@ class CollectorConfig:
     env_threads: int = 2
     ray_address: str | None = None
     start_method: str = "forkserver"
+    group_size: int = 1
 
     def __post_init__(self):
         check_number("CollectorConfig.workers", self.workers, low=1, integer=True)
         check_number("CollectorConfig.worlds", self.worlds, low=1, integer=True)
         check_number("CollectorConfig.env_threads", self.env_threads, low=0, integer=True)
+        check_number("CollectorConfig.group_size", self.group_size, low=1, integer=True)
+        if self.worlds % self.group_size:
+            raise ConfigError(f"CollectorConfig.group_size={self.group_size} must divide worlds={self.worlds}")
         if self.backend not in ("local", "ray"):
             raise ConfigError(f"CollectorConfig.backend must be 'local' or 'ray', got {self.backend!r}")
         if self.start_method not in START_METHODS:
@@ -470,6 +490,9 @@ class TrainConfig:
             v = getattr(self, name)
             if isinstance(v, Mapping):
                 setattr(self, name, sub(**v))
+        if self.ppo.advantage == "group" and self.collector.group_size < 2:
+            raise ConfigError(f"ppo.advantage=group needs groups of worlds to compare: collector.group_size ≥ 2, "
+                              f"got {self.collector.group_size}")
         from adadex.envs.randomization import Randomization
         from adadex.envs.reward import RewardConfig
         from adadex.envs.tracking import TrackingConfig

@@ -45,6 +45,8 @@ class TrackingEnvFactory:
             ``transform`` and ``RewardSum`` (a user's own: ``PPOTrainer(env_transforms=…)``).
         backend: the physics backend (:data:`adadex.sim.batched.BACKENDS`; config ``sim.backend``;
             default ``"rollout"``).
+        group_size: worlds that share their episodes' draws and noise (default 1; config
+            ``collector.group_size``; :class:`~adadex.envs.tracking.TrackingEnv`).
     """
 
     dataset: str
@@ -63,6 +65,8 @@ class TrackingEnvFactory:
     transforms: tuple = ()
     #: the physics backend (:data:`adadex.sim.batched.BACKENDS`; config ``sim.backend``)
     backend: str = "rollout"
+    #: worlds that share their episodes' draws and noise (``collector.group_size``)
+    group_size: int = 1
 
     @property
     def device(self):
@@ -75,7 +79,8 @@ class TrackingEnvFactory:
         then the ``transforms``' transforms in order."""
         env = TrackingEnv(self.dataset, num_worlds=self.num_worlds, split=None, references=list(self.references),
                           config=self.config, randomize=self.randomize, patch=self.patch, nthread=self.nthread,
-                          seed=self.seed, scenes=self.scenes, backend=self.backend)
+                          seed=self.seed, scenes=self.scenes, backend=self.backend,
+                          group_size=self.group_size)
         env = TransformedEnv(env)
         if self.transform is not None:
             env.append_transform(self.transform())

@@ -94,6 +94,33 @@ def training_references(cfg: TrainConfig, dataset: ReferenceDataset, window: int
     return refs
 
 
+def group_advantage(data: TensorDictBase, group_size: int, keys=None) -> None:
+    """``ppo.advantage="group"``: each step's advantage becomes its value target (GAE's λ-return) less
+    the mean of the value targets of the other ``group_size − 1`` worlds of its group at the same step
+    (leave-one-out, so the baseline does not depend on the step's own action and the estimate stays
+    unbiased). ``data`` is a batch [N, T] whose rows come in groups of ``group_size`` consecutive
+    worlds (:class:`~adadex.envs.tracking.TrackingEnv`'s ``group_size``: one reference, one draw, the
+    same noise); written in place.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> td = TensorDict({"value_target": torch.tensor([[[1.0]], [[3.0]], [[0.0]], [[4.0]]]),
+        ...                  "advantage": torch.zeros(4, 1, 1)}, batch_size=[4, 1])
+        >>> group_advantage(td, 2)
+        >>> td["advantage"].flatten().tolist()
+        [-2.0, 2.0, -4.0, 4.0]
+    """
+    adv_key = "advantage" if keys is None else keys.advantage
+    target_key = "value_target" if keys is None else keys.value_target
+    target = data[target_key]
+    n = target.shape[0]
+    if group_size < 2 or n % group_size:
+        raise ConfigError(f"group advantage: {n} worlds in the batch do not split into groups of {group_size}")
+    g = target.reshape(n // group_size, group_size, *target.shape[1:])
+    others = (g.sum(1, keepdim=True) - g) / (group_size - 1)
+    data.set(adv_key, (g - others).reshape(target.shape))
+
+
 def default_loss(ppo: PPOConfig) -> Callable[..., LossModule]:
     """The loss factory a run uses unless given one: ``(actor, critic) ->`` TorchRL's ``ClipPPOLoss``
     with ``ppo.clip_epsilon``, ``ppo.entropy_coef``, ``ppo.critic_coef`` and normalized advantages.
@@ -289,7 +316,8 @@ class PPOTrainer:
         return TrackingEnvFactory(str(self.dataset.path), tuple(self.references), num_worlds=c.worlds, seed=seed,
                                   randomize=self.cfg.randomization_config(),
                                   config=self.env_config, nthread=c.env_threads, transform=self.transform,
-                                  transforms=self.env_transforms, backend=self.cfg.sim.backend)
+                                  transforms=self.env_transforms, backend=self.cfg.sim.backend,
+                                  group_size=c.group_size)
 
     def _resume(self) -> bool:
         """Check ``out`` (:func:`~adadex.train.checkpoint.check_run`: someone else's folder, a run there
@@ -333,6 +361,8 @@ class PPOTrainer:
         data = data.to(self.device)
         with torch.no_grad():
             self.gae(data)
+            if self.ppo.advantage == "group":
+                group_advantage(data, self.cfg.collector.group_size, self.loss.tensor_keys)
         flat = data.select(*self._minibatch_keys()).reshape(-1)
         if self.buffer is None or self.buffer.storage.max_size != flat.numel():
             self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(flat.numel(), device=self.device),

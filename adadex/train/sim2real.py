@@ -96,6 +96,10 @@ class Sim2RealPreset:
     context_free: tuple[str, ...] = ("K",)
     gamma: float = 0.998            # PPO's discount and GAE λ: a choice latched at an episode's first step is
     lmbda: float = 1.0              # credited with the episode's return (docs/modulation.md, channel A)
+    #: worlds that share a reference, a draw and the noise (``CollectorConfig.group_size``), and how PPO
+    #: credits an action (``PPOConfig.advantage``: ``"group"`` compares the worlds of a group)
+    group_size: int = 1
+    advantage: str = "gae"
     reward: dict = field(default_factory=lambda: {"w_object_success": 3.0})
     #: :class:`~adadex.modules.channels.ModulationConfig` changes for every modulator, trained and
     #: evaluated alike (e.g. ``{"max_softening": 0.5}``: K may also soften a servo)
@@ -176,7 +180,15 @@ def preset(name: str, **changes) -> Sim2RealPreset:
     # a bad backend or device is refused before any work, named as the recipe's keys
     for key in ("gamma", "lmbda"):
         check_number(key, getattr(p, key), high=1.0)
-    for key, check in (("backend", lambda: SimConfig(backend=p.backend)), ("device", lambda: _ppo_config(p))):
+    from adadex.train.config import CollectorConfig, PPOConfig
+
+    def grouped():
+        CollectorConfig(worlds=p.worlds, group_size=p.group_size)
+        if p.advantage == "group" and p.group_size < 2:
+            raise ConfigError("needs group_size ≥ 2 (worlds to compare)")
+
+    for key, check in (("backend", lambda: SimConfig(backend=p.backend)), ("device", lambda: PPOConfig(device=p.device)),
+                       ("group_size", grouped), ("advantage", lambda: PPOConfig(advantage=p.advantage))):
         try:
             check()
         except ConfigError as e:
@@ -317,7 +329,7 @@ def _ppo_config(p: Sim2RealPreset):
 
     return PPOConfig(total_frames=p.frames, frames_per_batch=p.frames_per_batch, minibatch_size=p.minibatch_size,
                      epochs=p.epochs, desired_kl=0.0, update_threads=1,    # as the pipeline trains modulators
-                     gamma=p.gamma, lmbda=p.lmbda, device=p.device)
+                     gamma=p.gamma, lmbda=p.lmbda, device=p.device, advantage=p.advantage)
 
 
 def fingerprint(module) -> str:
@@ -347,13 +359,15 @@ def _train(folder, *, dataset, p: Sim2RealPreset, randomization, seed: int, name
               "reward": dict(p.reward), "hidden": list(p.hidden),
               "ppo": {k: getattr(ppo, k) for k in ("total_frames", "frames_per_batch", "minibatch_size", "epochs",
                                                    "gamma", "lmbda")},
+              **({"advantage": p.advantage, "group_size": p.group_size}
+                 if (p.advantage, p.group_size) != ("gae", 1) else {}),
               **({"sim_backend": p.backend} if p.backend != SimConfig().backend else {})}
     stamp = folder.with_name(f"{folder.name}.inputs.json")      # beside the run: the trainer guards its folder
     same = stamp.is_file() and json.loads(stamp.read_text(encoding="utf-8")) == json.loads(json.dumps(inputs))
     if folder.exists() and not same:
         shutil.rmtree(folder)               # inside the recipe's own output: an earlier stage of other inputs
     tc = TrainConfig(dataset=str(dataset), out=str(folder), seed=seed, resume=(folder / "checkpoint.pt").is_file(),
-                     split=(p.split, "train"), ppo=ppo, collector=CollectorConfig(worlds=p.worlds),
+                     split=(p.split, "train"), ppo=ppo, collector=CollectorConfig(worlds=p.worlds, group_size=p.group_size),
                      modulator=modulator, reward=dict(p.reward), eval_max_references=0, wandb=False,
                      sim=SimConfig(backend=p.backend), progress=progress)
     folder.parent.mkdir(parents=True, exist_ok=True)

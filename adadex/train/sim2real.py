@@ -185,7 +185,7 @@ def preset(name: str, **changes) -> Sim2RealPreset:
     def grouped():
         CollectorConfig(worlds=p.worlds, group_size=p.group_size)
         if p.advantage == "group" and p.group_size < 2:
-            raise ConfigError("needs group_size ≥ 2 (worlds to compare)")
+            raise ConfigError("advantage=group needs group_size ≥ 2 (worlds to compare)")
 
     for key, check in (("backend", lambda: SimConfig(backend=p.backend)), ("device", lambda: PPOConfig(device=p.device)),
                        ("group_size", grouped), ("advantage", lambda: PPOConfig(advantage=p.advantage))):

@@ -18,10 +18,11 @@ def _one_torch_thread():
 
 #: files whose tests take minutes on 2 cores, collected first so the two test processes
 #: (pytest-xdist with ``--dist loadfile``, set in pyproject.toml) start them at once and the many
-#: short files fill in around them, instead of one long file running alone at the end
-LONG_FILES = ("tests/train/test_pipeline.py", "tests/train/test_ppo.py", "tests/sysid/test_hidden_effects.py",
-              "tests/packaging/test_wheel.py", "tests/train/test_distill.py", "tests/sim/test_warp_backend.py",
-              "tests/train/test_sim2real.py")
+#: short files fill in around them, instead of one long file running alone at the end (longest first, as
+#: the slowest-test report at the end of every run — ``--durations`` in pyproject.toml — shows them)
+LONG_FILES = ("tests/train/test_ppo.py", "tests/sysid/test_payload.py", "tests/sysid/test_hidden_effects.py",
+              "tests/train/test_pipeline.py", "tests/packaging/test_wheel.py", "tests/train/test_distill.py",
+              "tests/sim/test_warp_backend.py", "tests/train/test_sim2real.py", "tests/sysid/test_worst_case.py")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -245,6 +245,13 @@ class TrackingEnv(EnvBase):
         backend: the physics of :class:`~adadex.sim.batched.BatchedSim`: ``"rollout"`` (default,
             MuJoCo on the CPU cores) or ``"warp"`` (MuJoCo Warp on its default device, a GPU when there
             is one; ``pip install "adadex[warp]"``), with the env on that device (``device``).
+        group_size: worlds per group of common random numbers (default 1: every world draws alone).
+            The ``group_size`` consecutive worlds of a group start together on one reference, one
+            randomization draw and one object displacement, and meet the same action and sensor noise
+            every step, so they differ only in what their policy does (what PPO's group advantage
+            compares, :func:`adadex.train.ppo.group_advantage`). A world whose episode ends early
+            restarts alone on its own draw and is truncated when its group's episode ends, so that
+            the group starts together again. Must divide ``num_worlds``; needs ``draw="random"``.
 
     Example:
         >>> env = TrackingEnv(tiny_dataset, num_worlds=2, split=None, draw="cycle")

@@ -97,9 +97,10 @@ class Sim2RealPreset:
     gamma: float = 0.998            # PPO's discount and GAE λ: a choice latched at an episode's first step is
     lmbda: float = 1.0              # credited with the episode's return (docs/modulation.md, channel A)
     #: worlds that share a reference, a draw and the noise (``CollectorConfig.group_size``), and how PPO
-    #: credits an action (``PPOConfig.advantage``: ``"group"`` compares the worlds of a group)
-    group_size: int = 1
-    advantage: str = "gae"
+    #: credits an action (``PPOConfig.advantage``: ``"group"`` compares the worlds of a group; measured in
+    #: docs/sim2real.md, the default since 2026-12-06; ``group_size=1 advantage=gae``: as before)
+    group_size: int = 4
+    advantage: str = "group"
     reward: dict = field(default_factory=lambda: {"w_object_success": 3.0})
     #: :class:`~adadex.modules.channels.ModulationConfig` changes for every modulator, trained and
     #: evaluated alike (e.g. ``{"max_softening": 0.5}``: K may also soften a servo)

@@ -170,7 +170,7 @@ def test_refusals(tmp_path):
         "missing tracker": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o6'}", "tracker=nope.pt"], tmp_path / "o6"),
         "bad backend": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o7'}", "backend=gpu"], tmp_path / "o7"),
         "bad context_free": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o8'}", "context_free=[X]"], tmp_path / "o8"),
-        "group without groups": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o9'}", "advantage=group"], tmp_path / "o9"),
+        "group without groups": (RECIPE, [f"real={gap}", f"out={tmp_path / 'o9'}", "group_size=1"], tmp_path / "o9"),
     }
     r = run_recipes(cases, ROOT, "offline")
     assert "no such patch file" in refused(r["missing real"], "real=")

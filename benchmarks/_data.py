@@ -57,6 +57,21 @@ def check_result(path, *, name: str, force: bool = False) -> Path:
         raise SystemExit(report_error(f"benchmarks/{name}.py", e)) from None
 
 
+def result_arguments(parser, name: str):
+    """Add ``--out`` (default ``results/NAME.json``) and ``--force`` to a benchmark's argument parser, parse
+    ``argv`` and check ``--out`` before any work (:func:`check_result`); returns a function of ``argv``
+    giving the parsed arguments."""
+    parser.add_argument("--out", type=Path, default=RESULTS / f"{name}.json")
+    parser.add_argument("--force", action="store_true",
+                        help="replace --out even if it is not an earlier result of this benchmark")
+
+    def parse(argv=None):
+        args = parser.parse_args(argv)
+        check_result(args.out, name=name, force=args.force)
+        return args
+    return parse
+
+
 def write_result(path, result: dict, *, name: str, force: bool = False, indent: int = 1,
                  ensure_ascii: bool = True) -> Path:
     """Write ``result`` as JSON to ``path`` (atomically, parent folders made) and mark it as the benchmark

@@ -22,9 +22,8 @@ import argparse
 import json
 from pathlib import Path
 
-from _data import check_result, write_result
+from _data import result_arguments, write_result
 
-RESULTS = Path(__file__).resolve().parent / "results"
 FIELDS = ("completion_pct", "object_completion_pct", "T_o")
 
 
@@ -64,11 +63,7 @@ def main(argv=None) -> dict:
     p.add_argument("--gains", default="1,2", help="fixed arm gains to try, comma-separated (default 1,2); "
                    "ARM:HAND also sets the hand's")
     p.add_argument("--repeats", type=int, default=2, help="Table 3 draws per test reference (default 2)")
-    p.add_argument("--out", type=Path, default=RESULTS / "gap_screen.json")
-    p.add_argument("--force", action="store_true",
-                   help="replace --out even if it is not an earlier result of this benchmark")
-    a = p.parse_args(argv)
-    check_result(a.out, name="gap_screen", force=a.force)
+    a = result_arguments(p, "gap_screen")(argv)
 
     from tensordict.nn import TensorDictSequential
 

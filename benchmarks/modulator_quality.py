@@ -22,7 +22,8 @@ under ``--runs`` and resumes (training from its checkpoint, evaluations from the
 killed benchmark continues where it stopped::
 
     python benchmarks/modulator_quality.py --dataset data/small_pg --rows C+T,R+T,R+O+T:observation:0.5
-        [--seeds 0,1,2] [--frames 250000] [--repeats 4] [--reward w_object_success=3] [--runs DIR] [--out FILE]
+        [--seeds 0,1,2] [--frames 250000] [--repeats 4] [--reward w_object_success=3]
+        [--ppo advantage=group --collector group_size=4] [--modulation reach_smooth=true] [--runs DIR] [--out FILE]
 """
 
 from __future__ import annotations
@@ -46,8 +47,9 @@ PAIRED = {"completion": "completion_pct", "object_completion": "object_completio
 
 def parse_row(text: str) -> dict:
     """``CHANNELS[:inputs[:init_scale]][:option=value …]``; options: ``prior=anchor``, ``hold=K`` (steps
-    the exploration noise is held) and ``hold_X=scale`` (channel X's held-noise scale), the
-    :class:`~adadex.modules.modulator.Modulator` settings ``prior``, ``hold_steps``, ``hold_scale``."""
+    the exploration noise is held), ``hold_X=scale`` (channel X's held-noise scale) and
+    ``focus_X=part+part`` (channel X's head reads only those view parts), the
+    :class:`~adadex.modules.modulator.Modulator` settings ``prior``, ``hold_steps``, ``hold_scale``, ``focus``."""
     parts = text.split(":")
     options = [p for p in parts[1:] if "=" in p]
     parts = [p for p in parts if "=" not in p]
@@ -63,8 +65,10 @@ def parse_row(text: str) -> dict:
             row["modulator"]["hold_steps"] = int(value)
         elif key.startswith("hold_"):
             row["modulator"].setdefault("hold_scale", {})[key[5:]] = float(value)
+        elif key.startswith("focus_"):
+            row["modulator"].setdefault("focus", {})[key[6:]] = value.split("+")
         else:
-            raise SystemExit(f"--rows: unknown option {key!r} in {text!r} (prior=, hold=, hold_X=)")
+            raise SystemExit(f"--rows: unknown option {key!r} in {text!r} (prior=, hold=, hold_X=, focus_X=)")
     row["name"] = text.replace("+", "").replace(":", "_").replace(".", "").replace("=", "")
     return row
 
@@ -73,12 +77,11 @@ def parse_row(text: str) -> dict:
 OFFSET_BINS = (0.0, 0.02, 0.04, 0.06, 0.08, 0.10, float("inf"))
 
 
-def latched_by_offset(policy, ds, episodes, config, seed: int = 20_000, max_worlds: int = 64) -> dict:
-    """What a modulator latched at each evaluation episode's first step, deterministic — channel A's
-    reach (``"reach"``), channel L's lead in control steps (``"lead_arm"``, ``"lead_hand"``) and channel
-    K's gains (``"gain_arm"``, ``"gain_hand"``), those of its channels — overall and by the object's
-    horizontal start offset: what it learned to choose, on the evaluation's own draws (the same
-    references, chunks and env seeds as ``evaluate``)."""
+def first_step(policy, ds, episodes, config, seed: int = 20_000, max_worlds: int = 64):
+    """Each episode's first step, deterministic, on the evaluation's own draws (the same references,
+    chunks and env seeds as ``evaluate``): ``({name: (episodes,) latched value}, (episodes,) the object's
+    horizontal start offset in m)`` — channel A's reach (``"reach"``), L's lead in control steps
+    (``"lead_arm"``, ``"lead_hand"``) and K's gains (``"gain_arm"``, ``"gain_hand"``), those the policy has."""
     from adadex.envs.chunked import chunked_rollouts
     from adadex.envs.observation import OBJECT_START, REF_OBJECT_START
     from adadex.envs.randomization import Randomization
@@ -95,10 +98,15 @@ def latched_by_offset(policy, ds, episodes, config, seed: int = 20_000, max_worl
             if key in td["next"].keys(True):
                 values.setdefault(name, []).append(td["next", key][:, 0, i])
         offset.append(torch.linalg.vector_norm(td[OBJECT_START][:, 0, :2] - td[REF_OBJECT_START][:, 0, :2], dim=-1))
-    offset = torch.cat(offset).numpy()
+    return {name: torch.cat(parts).numpy() for name, parts in values.items()}, torch.cat(offset).numpy()
+
+
+def latched_by_offset(policy, ds, episodes, config, seed: int = 20_000, max_worlds: int = 64) -> dict:
+    """What a modulator latched at each evaluation episode's first step (:func:`first_step`), overall
+    and by the object's horizontal start offset: what it learned to choose, on the evaluation's draws."""
+    values, offset = first_step(policy, ds, episodes, config, seed, max_worlds)
     out = {}
-    for name, parts in values.items():
-        v = torch.cat(parts).numpy()
+    for name, v in values.items():
         bins = []
         for lo, hi in zip(OFFSET_BINS[:-1], OFFSET_BINS[1:]):
             m = (offset >= lo) & (offset < hi)
@@ -130,6 +138,10 @@ def main(argv=None) -> dict:
     p.add_argument("--runs", type=Path, default=Path("runs/modulator_quality"))
     p.add_argument("--ppo", default="", help="PPOConfig settings, e.g. 'lr=1e-4,desired_kl=0'")
     p.add_argument("--reward", default="", help="RewardConfig changes for training, e.g. 'w_object_success=3'")
+    p.add_argument("--modulation", default="", help="ModulationConfig settings for training and evaluation, "
+                   "e.g. 'reach_smooth=true'")
+    p.add_argument("--collector", default="", help="CollectorConfig settings, e.g. 'group_size=4' "
+                   "(with --ppo advantage=group: worlds in groups on common random numbers)")
     p.add_argument("--out", type=Path, default=RESULTS / "modulator_quality.json")
     p.add_argument("--force", action="store_true",
                    help="replace --out even if it is not an earlier result of this benchmark")
@@ -142,6 +154,22 @@ def main(argv=None) -> dict:
         k, v = kv.split("=")
         ppo[k] = type(getattr(PPOConfig(), k))(v) if not isinstance(getattr(PPOConfig(), k), bool) else v == "true"
     reward = {k: float(v) for k, v in (kv.split("=") for kv in filter(None, a.reward.split(",")))}
+    from adadex.modules.channels import ModulationConfig
+
+    modulation = {}
+    for kv in filter(None, a.modulation.split(",")):
+        k, v = kv.split("=")
+        if not hasattr(ModulationConfig(), k):
+            raise SystemExit(f"--modulation: {k!r} is not a ModulationConfig setting")
+        default = getattr(ModulationConfig(), k)
+        modulation[k] = v == "true" if isinstance(default, bool) else type(default)(v)
+    mconfig = ModulationConfig(**modulation)
+    collector = {}
+    for kv in filter(None, a.collector.split(",")):
+        k, v = kv.split("=")
+        if not hasattr(CollectorConfig(), k):
+            raise SystemExit(f"--collector: {k!r} is not a CollectorConfig setting")
+        collector[k] = type(getattr(CollectorConfig(), k))(v)
     a.runs.mkdir(parents=True, exist_ok=True)
     tracker_path = a.tracker
     if tracker_path is None:
@@ -168,6 +196,7 @@ def main(argv=None) -> dict:
     base = evaluated(a.runs / "tracker_alone", make_policy(tracker, None, channels="none"))
     result = {"benchmark": "modulator_quality", "dataset": str(a.dataset), "tracker": a.tracker or "replay",
               "frames": a.frames, "seeds": seeds, "episodes": len(episodes), "ppo": ppo, "reward": reward,
+              "collector": collector, "modulation": modulation,
               "condition": "unseen_trajectory test, Table 3", "tracker_alone": {k: base["summary"][k] for k in METRICS},
               "rows": {}}
     for row in rows:
@@ -175,10 +204,10 @@ def main(argv=None) -> dict:
         for seed in seeds:
             folder = a.runs / f"{row['name']}_s{seed}"
             m = ModulatorSettings(tracker=tracker_path, channels=row["channels"], inputs=row["inputs"],
-                                  init_scale=row["init_scale"])
+                                  init_scale=row["init_scale"], modulation=modulation)
             tc = TrainConfig(dataset=str(a.dataset), out=str(folder), seed=seed,
                              resume=(folder / "checkpoint.pt").is_file(),
-                             ppo=PPOConfig(**{**ppo, "total_frames": a.frames}), collector=CollectorConfig(),
+                             ppo=PPOConfig(**{**ppo, "total_frames": a.frames}), collector=CollectorConfig(**collector),
                              modulator=m, reward=reward, eval_max_references=0, wandb=False, progress=False)
             # settings ModulatorSettings does not hold (prior, held noise): the trainer gets the modulator
             # built as it would build it (seeded the same), and the control below is that modulator again
@@ -189,17 +218,18 @@ def main(argv=None) -> dict:
             trained = PPOTrainer(tc, run_name=f"{row['name']} seed {seed}", policy=policy).train()
             train_s = time.perf_counter() - t0
             mod = Modulator.load(trained["policy"])
-            ev = evaluated(folder, make_policy(tracker, mod))
+            ev = evaluated(folder, make_policy(tracker, mod, config=mconfig))
             # the control: the same modulator as the trainer initialised it (its edits ≈ 0). Under Table 3
             # any perturbation reshuffles which episodes succeed, so "trained − tracker alone" mixes what
             # training learned with that reshuffle; "trained − untrained" does not
             torch.manual_seed(seed)
             fresh = Modulator(row["channels"], hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
                               inputs=m.inputs, history=m.history, **row["modulator"])
-            ctl = evaluated(folder / "untrained", make_policy(tracker, fresh))
+            ctl = evaluated(folder / "untrained", make_policy(tracker, fresh, config=mconfig))
             latched = {} if not {"A", "L", "K"} & set(mod.layout.channels) else \
-                {"latched": latched_by_offset(make_policy(tracker, mod), ds, episodes, config),
-                 "untrained_latched": latched_by_offset(make_policy(tracker, fresh), ds, episodes, config)}
+                {"latched": latched_by_offset(make_policy(tracker, mod, config=mconfig), ds, episodes, config),
+                 "untrained_latched": latched_by_offset(make_policy(tracker, fresh, config=mconfig), ds, episodes,
+                                                        config)}
             per_seed.append({"seed": seed, "train_s": train_s, **{k: ev["summary"][k] for k in METRICS}, **latched,
                              "untrained": {k: ctl["summary"][k] for k in METRICS},
                              "per_episode": ev["per_episode"], "untrained_episodes": ctl["per_episode"]})

@@ -225,7 +225,10 @@ CHANNELS: Mapping[str, Channel] = _registry(
             state=((REACH_STATE, (2,)),),
             fields=(Field("reach_latched", True, "the reach chosen at an episode's first step holds for the whole "
                                                  "episode (an episode-level decision: reach for the displaced object "
-                                                 "or not); ``False`` chooses it anew every step"),),
+                                                 "or not); ``False`` chooses it anew every step"),
+                    Field("reach_smooth", False, "the reach is w = (1 + a) / 2, every action a distinct reach, "
+                                                 "instead of w = clip(0.5 + a, 0, 1), flat past |a| = 0.5 (where "
+                                                 "a policy that reaches fully samples no smaller reach)")),
             edits="observation", init_scale=1.0, latch="reach_latched"),
     Channel("O", "object latent",
             entries=((LATENT, (LATENT_DIM,)),),

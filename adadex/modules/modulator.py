@@ -203,6 +203,10 @@ class Modulator(ActorCritic):
             dynamics shows yet; the critic still reads the view. Default none.
         context_free_rate: how fast such a choice learns: its head's bias enters × this
             (:class:`~adadex.modules.nets.GaussianHeads`' ``blind_rate``; default 30).
+        focus: ``{channel: view parts}`` — channels whose head reads only those parts of the view,
+            through a small trunk of its own (:class:`~adadex.modules.nets.GaussianHeads`' ``focus``),
+            e.g. ``{"A": ["start_offset"]}``: whether to reach for the object, from where it lies.
+            Needs the view; default none.
     """
 
     kind = "modulator"
@@ -211,7 +215,8 @@ class Modulator(ActorCritic):
                  loc_bound: float = 0.0, inputs: str = "view", history: int = 3, prior: str | None = None,
                  lambda_palm: float = _DEFAULT_LAMBDA_PALM, hold_steps: int = 0, hold_scale=None,
                  reach_latched: bool = True, lead_latched: bool = True, gain_latched: bool = True,
-                 context_free: Sequence[str] = (), context_free_rate: float = 30.0):
+                 context_free: Sequence[str] = (), context_free_rate: float = 30.0,
+                 focus: Mapping[str, Sequence[str]] | None = None):
         super().__init__()
         self.layout = ModulationLayout(channels)
         if not self.layout.dim:
@@ -244,12 +249,37 @@ class Modulator(ActorCritic):
             raise ConfigError(f"Modulator.context_free: channels {unknown} are not among {self.layout.name}")
         if context_free:                 # only then: checkpoints without it keep their config
             self.config.update(context_free=list(context_free), context_free_rate=float(context_free_rate))
+        focus = self._focus(focus, context_free)
+        if focus:                        # only then: checkpoints without it keep their config
+            self.config["focus"] = {c: list(parts) for c, parts in focus.items()}
+        part = self.view.slices() if focus else {}
         self.actor = make_actor(self.obs_key, obs_dim, self.layout.channel_sizes, -1.0, 1.0, hidden,
                                 namespace="modulator", init_scale=[scales[c] for c in self.layout.channels],
                                 loc_bound=loc_bound, bounds=shift, latched=latched,
                                 blind=[self.layout.channels.index(c) for c in context_free],
-                                blind_rate=context_free_rate)
+                                blind_rate=context_free_rate,
+                                focus={self.layout.channels.index(c): [j for p in parts for j in
+                                                                       range(part[p].start, part[p].stop)]
+                                       for c, parts in focus.items()})
         self.critic = make_critic(self.obs_key, obs_dim, hidden)
+
+    def _focus(self, focus, context_free) -> dict[str, tuple[str, ...]]:
+        """``focus`` checked: channels of this modulator, not context-free, reading parts of its view."""
+        focus = {str(c): (parts,) if isinstance(parts, str) else tuple(str(p) for p in parts)
+                 for c, parts in (focus or {}).items()}
+        if not focus:
+            return {}
+        if self.view is None:
+            raise ConfigError("Modulator(focus=…) reads parts of the view: inputs='view'")
+        parts = [name for name, _ in self.view.parts]
+        for c, chosen in focus.items():
+            if c not in self.layout.channels or c in context_free:
+                raise ConfigError(f"Modulator.focus: {c!r} is not a channel of {self.layout.name} that reads the "
+                                  f"view (context-free: {list(context_free)})")
+            unknown = [p for p in chosen if p not in parts]
+            if unknown or not chosen:
+                raise ConfigError(f"Modulator.focus[{c}]: {unknown or 'no parts'} — the view's parts are {parts}")
+        return focus
 
     def _shift(self, prior, lambda_palm, hold_steps, hold_scale):
         """The :class:`ActionShift` bounds module and the held scales per channel, or (None, {})."""

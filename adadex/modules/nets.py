@@ -10,7 +10,7 @@ their own :class:`Normalizer`, so a saved module carries its statistics.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
@@ -95,6 +95,12 @@ class GaussianHeads(nn.Module):
     parameters moves its own; at PPO's 3e-4 a K head's bias ended 250 k frames at a gain of 0.03,
     and ×30 at the arm gain a fixed-gain sweep finds best (docs/sim2real.md).
 
+    ``focus`` (optional): ``{head index: observation indices}`` — heads that read only those entries
+    of the (normalized) observation, through a small trunk of their own (``focus_hidden``). For a
+    choice that depends on a few numbers the policy can see (channel A's reach on the object's start
+    offset): a trunk over the whole view fits the noise of the few hundred choices PPO sees in a run,
+    a small one over the relevant entries cannot.
+
     Args:
         obs_dim: the observation's size (normalized by a :class:`Normalizer` first).
         head_sizes: output entries of each head; loc and scale are (…, sum(head_sizes)).
@@ -106,17 +112,32 @@ class GaussianHeads(nn.Module):
         latched: ``(i, entries)`` (above), or None.
         blind: indices of the heads that read no observation (above; default none).
         blind_rate: their bias's scale (above; default 30).
+        focus: ``{head index: observation indices}`` read by those heads alone (above; default none).
+        focus_hidden: the widths of each focused head's own trunk (default (32, 32)).
     """
 
     def __init__(self, obs_dim: int, head_sizes: Sequence[int], hidden: Sequence[int], *,
                  init_gain: float = 0.01, init_scale: float | Sequence[float] = 1.0, activation=nn.ELU,
                  loc_bound: float = 0.0, latched: tuple[int, slice | Sequence[int]] | None = None,
-                 blind: Sequence[int] = (), blind_rate: float = 30.0):
+                 blind: Sequence[int] = (), blind_rate: float = 30.0,
+                 focus: Mapping[int, Sequence[int]] | None = None, focus_hidden: Sequence[int] = (32, 32)):
         super().__init__()
         self.blind = frozenset(int(i) for i in blind)
         self.blind_rate = float(check_number("GaussianHeads blind_rate", blind_rate, strict_low=True))
         if not self.blind <= set(range(len(head_sizes))):
             raise ConfigError(f"GaussianHeads: blind heads {sorted(self.blind)} are not among 0…{len(head_sizes) - 1}")
+        focus = {int(i): [int(j) for j in idx] for i, idx in (focus or {}).items()}
+        bad = sorted(i for i in focus if not 0 <= i < len(head_sizes) or i in self.blind)
+        if bad:
+            raise ConfigError(f"GaussianHeads: focused heads {bad} are not among 0…{len(head_sizes) - 1} or are blind")
+        for i, idx in focus.items():
+            if not idx or not all(0 <= j < obs_dim for j in idx):
+                raise ConfigError(f"GaussianHeads: head {i}'s focus must be observation indices in 0…{obs_dim - 1}")
+        self.focus_nets = nn.ModuleDict({
+            str(i): MLP(in_features=len(idx), out_features=focus_hidden[-1], num_cells=list(focus_hidden[:-1]),
+                        activation_class=activation, activate_last_layer=True) for i, idx in focus.items()})
+        for i, idx in focus.items():      # not persistent: the config rebuilds them
+            self.register_buffer(f"focus_index_{i}", torch.tensor(idx, dtype=torch.long), persistent=False)
         self.loc_bound = float(loc_bound)
         self.latched = None if latched is None else int(latched[0])
         if latched is not None:           # not persistent: the state dict is the same with or without it
@@ -126,7 +147,8 @@ class GaussianHeads(nn.Module):
         self.norm = Normalizer(obs_dim)
         self.trunk = MLP(in_features=obs_dim, out_features=hidden[-1], num_cells=list(hidden[:-1]),
                          activation_class=activation, activate_last_layer=True)
-        self.heads = nn.ModuleList(nn.Linear(hidden[-1], 2 * n) for n in head_sizes)
+        self.heads = nn.ModuleList(nn.Linear(focus_hidden[-1] if i in focus else hidden[-1], 2 * n)
+                                   for i, n in enumerate(head_sizes))
         for h in self.heads:
             nn.init.orthogonal_(h.weight, gain=init_gain)
             nn.init.zeros_(h.bias)
@@ -137,9 +159,16 @@ class GaussianHeads(nn.Module):
         self.extracts = [NormalParamExtractor(scale_mapping=f"biased_softplus_{float(s)}") for s in scales]
         self.head_sizes = tuple(head_sizes)
 
+    def _head_input(self, i: int, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        if str(i) in self.focus_nets:
+            return self.focus_nets[str(i)](x[..., getattr(self, f"focus_index_{i}")])
+        return z
+
     def forward(self, obs: torch.Tensor):
-        z = self.trunk(self.norm(obs))
-        locs, scales = zip(*(extract(self.blind_rate * h.bias.expand(*z.shape[:-1], -1) if i in self.blind else h(z))
+        x = self.norm(obs)
+        z = self.trunk(x)
+        locs, scales = zip(*(extract(self.blind_rate * h.bias.expand(*z.shape[:-1], -1) if i in self.blind
+                                     else h(self._head_input(i, x, z)))
                              for i, (extract, h) in enumerate(zip(self.extracts, self.heads))))
         loc = torch.cat(locs, -1)
         if self.loc_bound > 0:
@@ -156,7 +185,8 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
                namespace: str, action_key="action", init_scale: float | Sequence[float] = 1.0,
                bounds: TensorDictModule | None = None, loc_bound: float = 0.0,
                torchrl_tanh_loc: bool = False, latched: tuple[int, slice | Sequence[int]] | None = None,
-               blind: Sequence[int] = (), blind_rate: float = 30.0) -> ProbabilisticActor:
+               blind: Sequence[int] = (), blind_rate: float = 30.0,
+               focus: Mapping[int, Sequence[int]] | None = None) -> ProbabilisticActor:
     """A TanhNormal actor reading ``obs_key`` (flat), writing ``action_key`` and its log-prob, with
     the distribution parameters under ``(namespace, "loc")`` / ``(namespace, "scale")``.
 
@@ -195,13 +225,14 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
         latched: ``(observation index, entries)`` fixed to N(0, 1) where that entry is > 0, or None.
         blind: indices of the heads that read no observation (default none).
         blind_rate: the scale of their bias (:class:`GaussianHeads`; default 30).
+        focus: ``{head index: observation indices}``, heads that read only those (:class:`GaussianHeads`).
 
     Returns:
         the ``ProbabilisticActor`` (TanhNormal, writing the log-prob; :class:`SamplingPolicy` samples it faster).
     """
     net = GaussianHeads(obs_dim, head_sizes, hidden, init_scale=init_scale,
                         loc_bound=0.0 if torchrl_tanh_loc else loc_bound, latched=latched, blind=blind,
-                        blind_rate=blind_rate)
+                        blind_rate=blind_rate, focus=focus)
     loc, scale = (namespace, "loc"), (namespace, "scale")
     module = TensorDictModule(net, in_keys=[obs_key], out_keys=[loc, scale])
     dim = sum(head_sizes)

@@ -297,6 +297,9 @@ class ModulatorSettings:
         context_free: channels whose choice reads no observation: one learned distribution for every
             episode (e.g. ``["K"]``, a robot's servo gains); default none. See
             :class:`~adadex.modules.modulator.Modulator`.
+        focus: ``{channel: view parts}``: channels whose choice reads only those parts of the view,
+            through a small trunk of its own (e.g. ``{A: [start_offset]}``); default none. See
+            :class:`~adadex.modules.modulator.Modulator`.
     """
 
     tracker: str
@@ -311,6 +314,7 @@ class ModulatorSettings:
     hold_steps: int = 0
     hold_scale: Any = None                 # float | dict | None
     context_free: tuple[str, ...] = ()
+    focus: dict = field(default_factory=dict)
 
     def __post_init__(self):
         from adadex.modules.modulator import INPUTS, ModulationLayout, channel_scales
@@ -333,6 +337,18 @@ class ModulatorSettings:
                               f"among {layout.name}")
         if isinstance(self.init_scale, Mapping):
             self.init_scale = {str(k): v for k, v in self.init_scale.items()}
+        if not isinstance(self.focus, Mapping):
+            raise ConfigError(f"ModulatorSettings.focus (modulator.focus) must be {{channel: [view parts]}}, "
+                              f"got {self.focus!r}")
+        self.focus = {str(k): [v] if isinstance(v, str) else [str(p) for p in v] for k, v in self.focus.items()}
+        if self.focus:            # every check the modulator makes, before any work
+            from adadex.modules.modulator import Modulator
+
+            try:
+                Modulator(self.channels, hidden=(8,), inputs=self.inputs, history=self.history,
+                          context_free=self.context_free, focus=self.focus)
+            except ConfigError as e:
+                raise ConfigError(f"ModulatorSettings.focus (modulator.focus): {e}") from None
         try:
             channel_scales(ModulationLayout(self.channels), self.init_scale)
         except ValueError as e:

@@ -80,7 +80,7 @@ EVAL_SPLITS = ("unseen_trajectory", "unseen_object")
 #: the :class:`ModulatorSettings` fields a :class:`ModulatorStage` sets for every modulator row (the
 #: tracker, the channels and ``modulation`` are the pipeline's)
 MODULATOR_SETTINGS = ("hidden", "init_scale", "loc_bound", "inputs", "history", "prior", "hold_steps", "hold_scale",
-                      "context_free")
+                      "context_free", "focus")
 
 
 def _pipeline_ppo(total_frames: int) -> PPOConfig:
@@ -221,6 +221,11 @@ class ModulatorStage:
         hold_scale: the held noise's scale per channel or entry (:attr:`ModulatorSettings.hold_scale`).
         context_free: channels whose choice reads no observation (:attr:`ModulatorSettings.context_free`),
             in the rows that train them (default none).
+        focus: ``{channel: view parts}`` read by those channels' heads alone (:attr:`ModulatorSettings.focus`),
+            in the rows that train them (default none).
+        group_size: the modulators' worlds in groups on common random numbers
+            (:attr:`~adadex.train.config.CollectorConfig.group_size`; with ``ppo.advantage=group``);
+            default ``None``: the chain's ``collector.group_size``.
     """
 
     ppo: PPOConfig = field(default_factory=lambda: _pipeline_ppo(250_000))
@@ -235,11 +240,15 @@ class ModulatorStage:
     hold_steps: int = _modulator_default("hold_steps")
     hold_scale: Any = _modulator_default("hold_scale")
     context_free: tuple[str, ...] = _modulator_default("context_free")
+    focus: dict = _modulator_default("focus")
+    group_size: int | None = None
 
     def __post_init__(self):
         from adadex.modules.channels import ModulationConfig
 
         self.ppo = _group(self, "ppo", PPOConfig, "PipelineConfig.modulator.ppo")
+        if self.group_size is not None:
+            check_number("PipelineConfig.modulator.group_size", self.group_size, low=1, integer=True)
         if self.reference_channel not in ("R", "C"):
             raise ConfigError(f"PipelineConfig.modulator.reference_channel must be 'R' or 'C', "
                               f"got {self.reference_channel!r}")
@@ -277,6 +286,7 @@ class ModulatorStage:
         (``context_free``: those of the row's channels)."""
         out = {k: getattr(self, k) for k in MODULATOR_SETTINGS}
         out["context_free"] = tuple(c for c in self.context_free if c in self.row_channels(row).split("+"))
+        out["focus"] = {c: parts for c, parts in self.focus.items() if c in self.row_channels(row).split("+")}
         return out
 
 
@@ -419,6 +429,15 @@ class PipelineConfig:
                               f"ray_address={self.collector.ray_address!r}")
         for name, cls in STAGES.items():
             setattr(self, name, _group(self, name, cls, f"PipelineConfig.{name}"))
+        for name in STAGES:                  # a stage's learner and its worlds agree before any stage runs
+            ppo = getattr(getattr(self, name), "ppo", None)
+            if ppo is not None and ppo.advantage == "group" and self.group_size(name) < 2:
+                raise ConfigError(f"PipelineConfig.{name}.ppo.advantage=group needs groups of worlds to compare: "
+                                  + ("modulator.group_size" if name == "modulator" else "collector.group_size")
+                                  + f" ≥ 2, got {self.group_size(name)}")
+        if self.collector.worlds % self.group_size("modulator"):
+            raise ConfigError(f"PipelineConfig.modulator.group_size={self.group_size('modulator')} must divide "
+                              f"collector.worlds={self.collector.worlds}")
         self.env = changes(TrackingConfig, self.env, "PipelineConfig.env", drop=ENV_CODE_ONLY)
         self.reward = changes(RewardConfig, self.reward, "PipelineConfig.reward")
         self.env_config()                    # a bad env or reward value fails here, before any stage runs
@@ -427,6 +446,11 @@ class PipelineConfig:
         self.randomization = changes(Randomization, self.randomization, "PipelineConfig.randomization",
                                      drop=RANDOMIZATION_CODE_ONLY)
         self.randomization_config()
+
+    def group_size(self, stage: str) -> int:
+        """The group size ``stage``'s worlds train with: the modulators' own where set, else the chain's."""
+        own = self.modulator.group_size if stage == "modulator" else None
+        return self.collector.group_size if own is None else own
 
     def row_channels(self, row: str) -> str:
         """The channels a modulator row trains (:meth:`ModulatorStage.row_channels`)."""
@@ -529,12 +553,14 @@ class Pipeline:
                                   f"use a new out")
         return ds
 
-    def _train_config(self, out: Path, seed: int, ppo: PPOConfig, policy: PolicyConfig, **kw) -> TrainConfig:
-        """A training stage's run: its stage's ``ppo`` and ``policy``, the chain's collector, physics,
-        episodes and randomization."""
+    def _train_config(self, out: Path, seed: int, ppo: PPOConfig, policy: PolicyConfig, group_size: int | None = None,
+                      **kw) -> TrainConfig:
+        """A training stage's run: its stage's ``ppo`` and ``policy``, the chain's collector (with the
+        stage's own ``group_size`` where given), physics, episodes and randomization."""
         c = self.cfg
+        collector = dataclasses.replace(c.collector, **({} if group_size is None else {"group_size": group_size}))
         return TrainConfig(dataset=str(self.ds.path), out=str(out), seed=seed, resume=True,
-                           ppo=dataclasses.replace(ppo), collector=dataclasses.replace(c.collector),
+                           ppo=dataclasses.replace(ppo), collector=collector,
                            policy=dataclasses.replace(policy), env=dict(self.env_changes),
                            reward=dict(self.reward_changes), randomization=dict(c.randomization), wandb=c.wandb,
                            sim=dataclasses.replace(c.sim), progress=c.progress, **kw)
@@ -618,7 +644,7 @@ class Pipeline:
                                   **stage.settings(row))
             # the run's policy settings are the specialists' (a modulator run trains no tracker)
             tc = self._train_config(root / "modulators" / row, seed, stage.ppo, self.cfg.specialist.policy,
-                                    modulator=m)
+                                    modulator=m, group_size=self.cfg.group_size("modulator"))
             out[row] = self._ppo(tc, f"seed {seed} modulator {channels}")["policy"]
         return out
 

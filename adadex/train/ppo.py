@@ -199,7 +199,7 @@ class PPOTrainer:
         else:
             self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
                                     inputs=m.inputs, history=m.history, prior=m.prior, hold_steps=m.hold_steps,
-                                    hold_scale=m.hold_scale, context_free=m.context_free,
+                                    hold_scale=m.hold_scale, context_free=m.context_free, focus=m.focus,
                                     lambda_palm=ModulationConfig(**m.modulation).lambda_palm,
                                     **{c.latch: getattr(ModulationConfig(**m.modulation), c.latch)
                                        for c in CHANNELS.values() if c.latch})

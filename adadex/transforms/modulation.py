@@ -481,8 +481,9 @@ class AnchorReach(LatchedChoice, ChannelTransform, channel="A"):
     anchored feed-forward's settings, :data:`adadex.modules.modulator.PRIOR_ANCHOR`) gives the palm
     shift — the object's horizontal start offset, faded out as the reference carries the object — and
     the action chooses the fraction of it, ``w = clip(0.5 + a, 0, 1)``: a ≤ −0.5 leaves the reference
-    alone (replay around kinematic replay), a ≥ 0.5 is the full anchor. Every visible frame moves
-    (as channel C's palm, :func:`move_visible_reference`).
+    alone (replay around kinematic replay), a ≥ 0.5 is the full anchor; with ``reach_smooth``,
+    ``w = (1 + a) / 2``, no flat ends. Every visible frame moves (as channel C's palm,
+    :func:`move_visible_reference`).
 
     Why a channel: the anchored feed-forward carries the object (object completion +11 around replay)
     but costs the paper's completion where the object lies far off (past ~8 cm the hand holding it
@@ -495,7 +496,7 @@ class AnchorReach(LatchedChoice, ChannelTransform, channel="A"):
 
     Args:
         config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`);
-            this one reads ``reach_latched``; the anchor's own
+            this one reads ``reach_latched`` and ``reach_smooth``; the anchor's own
             settings are :data:`~adadex.modules.modulator.PRIOR_ANCHOR`.
     """
 
@@ -512,7 +513,8 @@ class AnchorReach(LatchedChoice, ChannelTransform, channel="A"):
         a = self._inputs(td)
         if a is None:
             return None
-        return self.choose(td, (0.5 + a[0]).clamp(0.0, 1.0))[..., 0]
+        w = (1.0 + a[0]) / 2.0 if self.config.reach_smooth else (0.5 + a[0]).clamp(0.0, 1.0)
+        return self.choose(td, w)[..., 0]
 
     def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
         w = self.weight(td)

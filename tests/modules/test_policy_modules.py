@@ -266,3 +266,33 @@ def test_a_context_free_channel_learns_one_choice_for_every_view(tmp_path):
     assert torch.equal(again.actor(_obs(8))["modulator", "loc"], loc.detach())
     with pytest.raises(ValueError, match="context_free.*'R'"):
         Modulator("T+K", hidden=(16, 16), inputs="observation", context_free=["R"])
+
+
+def test_a_focused_channel_reads_only_its_view_parts(tmp_path):
+    """Channel A's head focused on the object's start offset: its distribution moves with those three
+    view entries and with nothing else, while T still reads the whole view; the focus is saved and
+    loaded with the checkpoint; a focus the modulator cannot read is refused naming it."""
+    torch.manual_seed(0)
+    mod = Modulator("A+T", hidden=(16, 16), focus={"A": ["start_offset"]})
+    net = mod.actor._sampling_parts[0]
+    with torch.no_grad():
+        for h in net.heads:
+            h.weight.normal_()
+    a = mod.layout.channels.index("A")
+    view = torch.randn(4, mod.view.dim, requires_grad=True)
+    loc, scale = net(view)
+    offset = mod.view.slices()["start_offset"]
+    grad_a, = torch.autograd.grad(loc[:, a].sum() + scale[:, a].sum(), view, retain_graph=True)
+    read = grad_a.abs().sum(0) > 0
+    assert read[offset].all() and read.sum() == offset.stop - offset.start
+    grad_t, = torch.autograd.grad(loc[:, a + 1:].sum(), view)
+    assert (grad_t.abs().sum(0) > 0).sum() > 100            # T: the whole view
+    again = Modulator.load(mod.save(tmp_path / "m.pt"))
+    assert again.config["focus"] == {"A": ["start_offset"]}
+    assert torch.equal(again.actor._sampling_parts[0](view)[0], loc)
+    for focus, match in (({"K": ["start_offset"]}, "'K' is not a channel"), ({"A": ["nope"]}, r"\['nope'\]"),
+                         ({"A": []}, "no parts")):
+        with pytest.raises(ValueError, match=match):
+            Modulator("A+T", hidden=(8,), focus=focus)
+    with pytest.raises(ValueError, match="inputs='view'"):
+        Modulator("A+T", hidden=(8,), inputs="observation", focus={"A": "start_offset"})

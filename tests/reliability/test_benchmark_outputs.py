@@ -92,6 +92,21 @@ def test_unmarked_results_in_the_results_folder_are_earlier_results(bench):
     assert not data._unmarked_in_results(Path("/elsewhere/demo.json"))
 
 
+def test_result_arguments_add_out_and_force_and_check_before_any_work(bench, tmp_path, capsys):
+    import argparse
+
+    data = bench("_data")
+    mine = tmp_path / "my_notes.json"
+    mine.write_text('{"mine": 1}')
+    parse = data.result_arguments(argparse.ArgumentParser(), "demo")
+    with pytest.raises(SystemExit) as e:
+        parse(["--out", str(mine)])
+    assert e.value.code == 2 and "--force" in capsys.readouterr().err and mine.read_text() == '{"mine": 1}'
+    args = parse(["--out", str(mine), "--force"])
+    assert args.out == mine and args.force
+    assert parse([]).out == data.RESULTS / "demo.json"
+
+
 # ------------------------------------------------------------------------------------------ a real benchmark
 
 
@@ -115,7 +130,8 @@ def test_benchmark_refuses_a_users_file_before_any_work(bench, tmp_path, monkeyp
 @pytest.mark.parametrize("script", sorted(p.stem for p in BENCHMARKS.glob("*.py") if p.stem != "_data"))
 def test_every_benchmark_has_force_and_writes_through_the_helper(script):
     text = (BENCHMARKS / f"{script}.py").read_text(encoding="utf-8")
-    assert '"--force"' in text and "check_result(" in text and "write_result(" in text
+    checked = '"--force"' in text and "check_result(" in text          # or the helper adds and checks both
+    assert (checked or "result_arguments(p, " in text) and "write_result(" in text
     assert "json.dump(" not in text and "atomic_write_text(a.out" not in text
 
 

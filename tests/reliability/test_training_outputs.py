@@ -213,3 +213,7 @@ def test_a_setting_added_later_resumes_older_runs_only_at_the_value_they_ran_wit
     assert changed_settings(old, {"modulator": {"channels": "K", "hidden": [8], "context_free": ["K"]}}) == {
         "modulator.context_free": ([], ["K"])}
     assert "modulator.history" in changed_settings(old, {"modulator": {"channels": "K", "hidden": [8], "history": 3}})
+    # a mapping setting added later (modulator.focus): empty is the run as it was, a focus is a change
+    assert changed_settings(old, {"modulator": {"channels": "K", "hidden": [8], "focus": {}}}) == {}
+    assert "modulator.focus.K" in changed_settings(old, {"modulator": {"channels": "K", "hidden": [8],
+                                                                      "focus": {"K": ["phase"]}}})

@@ -162,9 +162,17 @@ def test_bad_settings_are_one_line_errors(tiny_dataset, tmp_path):
             ({"reward": {"w_prx": 1.0}}, "PipelineConfig.reward: unknown setting 'w_prx'"),
             ({"collector": {"backend": "ray"}}, "PipelineConfig.collector: the pipeline's stages collect locally"),
             ({"collector": {"worlds": 0}}, "PipelineConfig.collector: CollectorConfig.worlds"),
-            ({"sim": {"backend": "gpu"}}, "sim.backend")):
+            ({"sim": {"backend": "gpu"}}, "sim.backend"),
+            ({"modulator": {"ppo": {"advantage": "group"}}}, "modulator.ppo.advantage=group .*modulator.group_size"),
+            ({"specialist": {"ppo": {"advantage": "group"}}, "modulator": {"group_size": 4}},
+             "specialist.ppo.advantage=group .*collector.group_size ≥ 2, got 1"),
+            ({"modulator": {"group_size": 5}}, "modulator.group_size=5 must divide collector.worlds=64"),
+            ({"modulator": {"focus": {"T": ["nope"]}}}, r"PipelineConfig.modulator \(row RT\).*focus.*'nope'")):
         with pytest.raises(ConfigError, match=message):
             PipelineConfig(out="o", **kwargs)
+    # the modulators' own groups: only their runs' worlds come in groups
+    pc = PipelineConfig(out="o", modulator={"ppo": {"advantage": "group"}, "group_size": 4})
+    assert (pc.group_size("modulator"), pc.group_size("specialist")) == (4, 1)
 
 
 def test_a_group_given_as_a_mapping_changes_only_what_it_names():

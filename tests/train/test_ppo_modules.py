@@ -204,7 +204,8 @@ def test_ppo_device_is_checked(tiny_dataset, tmp_path):
 
 
 def test_modulator_prior_and_held_exploration_reach_the_trained_modulator(tiny_dataset, tmp_path):
-    """modulator.prior / hold_steps / hold_scale (and modulation.lambda_palm) build the Modulator trained."""
+    """modulator.prior / hold_steps / hold_scale / focus (and modulation.lambda_palm) build the Modulator
+    trained; a focus the modulator cannot read is refused before any work, naming the setting."""
     import pytest
 
     from adadex.errors import ConfigError
@@ -214,11 +215,15 @@ def test_modulator_prior_and_held_exploration_reach_the_trained_modulator(tiny_d
 
     Tracker(hidden=(16, 16)).save(tmp_path / "tracker.pt")
     m = ModulatorSettings(tracker=str(tmp_path / "tracker.pt"), channels="C+T", hidden=(16, 16), prior="anchor",
-                          hold_steps=5, hold_scale={"palm": 0.1}, modulation={"lambda_palm": 0.08})
+                          hold_steps=5, hold_scale={"palm": 0.1}, modulation={"lambda_palm": 0.08},
+                          focus={"C": ["start_offset", "phase"]})
     cfg = TrainConfig(dataset=str(tiny_dataset), out=str(tmp_path / "run"), randomize=False, wandb=False,
                       progress=False, collector=CollectorConfig(worlds=2), modulator=m)
     got = PPOTrainer(cfg).policy.config
     assert (got["prior"], got["hold_steps"], got["lambda_palm"]) == ("anchor", 5, 0.08)
+    assert got["focus"] == {"C": ["start_offset", "phase"]}
+    with pytest.raises(ConfigError, match=r"modulator.focus.*\['edit'\]"):       # C+T's view has no R edit
+        ModulatorSettings(tracker=str(tmp_path / "tracker.pt"), channels="C+T", focus={"C": ["edit"]})
     with pytest.raises(ConfigError, match="modulator.prior"):
         ModulatorSettings(tracker=str(tmp_path / "tracker.pt"), channels="C+T", prior="object")
     with pytest.raises(ConfigError, match="hold_scale"):

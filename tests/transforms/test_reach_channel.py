@@ -64,6 +64,21 @@ def test_the_first_steps_reach_holds_for_the_episode_unless_unlatched(tiny_datas
     assert REACH_STATE not in free["next"].keys(True)
 
 
+def test_the_smooth_reach_map_gives_every_action_its_own_reach(tiny_dataset):
+    """``reach_smooth``: w = (1 + a) / 2 — a = ±1 are the clip map's full and no reach, and the actions
+    the clip map flattens (0.5 and 1 both reach fully there) reach differently."""
+    smooth = ModulationConfig(reach_smooth=True)
+    for a, w in ((0.5, 0.75), (1.0, 1.0), (-1.0, 0.0), (0.0, 0.5)):
+        td = _rollout(tiny_dataset, "A", scripted([a], 1), steps=2, config=smooth)
+        torch.testing.assert_close(td["next", REACH_STATE][..., 0], torch.full((6, 2), w))
+    half = _rollout(tiny_dataset, "A", scripted([0.5], 1), config=smooth)
+    full = _rollout(tiny_dataset, "A", scripted([0.5], 1))
+    assert (half["next", "proprio", "joint_target"] - full["next", "proprio", "joint_target"]).abs().max() > 1e-3
+    torch.testing.assert_close(_rollout(tiny_dataset, "A", scripted([1.0], 1), config=smooth)["next", "proprio",
+                                                                                               "joint_target"],
+                               _rollout(tiny_dataset, "A", scripted([1.0], 1))["next", "proprio", "joint_target"])
+
+
 def test_a_reset_world_chooses_its_reach_again_and_the_view_shows_it(tiny_dataset):
     torch.manual_seed(0)
     mod = Modulator("A+T", hidden=(16, 16))

@@ -172,6 +172,28 @@ def channel_scales(layout: ModulationLayout, init_scale=None) -> dict[str, float
     return out
 
 
+def checked_focus(focus, layout: ModulationLayout, view: ViewLayout | None,
+                  context_free: Sequence[str] = ()) -> dict[str, tuple[str, ...]]:
+    """``{channel: view parts}`` (a part or a list of them) checked for a modulator of ``layout`` reading
+    ``view`` (``None``: the observation alone): channels it has, not context-free, parts of its view.
+    Raises :class:`~adadex.errors.ConfigError` naming what does not fit."""
+    focus = {str(c): (parts,) if isinstance(parts, str) else tuple(str(p) for p in parts)
+             for c, parts in (focus or {}).items()}
+    if not focus:
+        return {}
+    if view is None:
+        raise ConfigError("Modulator(focus=…) reads parts of the view: inputs='view'")
+    parts = [name for name, _ in view.parts]
+    for c, chosen in focus.items():
+        if c not in layout.channels or c in context_free:
+            raise ConfigError(f"Modulator.focus: {c!r} is not a channel of {layout.name} that reads the "
+                              f"view (context-free: {list(context_free)})")
+        unknown = [p for p in chosen if p not in parts]
+        if unknown or not chosen:
+            raise ConfigError(f"Modulator.focus[{c}]: {unknown or 'no parts'} — the view's parts are {parts}")
+    return focus
+
+
 class Modulator(ActorCritic):
     """Actor + critic with one head per active channel (see the module docstring).
 
@@ -249,7 +271,7 @@ class Modulator(ActorCritic):
             raise ConfigError(f"Modulator.context_free: channels {unknown} are not among {self.layout.name}")
         if context_free:                 # only then: checkpoints without it keep their config
             self.config.update(context_free=list(context_free), context_free_rate=float(context_free_rate))
-        focus = self._focus(focus, context_free)
+        focus = checked_focus(focus, self.layout, self.view, context_free)
         if focus:                        # only then: checkpoints without it keep their config
             self.config["focus"] = {c: list(parts) for c, parts in focus.items()}
         part = self.view.slices() if focus else {}
@@ -262,24 +284,6 @@ class Modulator(ActorCritic):
                                                                        range(part[p].start, part[p].stop)]
                                        for c, parts in focus.items()})
         self.critic = make_critic(self.obs_key, obs_dim, hidden)
-
-    def _focus(self, focus, context_free) -> dict[str, tuple[str, ...]]:
-        """``focus`` checked: channels of this modulator, not context-free, reading parts of its view."""
-        focus = {str(c): (parts,) if isinstance(parts, str) else tuple(str(p) for p in parts)
-                 for c, parts in (focus or {}).items()}
-        if not focus:
-            return {}
-        if self.view is None:
-            raise ConfigError("Modulator(focus=…) reads parts of the view: inputs='view'")
-        parts = [name for name, _ in self.view.parts]
-        for c, chosen in focus.items():
-            if c not in self.layout.channels or c in context_free:
-                raise ConfigError(f"Modulator.focus: {c!r} is not a channel of {self.layout.name} that reads the "
-                                  f"view (context-free: {list(context_free)})")
-            unknown = [p for p in chosen if p not in parts]
-            if unknown or not chosen:
-                raise ConfigError(f"Modulator.focus[{c}]: {unknown or 'no parts'} — the view's parts are {parts}")
-        return focus
 
     def _shift(self, prior, lambda_palm, hold_steps, hold_scale):
         """The :class:`ActionShift` bounds module and the held scales per channel, or (None, {})."""

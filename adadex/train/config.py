@@ -341,13 +341,14 @@ class ModulatorSettings:
             raise ConfigError(f"ModulatorSettings.focus (modulator.focus) must be {{channel: [view parts]}}, "
                               f"got {self.focus!r}")
         self.focus = {str(k): [v] if isinstance(v, str) else [str(p) for p in v] for k, v in self.focus.items()}
-        if self.focus:            # every check the modulator makes, before any work
-            from adadex.modules.modulator import Modulator
+        if self.focus:            # the modulator's own check, before any work
+            from adadex.modules.modulator import checked_focus
+            from adadex.modules.modulator_view import ViewLayout
 
+            view = ViewLayout(layout.channels, int(self.history)) if self.inputs == "view" else None
             try:
-                Modulator(self.channels, hidden=(8,), inputs=self.inputs, history=self.history,
-                          context_free=self.context_free, focus=self.focus)
-            except ConfigError as e:
+                checked_focus(self.focus, layout, view, self.context_free)
+            except (ConfigError, ValueError) as e:
                 raise ConfigError(f"ModulatorSettings.focus (modulator.focus): {e}") from None
         try:
             channel_scales(ModulationLayout(self.channels), self.init_scale)

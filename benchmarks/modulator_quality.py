@@ -73,6 +73,19 @@ def parse_row(text: str) -> dict:
     return row
 
 
+def settings(text: str, defaults, flag: str) -> dict:
+    """``"k=v,k=v"`` → ``{k: v}``, each value of its default's type in ``defaults`` (a config instance;
+    ``true``/``false`` for switches); a key it lacks ends the run naming ``flag``."""
+    out = {}
+    for kv in filter(None, text.split(",")):
+        k, _, v = kv.partition("=")
+        if not hasattr(defaults, k):
+            raise SystemExit(f"{flag}: {k!r} is not a {type(defaults).__name__} setting")
+        default = getattr(defaults, k)
+        out[k] = v == "true" if isinstance(default, bool) else type(default)(v)
+    return out
+
+
 #: the object's horizontal start offset |Δ| (m): bins of the latched-choice report (channels A, L and K)
 OFFSET_BINS = (0.0, 0.02, 0.04, 0.06, 0.08, 0.10, float("inf"))
 
@@ -149,27 +162,14 @@ def main(argv=None) -> dict:
     check_result(a.out, name="modulator_quality", force=a.force)      # before any work: refuse a file not ours
     rows = [parse_row(r) for r in a.rows.split(",")]
     seeds = [int(s) for s in a.seeds.split(",")]
-    ppo = {"desired_kl": 0.0, "update_threads": 1}      # as the pipeline trains its modulators
-    for kv in filter(None, a.ppo.split(",")):
-        k, v = kv.split("=")
-        ppo[k] = type(getattr(PPOConfig(), k))(v) if not isinstance(getattr(PPOConfig(), k), bool) else v == "true"
-    reward = {k: float(v) for k, v in (kv.split("=") for kv in filter(None, a.reward.split(",")))}
     from adadex.modules.channels import ModulationConfig
 
-    modulation = {}
-    for kv in filter(None, a.modulation.split(",")):
-        k, v = kv.split("=")
-        if not hasattr(ModulationConfig(), k):
-            raise SystemExit(f"--modulation: {k!r} is not a ModulationConfig setting")
-        default = getattr(ModulationConfig(), k)
-        modulation[k] = v == "true" if isinstance(default, bool) else type(default)(v)
+    # as the pipeline trains its modulators
+    ppo = {"desired_kl": 0.0, "update_threads": 1, **settings(a.ppo, PPOConfig(), "--ppo")}
+    reward = {k: float(v) for k, v in (kv.split("=") for kv in filter(None, a.reward.split(",")))}
+    modulation = settings(a.modulation, ModulationConfig(), "--modulation")
     mconfig = ModulationConfig(**modulation)
-    collector = {}
-    for kv in filter(None, a.collector.split(",")):
-        k, v = kv.split("=")
-        if not hasattr(CollectorConfig(), k):
-            raise SystemExit(f"--collector: {k!r} is not a CollectorConfig setting")
-        collector[k] = type(getattr(CollectorConfig(), k))(v)
+    collector = settings(a.collector, CollectorConfig(), "--collector")
     a.runs.mkdir(parents=True, exist_ok=True)
     tracker_path = a.tracker
     if tracker_path is None:

@@ -49,7 +49,9 @@ def parse_row(text: str) -> dict:
     """``CHANNELS[:inputs[:init_scale]][:option=value …]``; options: ``prior=anchor``, ``hold=K`` (steps
     the exploration noise is held), ``hold_X=scale`` (channel X's held-noise scale) and
     ``focus_X=part+part`` (channel X's head reads only those view parts), the
-    :class:`~adadex.modules.modulator.Modulator` settings ``prior``, ``hold_steps``, ``hold_scale``, ``focus``."""
+    :class:`~adadex.modules.modulator.Modulator` settings ``prior``, ``hold_steps``, ``hold_scale``, ``focus``;
+    and ``learner=paired`` (fit latched channels to paired rollouts, :mod:`adadex.train.paired_choice`,
+    instead of PPO)."""
     parts = text.split(":")
     options = [p for p in parts[1:] if "=" in p]
     parts = [p for p in parts if "=" not in p]
@@ -67,8 +69,11 @@ def parse_row(text: str) -> dict:
             row["modulator"].setdefault("hold_scale", {})[key[5:]] = float(value)
         elif key.startswith("focus_"):
             row["modulator"].setdefault("focus", {})[key[6:]] = value.split("+")
+        elif key == "learner" and value in ("ppo", "paired"):
+            row["learner"] = value
         else:
-            raise SystemExit(f"--rows: unknown option {key!r} in {text!r} (prior=, hold=, hold_X=, focus_X=)")
+            raise SystemExit(f"--rows: unknown option {key!r} in {text!r} (prior=, hold=, hold_X=, focus_X=, "
+                             "learner=ppo|paired)")
     row["name"] = text.replace("+", "").replace(":", "_").replace(".", "").replace("=", "")
     return row
 
@@ -138,7 +143,8 @@ def main(argv=None) -> dict:
     from adadex.modules.modulator import Modulator
     from adadex.modules.tracker import Tracker
     from adadex.train.config import CollectorConfig, ModulatorSettings, PPOConfig, TrainConfig
-    from adadex.train.ppo import PPOTrainer
+    from adadex.train.paired_choice import PairedChoiceConfig, fit_paired_choice
+    from adadex.train.ppo import PPOTrainer, training_references
     from adadex.transforms.policy import make_policy
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -155,6 +161,10 @@ def main(argv=None) -> dict:
                    "e.g. 'reach_smooth=true'")
     p.add_argument("--collector", default="", help="CollectorConfig settings, e.g. 'group_size=4' "
                    "(with --ppo advantage=group: worlds in groups on common random numbers)")
+    p.add_argument("--paired", default="", help="PairedChoiceConfig settings for rows with learner=paired, "
+                   "e.g. 'repeats=8,steps=2000' (arms: --arms)")
+    p.add_argument("--arms", default="-1,1", help="the arms of rows with learner=paired: numbers, or "
+                   "values per action entry joined by '/' (default -1,1: channel A's no reach and full reach)")
     p.add_argument("--out", type=Path, default=RESULTS / "modulator_quality.json")
     p.add_argument("--force", action="store_true",
                    help="replace --out even if it is not an earlier result of this benchmark")
@@ -170,6 +180,14 @@ def main(argv=None) -> dict:
     modulation = settings(a.modulation, ModulationConfig(), "--modulation")
     mconfig = ModulationConfig(**modulation)
     collector = settings(a.collector, CollectorConfig(), "--collector")
+    try:
+        arms = tuple(float(v) if "/" not in v else tuple(float(x) for x in v.split("/")) for v in a.arms.split(","))
+        fit_settings = settings(a.paired, PairedChoiceConfig(), "--paired")
+        if "arms" in fit_settings:
+            raise SystemExit("--paired: give the arms with --arms")
+        paired = PairedChoiceConfig(**fit_settings, arms=arms)
+    except ValueError:
+        raise SystemExit(f"--arms: numbers, or values joined by '/', got {a.arms!r}") from None
     a.runs.mkdir(parents=True, exist_ok=True)
     tracker_path = a.tracker
     if tracker_path is None:
@@ -193,6 +211,23 @@ def main(argv=None) -> dict:
         return out
 
     tracker = Tracker.load(tracker_path).freeze()
+
+    def paired_fit(folder: Path, tc, seed: int):
+        """A learner=paired row's modulator, fitted once (kept as policy.pt with its report)."""
+        path, report = folder / "policy.pt", folder / "paired_fit.json"
+        if not (path.is_file() and report.is_file()):
+            torch.manual_seed(seed)
+            m = tc.modulator
+            mod = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
+                            inputs=m.inputs, history=m.history, **row["modulator"])
+            fit = fit_paired_choice(mod, tracker, ds, training_references(tc, ds, config.window), paired, seed=seed,
+                                    config=tc.env_config(config), modulation=mconfig,
+                                    randomize=tc.randomization_config(), progress=False)
+            folder.mkdir(parents=True, exist_ok=True)
+            mod.save(path)
+            atomic_write_text(report, json.dumps(fit))
+        return Modulator.load(path), json.loads(report.read_text(encoding="utf-8"))
+
     base = evaluated(a.runs / "tracker_alone", make_policy(tracker, None, channels="none"))
     result = {"benchmark": "modulator_quality", "dataset": str(a.dataset), "tracker": a.tracker or "replay",
               "frames": a.frames, "seeds": seeds, "episodes": len(episodes), "ppo": ppo, "reward": reward,
@@ -215,9 +250,13 @@ def main(argv=None) -> dict:
             policy = Modulator(row["channels"], hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
                                inputs=m.inputs, history=m.history, **row["modulator"]) if row["modulator"] else None
             t0 = time.perf_counter()
-            trained = PPOTrainer(tc, run_name=f"{row['name']} seed {seed}", policy=policy).train()
-            train_s = time.perf_counter() - t0
-            mod = Modulator.load(trained["policy"])
+            if row.get("learner") == "paired":
+                mod, fit = paired_fit(folder, tc, seed)
+                train_s = fit["wall_s"]
+            else:
+                trained = PPOTrainer(tc, run_name=f"{row['name']} seed {seed}", policy=policy).train()
+                train_s = time.perf_counter() - t0
+                mod, fit = Modulator.load(trained["policy"]), None
             ev = evaluated(folder, make_policy(tracker, mod, config=mconfig))
             # the control: the same modulator as the trainer initialised it (its edits ≈ 0). Under Table 3
             # any perturbation reshuffles which episodes succeed, so "trained − tracker alone" mixes what
@@ -231,6 +270,7 @@ def main(argv=None) -> dict:
                  "untrained_latched": latched_by_offset(make_policy(tracker, fresh, config=mconfig), ds, episodes,
                                                         config)}
             per_seed.append({"seed": seed, "train_s": train_s, **{k: ev["summary"][k] for k in METRICS}, **latched,
+                             **({"paired_fit": {k: v for k, v in fit.items() if k != "per_episode"}} if fit else {}),
                              "untrained": {k: ctl["summary"][k] for k in METRICS},
                              "per_episode": ev["per_episode"], "untrained_episodes": ctl["per_episode"]})
         refs = np.concatenate([s["per_episode"]["reference"] for s in per_seed])
@@ -271,6 +311,17 @@ def main(argv=None) -> dict:
                   + " / ".join(f"{s['latched'][name]['mean']:.2f}" for s in per_seed)
                   + f" (untrained {per_seed[0]['untrained_latched'][name]['mean']:.2f}); by the object's start "
                   "offset: " + ", ".join(cells), flush=True)
+        for s in per_seed:
+            if "paired_fit" in s:
+                f, h = s["paired_fit"], s["paired_fit"]["holdout"]
+
+                def cell(d):
+                    return f"return {d['return']:.0f} completion {d['completion']:.1f} object {d['object_completion']:.1f}"
+                print(f"{'':24s} paired fit seed {s['seed']}: {f['episodes']} episodes × {len(f['arms'])} arms "
+                      f"({f['frames']:,} frames, {f['wall_s'] / 60:.1f} min), step {f['step']}; on {h['episodes']} "
+                      f"held-out episodes: fitted ({h['arm_fraction']}) {cell(h['fitted'])}; "
+                      + "; ".join(f"arm {arm} {cell(d)}" for arm, d in zip(f["arms"], h["arms"]))
+                      + f"; hindsight {cell(h['hindsight'])}", flush=True)
     result["wall_s"] = time.perf_counter() - t_start
     b = result["tracker_alone"]
     print(f"{'tracker alone':24s} completion {b['completion_pct']:5.1f} %  object {b['object_completion_pct']:5.1f} %  "

@@ -324,11 +324,16 @@ class Modulator(ActorCritic):
     def channels(self) -> tuple[str, ...]:
         return self.layout.channels
 
+    @property
+    def heads(self):
+        """The actor's :class:`~adadex.modules.nets.GaussianHeads` (normalizer, trunk, one head per channel)."""
+        return self.actor._sampling_parts[0]
+
     def context_free_actions(self) -> dict[str, list[float]]:
         """The deterministic action of each context-free channel's entries (``tanh`` of the learned
         mean, in [−1, 1]; the same for every observation), by entry name, e.g. ``{"gain": [arm, hand]}``;
         empty when no channel is context-free."""
-        net = self.actor._sampling_parts[0]
+        net = self.heads
         out = {}
         for c in self.config.get("context_free", ()):
             head = net.heads[self.layout.channels.index(c)]

@@ -22,6 +22,7 @@ _EXPORTS = {
     "adadex.train.checkpoint": ("save_checkpoint", "load_checkpoint"),
     "adadex.train.logs": ("RunLog", "read_metrics"),
     "adadex.train.rollouts": ("teacher_rollouts", "load_rollouts"),
+    "adadex.train.paired_choice": ("fit_paired_choice", "PairedChoiceConfig"),
     "adadex.train.pipeline": ("PipelineConfig", "run_pipeline", "SpecialistStage", "RolloutStage", "DistillStage",
                               "ModulatorStage", "BaselineStage", "EvaluationStage"),
 }
@@ -37,5 +38,6 @@ if TYPE_CHECKING:      # the same names, for type checkers and IDEs
     from adadex.train.checkpoint import save_checkpoint, load_checkpoint
     from adadex.train.logs import RunLog, read_metrics
     from adadex.train.rollouts import teacher_rollouts, load_rollouts
+    from adadex.train.paired_choice import fit_paired_choice, PairedChoiceConfig
     from adadex.train.pipeline import (PipelineConfig, run_pipeline, SpecialistStage, RolloutStage, DistillStage,
                                        ModulatorStage, BaselineStage, EvaluationStage)

@@ -300,6 +300,11 @@ class ModulatorSettings:
         focus: ``{channel: view parts}``: channels whose choice reads only those parts of the view,
             through a small trunk of its own (e.g. ``{A: [start_offset]}``); default none. See
             :class:`~adadex.modules.modulator.Modulator`.
+        learner: ``"ppo"`` (default) or ``"paired"``: a modulator whose channels all latch once per
+            episode (A, L, K) fitted to paired rollouts of candidate choices
+            (:mod:`adadex.train.paired_choice`) instead of PPO; ``ppo.*`` is then unused.
+        paired: :class:`~adadex.train.paired_choice.PairedChoiceConfig` fields for ``learner=paired``
+            (``arms``, ``repeats``, ``steps``, …; default none changed).
     """
 
     tracker: str
@@ -315,6 +320,8 @@ class ModulatorSettings:
     hold_scale: Any = None                 # float | dict | None
     context_free: tuple[str, ...] = ()
     focus: dict = field(default_factory=dict)
+    learner: str = "ppo"
+    paired: dict = field(default_factory=dict)
 
     def __post_init__(self):
         from adadex.modules.modulator import INPUTS, ModulationLayout, channel_scales
@@ -362,6 +369,7 @@ class ModulatorSettings:
         from adadex.train.schema import changes
 
         self.modulation = changes(ModulationConfig, self.modulation, "ModulatorSettings.modulation")
+        self._check_learner(layout, ModulationConfig(**self.modulation))
         if not Path(self.tracker).is_file():
             raise ConfigError(f"ModulatorSettings.tracker: no tracker checkpoint at {self.tracker!r} "
                               f"(train or distill one first)")
@@ -374,6 +382,31 @@ class ModulatorSettings:
             raise ConfigError(f"ModulatorSettings.tracker: {e}") from None
 
 
+    def _check_learner(self, layout, modulation) -> None:
+        """``learner`` and ``paired``, before any work (a paired fit needs every channel latched)."""
+        from adadex.train.paired_choice import PairedChoiceConfig, check_latched
+        from adadex.train.schema import changes
+
+        if self.learner not in ("ppo", "paired"):
+            raise ConfigError(f"ModulatorSettings.learner (modulator.learner) must be 'ppo' or 'paired', "
+                              f"got {self.learner!r}")
+        self.paired = changes(PairedChoiceConfig, self.paired, "ModulatorSettings.paired")
+        if "arms" in self.paired:
+            self.paired["arms"] = [v if isinstance(v, (int, float)) else list(v) for v in self.paired["arms"]]
+        self.paired_config()
+        if self.learner == "paired":
+            check_latched(layout, modulation)
+
+    def paired_config(self):
+        """The :class:`~adadex.train.paired_choice.PairedChoiceConfig` of ``learner=paired``."""
+        from adadex.train.paired_choice import PairedChoiceConfig
+
+        p = dict(self.paired)
+        if "arms" in p:
+            p["arms"] = tuple(v if isinstance(v, (int, float)) else tuple(v) for v in p["arms"])
+        return PairedChoiceConfig(**p)
+
+
 def _modulator_from(d: Mapping) -> ModulatorSettings | None:
     """A recipe's ``modulator`` node: ``None`` (a tracker run) while ``modulator.tracker`` is unset —
     refused if other modulator settings differ from their defaults — else :class:`ModulatorSettings`."""
@@ -384,10 +417,14 @@ def _modulator_from(d: Mapping) -> ModulatorSettings | None:
         return ModulatorSettings(**d)
     from adadex.modules.channels import ModulationConfig
 
+    from adadex.train.paired_choice import PairedChoiceConfig
+
     d.pop("tracker", None)
     given = {f"modulation.{k}": v for k, v in changes(ModulationConfig, d.pop("modulation", None),
                                                           "TrainConfig.modulator.modulation").items()}
-    given.update(changes(ModulatorSettings, d, "TrainConfig.modulator", drop=("tracker", "modulation")))
+    given.update({f"paired.{k}": v for k, v in changes(PairedChoiceConfig, d.pop("paired", None),
+                                                       "TrainConfig.modulator.paired").items()})
+    given.update(changes(ModulatorSettings, d, "TrainConfig.modulator", drop=("tracker", "modulation", "paired")))
     if given:
         raise ConfigError(f"modulator.{sorted(given)[0]}={given[sorted(given)[0]]!r} is a modulator setting: give "
                           f"modulator.tracker (the frozen generalist) to train a modulator, or use "

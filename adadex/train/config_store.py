@@ -28,10 +28,12 @@ def train_node() -> dict:
     all their fields — and the recipe's own ``force`` (replace what ``out`` holds) and ``build_preset``
     (build a missing ``dataset`` from this preset)."""
     from adadex.train.config import ModulatorSettings, TrainConfig
+    from adadex.train.paired_choice import PairedChoiceConfig
 
     node = defaults_of(TrainConfig, expand={
         **change_nodes(),
-        "modulator": defaults_of(ModulatorSettings, expand={"modulation": modulation_node()}, tracker=None),
+        "modulator": defaults_of(ModulatorSettings, expand={"modulation": modulation_node(),
+                                                            "paired": defaults_of(PairedChoiceConfig)}, tracker=None),
     })
     return {**node, "force": False, "build_preset": None}
 

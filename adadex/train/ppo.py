@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import json
 import os
 import pickle
 import time
@@ -516,6 +517,8 @@ class PPOTrainer:
     def train(self) -> dict:
         resumed = self._resume()                    # checks out (nothing written before)
         start_run(self.out, TRAINING_RUN, fresh=False)
+        if self.cfg.modulator is not None and self.cfg.modulator.learner == "paired":
+            return self._paired(resumed)
         if self.frames >= self.ppo.total_frames:
             return self._result(resumed)
         log = RunLog(self.out, name=self.run_name, config=self.cfg.to_dict(), wandb=self.cfg.wandb,
@@ -571,6 +574,34 @@ class PPOTrainer:
             log.log(self.iteration, {**final, "frames": self.frames})
         log.close()
         return self._result(resumed, final)
+
+    def _paired(self, resumed: bool) -> dict:
+        """``modulator.learner=paired``: the latched heads fitted once to paired rollouts of the arms
+        (:func:`~adadex.train.paired_choice.fit_paired_choice`; its report in ``out/paired_fit.json``)
+        in place of PPO; a resumed run has its fit already."""
+        if resumed:
+            return self._result(True)
+        from adadex.io import atomic_write_text
+        from adadex.train.paired_choice import fit_paired_choice
+
+        m = self.cfg.modulator
+        log = RunLog(self.out, name=self.run_name, config=self.cfg.to_dict(), wandb=self.cfg.wandb, keep_until=-1)
+        report = fit_paired_choice(self.policy, Tracker.load(m.tracker).freeze(), self.dataset, self.references,
+                                   m.paired_config(), seed=self.cfg.seed, config=self.env_config,
+                                   modulation=ModulationConfig(**m.modulation),
+                                   randomize=self.cfg.randomization_config(), max_worlds=self.cfg.collector.worlds,
+                                   progress=self.cfg.progress, nthread=self.cfg.collector.env_threads,
+                                   backend=self.cfg.sim.backend)
+        atomic_write_text(self.out / "paired_fit.json", json.dumps(report))
+        self.frames, self.iteration = report["frames"], 1
+        self._checkpoint()
+        final = self.evaluate()
+        held = report["holdout"]
+        log.log(self.iteration, {**final, "frames": self.frames, "fit_step": report["step"],
+                                 "fit_holdout_return": held["fitted"]["return"],
+                                 **{f"arm{k}_holdout_return": a["return"] for k, a in enumerate(held["arms"])}})
+        log.close()
+        return self._result(False, final)
 
     def _result(self, resumed: bool, final: dict | None = None) -> dict:
         return {"policy": self.policy_path, "tracker": self.policy_path, "frames": self.frames,

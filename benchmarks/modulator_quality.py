@@ -17,13 +17,17 @@ scale), ``R+O+T:observation:0.5`` (the modulator as it was before 2026-11-27), `
 (channel C's palm around the object anchor's shift), ``C+T:hold=10:hold_C=0.5`` (C's exploration
 noise held for 10 steps at scale 0.5; :class:`~adadex.modules.modulator.Modulator`), ``A`` (channel A,
 the object-anchor reach chosen once per episode; rows with A, L or K also report what the trained and
-the untrained modulator latch at the first step — reach, lead, gains — by the object's start offset). Every run is kept
+the untrained modulator latch at the first step — reach, lead, gains — by the object's start offset),
+``A:focus_A=start_offset:learner=paired`` (A fitted to paired rollouts of the ``--arms`` instead of PPO,
+:mod:`adadex.train.paired_choice`; ``--frames`` and ``--ppo`` unused, ``--paired repeats=8`` sets the
+draws). Every run is kept
 under ``--runs`` and resumes (training from its checkpoint, evaluations from their JSON), so a
 killed benchmark continues where it stopped::
 
     python benchmarks/modulator_quality.py --dataset data/small_pg --rows C+T,R+T,R+O+T:observation:0.5
         [--seeds 0,1,2] [--frames 250000] [--repeats 4] [--reward w_object_success=3]
         [--ppo advantage=group --collector group_size=4] [--modulation reach_smooth=true] [--runs DIR] [--out FILE]
+        [--arms=-1,1] [--paired repeats=4,steps=2000]
 """
 
 from __future__ import annotations

@@ -78,7 +78,9 @@ from adadex.train.stages import STAGE, run_in_processes, run_stage
 MODULATOR_ROWS = {"R": "R", "RT": "R+T", "ROT": "R+O+T", "O": "O"}
 EVAL_SPLITS = ("unseen_trajectory", "unseen_object")
 #: the :class:`ModulatorSettings` fields a :class:`ModulatorStage` sets for every modulator row (the
-#: tracker, the channels and ``modulation`` are the pipeline's)
+#: tracker, the channels and ``modulation`` are the pipeline's; ``learner``/``paired`` are not among them:
+#: the paired learner fits only channels chosen once per episode, and every row of :data:`MODULATOR_ROWS`
+#: acts every step)
 MODULATOR_SETTINGS = ("hidden", "init_scale", "loc_bound", "inputs", "history", "prior", "hold_steps", "hold_scale",
                       "context_free", "focus")
 

@@ -225,7 +225,9 @@ def test_the_recipe_lists_only_changes_and_its_node_is_the_dataclass(tmp_path):
     assert node["specialist"]["ppo"]["total_frames"] == 250_000 and node["baseline"]["ppo"]["total_frames"] == 500_000
     assert set(node["modulator"]["modulation"]) == {f.name for f in dataclasses.fields(ModulationConfig)}
     assert set(node["env"]) == {f.name for f in dataclasses.fields(TrackingConfig)} - {"reward"}
-    settings = {f.name for f in dataclasses.fields(ModulatorSettings)} - {"tracker", "channels"}
+    # learner/paired: the paired learner fits only channels chosen once per episode, and every pipeline row
+    # (R, RT, ROT, O) acts every step, so they are not pipeline settings
+    settings = {f.name for f in dataclasses.fields(ModulatorSettings)} - {"tracker", "channels", "learner", "paired"}
     assert settings <= set(node["modulator"])
     own = defaults_of(ModulatorSettings)
     assert all(node["modulator"][k] == own[k] for k in settings - {"modulation"})    # ModulatorSettings' defaults

@@ -147,6 +147,7 @@ def main(argv=None) -> dict:
     from adadex.modules.modulator import Modulator
     from adadex.modules.tracker import Tracker
     from adadex.train.config import CollectorConfig, ModulatorSettings, PPOConfig, TrainConfig
+    from adadex.errors import ConfigError
     from adadex.train.paired_choice import PairedChoiceConfig, fit_paired_choice
     from adadex.train.ppo import PPOTrainer, training_references
     from adadex.transforms.policy import make_policy
@@ -189,7 +190,9 @@ def main(argv=None) -> dict:
         fit_settings = settings(a.paired, PairedChoiceConfig(), "--paired")
         if "arms" in fit_settings:
             raise SystemExit("--paired: give the arms with --arms")
-        paired = PairedChoiceConfig(**fit_settings, arms=arms)
+        fit_config = PairedChoiceConfig(**fit_settings, arms=arms)
+    except ConfigError as e:
+        raise SystemExit(f"--arms/--paired: {e}") from None
     except ValueError:
         raise SystemExit(f"--arms: numbers, or values joined by '/', got {a.arms!r}") from None
     a.runs.mkdir(parents=True, exist_ok=True)
@@ -224,7 +227,7 @@ def main(argv=None) -> dict:
             m = tc.modulator
             mod = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
                             inputs=m.inputs, history=m.history, **row["modulator"])
-            fit = fit_paired_choice(mod, tracker, ds, training_references(tc, ds, config.window), paired, seed=seed,
+            fit = fit_paired_choice(mod, tracker, ds, training_references(tc, ds, config.window), fit_config, seed=seed,
                                     config=tc.env_config(config), modulation=mconfig,
                                     randomize=tc.randomization_config(), progress=False)
             folder.mkdir(parents=True, exist_ok=True)

@@ -169,7 +169,7 @@ def fit_paired_choice(modulator, tracker, dataset, references: Sequence[int],
         dataset: a :class:`~adadex.data.reference.ReferenceDataset` or its folder.
         references: the training references (dataset indices), each run ``settings.repeats`` times.
         settings: the arms and the fit (:class:`PairedChoiceConfig`).
-        seed: the env seed of the rollouts (every arm meets the same draws) and the fit's split and init.
+        seed: the env seed of the rollouts (every arm meets the same draws) and of the held-out split.
         config: the episode settings (default ``TrackingConfig()``), reward included.
         modulation: the env's :class:`~adadex.modules.channels.ModulationConfig` (default ``ModulationConfig()``).
         randomize: the randomization (default Table 3, ``Randomization()``).
@@ -200,6 +200,10 @@ def fit_paired_choice(modulator, tracker, dataset, references: Sequence[int],
     randomize = Randomization() if randomize is None else randomize
     check_latched(modulator.layout, modulation, modulator.config)
     arms = arm_actions(settings.arms, modulator.layout.dim)
+    gaps = torch.cdist(arms, arms) ** 2
+    if not (gaps > 0).any():
+        raise ConfigError(f"PairedChoiceConfig.arms: {arms.tolist()} holds no two different arms")
+    tau = settings.temperature * gaps[gaps > 0].min()
     references = [int(r) for r in references]
     if not references:
         raise ConfigError("paired choice: no training references")
@@ -220,7 +224,7 @@ def fit_paired_choice(modulator, tracker, dataset, references: Sequence[int],
     gen = torch.Generator().manual_seed(seed)
     unique = sorted(set(references))
     held = set(np.asarray(unique)[torch.randperm(len(unique), generator=gen).numpy()[
-        :int(round(settings.holdout * len(unique)))]].tolist())
+        :min(int(round(settings.holdout * len(unique))), len(unique) - 1)]].tolist())
     is_held = np.array([r in held for r in episodes])
     fit_rows = np.flatnonzero(~is_held)
     held_rows = np.flatnonzero(is_held)
@@ -228,10 +232,6 @@ def fit_paired_choice(modulator, tracker, dataset, references: Sequence[int],
     best = returns.argmax(1)
     advantage = returns - returns.mean(1, keepdim=True)
     spread = advantage.abs().mean().clamp_min(1e-9)            # the loss in units of a typical arm's advantage
-    gaps = torch.cdist(arms, arms) ** 2
-    if not (gaps > 0).any():
-        raise ConfigError(f"PairedChoiceConfig.arms: {arms.tolist()} holds no two different arms")
-    tau = settings.temperature * gaps[gaps > 0].min()
     net = modulator.heads
     if not net.norm.fitted:
         net.norm.fit(x[fit_rows])

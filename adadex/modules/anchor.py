@@ -11,10 +11,13 @@ the feed-forward into replay of a reference shifted onto the observed object:
   *current* pose instead made the hand chase an object it had nudged, and under Table 3's action
   noise that ran away (terminations 44 → 86 % for replay so anchored). The height is left alone so
   the hand is never pushed into the table;
-* ``w`` — 1 until the reference object at t+1 has travelled ``hold`` from its start (the
+* ``w`` — 1 until the reference object at t+``lookahead`` has travelled ``hold`` from its start (the
   references are noisy on purpose: an object at rest jitters by up to 1 cm), then falling linearly
   to 0 over the next ``release`` of travel: the hand reaches and grasps the object where it lies, then,
-  as the reference carries the object, returns to the reference path and brings the object onto it;
+  as the reference carries the object, returns to the reference path and brings the object onto it.
+  ``lookahead`` is one of the observation's future reference frames (t+1, t+2, t+4, t+12): reading
+  further ahead starts the return before the reference object moves, which the position servos'
+  lag otherwise leaves behind (channel A's ``reach_lookahead``, docs/modulation.md);
 * ``Δq`` — the arm-joint change that moves the palm by ``w·Δ`` without turning it, at the next
   reference joints: ``iterations`` Gauss–Newton steps of damped least squares on the palm's pose and
   Jacobian (pytorch-kinematics' chain from the robot's MJCF, folded to its six joints:
@@ -52,13 +55,24 @@ import pytorch_kinematics as pk
 import torch
 from torch import nn
 
-from adadex.envs.observation import LAYOUT, NEXT_REF_JOINTS as _NEXT_REF
-from adadex.errors import check_number
+from adadex.envs.observation import LAYOUT, NEXT_REF_JOINTS as _NEXT_REF, REF_OFFSETS
+from adadex.errors import ConfigError, check_number
 from adadex.sim.kinematics import RevoluteChainJacobian, RobotKinematics
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
 
 ARM_JOINTS = 6
-_NEXT_REF_OBJECT = slice(LAYOUT["ref_object_future"].start, LAYOUT["ref_object_future"].start + 3)
+#: the reference frames ahead (control steps) whose object position the observation holds
+LOOKAHEADS = REF_OFFSETS[1:]
+
+
+def ref_object_slice(lookahead: int = 1) -> slice:
+    """Where the flat observation holds the reference object's position at t+``lookahead`` (one of
+    :data:`LOOKAHEADS`; :class:`~adadex.errors.ConfigError` otherwise)."""
+    if lookahead not in LOOKAHEADS or isinstance(lookahead, bool):
+        raise ConfigError(f"the object anchor's lookahead must be one of the observation's reference frames ahead "
+                          f"{LOOKAHEADS} (control steps), got {lookahead!r}")
+    start = LAYOUT["ref_object_future"].start + 7 * LOOKAHEADS.index(lookahead)
+    return slice(start, start + 3)
 
 
 class PalmShift:
@@ -122,22 +136,26 @@ class ObjectAnchor(nn.Module):
         reach: m; > 0 leaves objects displaced this far or farther unanchored; 0: no limit.
         iterations: Gauss–Newton steps towards the shifted palm pose (1: the linearized step alone,
             what trackers saved before 2026-11-26 used).
+        lookahead: control steps ahead at which the reference object's travel is read (one of
+            :data:`LOOKAHEADS`; default 1, the next frame).
     """
 
     def __init__(self, release: float = 0.05, hold: float = 0.02, damping: float = 0.02, reach: float = 0.0,
-                 iterations: int = 3):
+                 iterations: int = 3, lookahead: int = 1):
         super().__init__()
         self.release = float(check_number("ObjectAnchor.release", release, strict_low=True))
         self.hold = float(check_number("ObjectAnchor.hold", hold))
         self.damping = float(check_number("ObjectAnchor.damping", damping, strict_low=True))
         self.reach = float(check_number("ObjectAnchor.reach", reach))
         self.iterations = int(check_number("ObjectAnchor.iterations", iterations, low=1, integer=True))
+        self._ref_object = ref_object_slice(lookahead)
+        self.lookahead = int(lookahead)
         self._shift = PalmShift(damping, iterations)     # no nn.Module: its tensors stay out of the state dict
 
     def weight(self, observation: torch.Tensor, ref_object_start: torch.Tensor) -> torch.Tensor:
-        """(…,) anchor weight: 1 while the reference object is at rest, 0 once it travelled
-        ``hold + release`` from its start."""
-        return self.travel_weight(torch.linalg.vector_norm(observation[..., _NEXT_REF_OBJECT]
+        """(…,) anchor weight: 1 while the reference object (at t+``lookahead``) is at rest, 0 once it
+        travelled ``hold + release`` from its start."""
+        return self.travel_weight(torch.linalg.vector_norm(observation[..., self._ref_object]
                                                            - ref_object_start[..., :3], dim=-1))
 
     def travel_weight(self, travel: torch.Tensor) -> torch.Tensor:
@@ -159,7 +177,7 @@ class ObjectAnchor(nn.Module):
         lead = observation.shape[:-1]
         obs = observation.reshape(-1, observation.shape[-1])
         start, ref_start = object_start.reshape(-1, 7), ref_object_start.reshape(-1, 7)
-        travel = torch.linalg.vector_norm(obs[:, _NEXT_REF_OBJECT] - ref_start[:, :3], dim=-1)
+        travel = torch.linalg.vector_norm(obs[:, self._ref_object] - ref_start[:, :3], dim=-1)
         shift = self.palm_shift(start[:, :2] - ref_start[:, :2], travel)       # palm: move, do not turn
         out = torch.zeros(obs.shape[0], NUM_JOINTS, dtype=obs.dtype, device=obs.device)
         rows = shift.any(dim=1).nonzero()[:, 0]      # the Jacobian only where there is a shift

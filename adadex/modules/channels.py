@@ -103,13 +103,14 @@ EDITS = ("observation", "action")
 @dataclass(frozen=True)
 class Field:
     """One config field of a channel (a field of :class:`ModulationConfig`): name, default, meaning.
-    Number fields are checked ≥ 0 and finite (and below ``below`` where it is set); boolean fields are
-    switches."""
+    Number fields are checked ≥ 0 and finite (below ``below`` where it is set, one of ``choices`` where
+    those are set); boolean fields are switches."""
 
     name: str
     default: float | bool
     doc: str
     below: float | None = None
+    choices: tuple | None = None
 
 
 @dataclass(frozen=True)
@@ -228,7 +229,13 @@ CHANNELS: Mapping[str, Channel] = _registry(
                                                  "or not); ``False`` chooses it anew every step"),
                     Field("reach_smooth", False, "the reach is w = (1 + a) / 2, every action a distinct reach, "
                                                  "instead of w = clip(0.5 + a, 0, 1), flat past |a| = 0.5 (where "
-                                                 "a policy that reaches fully samples no smaller reach)")),
+                                                 "a policy that reaches fully samples no smaller reach)"),
+                    Field("reach_lookahead", 1, "control steps ahead at which the anchor reads the reference "
+                                                "object's travel (its hold and release; one of the observation's "
+                                                "frames ahead, 1, 2, 4 or 12): further ahead, the hand starts "
+                                                "bringing the object back onto the reference path before the "
+                                                "reference moves it, ahead of the servos' lag",
+                          choices=(1, 2, 4, 12))),
             edits="observation", init_scale=1.0, latch="reach_latched"),
     Channel("O", "object latent",
             entries=((LATENT, (LATENT_DIM,)),),
@@ -367,12 +374,16 @@ def _config_class(channels: Mapping[str, Channel]) -> type:
     fields = [f for c in channels.values() for f in c.fields]
     numbers = tuple(f.name for f in fields if not isinstance(f.default, bool))
     below = {f.name: f.below for f in fields if f.below is not None}
+    choices = {f.name: f.choices for f in fields if f.choices is not None}
 
     def __post_init__(self):
         check_numbers("ModulationConfig", self, numbers)
         for name, bound in below.items():
             if not getattr(self, name) < bound:
                 raise ConfigError(f"ModulationConfig.{name} must be < {bound:g}, got {getattr(self, name)}")
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ConfigError(f"ModulationConfig.{name} must be one of {allowed}, got {getattr(self, name)!r}")
 
     cls = dataclasses.make_dataclass(
         "ModulationConfig", [(f.name, type(f.default), dataclasses.field(default=f.default)) for f in fields],

@@ -97,6 +97,9 @@ class Tracker(ActorCritic):
             unanchored (``ObjectAnchor(reach=…)``); 0 (default): no limit.
         anchor_iterations: Gauss–Newton steps of the anchor's palm shift (``ObjectAnchor(iterations=…)``;
             3 by default; checkpoints saved before it existed load with 1, the step they used).
+        anchor_lookahead: control steps ahead at which the anchor reads the reference object's travel
+            (``ObjectAnchor(lookahead=…)``: 1, 2, 4 or 12; default 1, what checkpoints saved before it
+            existed used); needs ``anchor`` when not 1.
         torchrl_tanh_loc: bound the mean as checkpoints saved before 2026-11-25 did (see
             :func:`~adadex.modules.nets.make_actor`: for a residual tracker TorchRL's ``tanh_loc``
             also shifted the mean by the feed-forward); :meth:`load` sets it for those checkpoints.
@@ -106,7 +109,7 @@ class Tracker(ActorCritic):
 
     def __init__(self, hidden: Sequence[int] = (512, 256, 128), max_action: float = 0.1, init_scale: float = 1.0,
                  residual: float = 0.0, loc_bound: float = 0.0, anchor: float = 0.0, anchor_reach: float = 0.0,
-                 anchor_iterations: int = 3, torchrl_tanh_loc: bool = False):
+                 anchor_iterations: int = 3, torchrl_tanh_loc: bool = False, anchor_lookahead: int = 1):
         super().__init__()
         check_number("Tracker.max_action", max_action, strict_low=True)
         check_number("Tracker.residual", residual)
@@ -117,6 +120,9 @@ class Tracker(ActorCritic):
         if anchor_reach > 0 and not anchor > 0:
             raise ConfigError(f"Tracker(anchor_reach={anchor_reach}) limits the object anchor, which is off; "
                               f"set anchor > 0")
+        if anchor_lookahead != 1 and not anchor > 0:
+            raise ConfigError(f"Tracker(anchor_lookahead={anchor_lookahead}) times the object anchor, which is off; "
+                              f"set anchor > 0")
         if anchor > 0 and not residual > 0:
             raise ConfigError(f"Tracker(anchor={anchor}) anchors the replay feed-forward, which only a residual "
                               f"tracker has; set residual > 0")
@@ -124,10 +130,13 @@ class Tracker(ActorCritic):
                        "residual": float(residual), "loc_bound": float(loc_bound), "anchor": float(anchor),
                        "anchor_reach": float(anchor_reach), "anchor_iterations": int(anchor_iterations),
                        "torchrl_tanh_loc": bool(torchrl_tanh_loc)}
+        if anchor_lookahead != 1:     # at its default the config reads as before it existed (stamps, fingerprints)
+            self.config["anchor_lookahead"] = int(anchor_lookahead)
         bounds = None
         if residual > 0:
             keys = [OBSERVATION, JOINT_TARGET] + ([OBJECT_START, REF_OBJECT_START] if anchor > 0 else [])
-            anchored = ObjectAnchor(anchor, reach=anchor_reach, iterations=anchor_iterations) if anchor > 0 else None
+            anchored = ObjectAnchor(anchor, reach=anchor_reach, iterations=anchor_iterations,
+                                    lookahead=anchor_lookahead) if anchor > 0 else None
             bounds = TensorDictModule(ReplayBounds(residual, anchored),
                                       in_keys=keys, out_keys=[("tracker", "low"), ("tracker", "high")])
         self.actor = make_actor(OBSERVATION, OBS_DIM, [NUM_JOINTS], -max_action, max_action, hidden,
@@ -149,7 +158,7 @@ class Tracker(ActorCritic):
         extra = {} if max_action is None else {"max_action": max_action}
         return cls(hidden=config.hidden, init_scale=config.init_scale, residual=config.residual,
                    loc_bound=config.loc_bound, anchor=config.anchor, anchor_reach=config.anchor_reach,
-                   anchor_iterations=config.anchor_iterations, **extra)
+                   anchor_iterations=config.anchor_iterations, anchor_lookahead=config.anchor_lookahead, **extra)
 
     @classmethod
     def replay(cls, hidden: Sequence[int] = (16,), max_action: float = 0.1, residual: float = 0.25) -> Tracker:

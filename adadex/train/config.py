@@ -234,6 +234,10 @@ class PolicyConfig:
             limit. Needs ``anchor`` > 0.
         anchor_iterations: Gauss–Newton steps placing the anchored palm (Tracker
             ``anchor_iterations``; default 3; 1: the linearization alone).
+        anchor_lookahead: control steps ahead at which the anchor reads the reference object's
+            travel (Tracker ``anchor_lookahead``; 1, 2, 4 or 12; default 1): further ahead, the hand
+            starts bringing the object back onto the reference path before the reference moves it.
+            Needs ``anchor`` > 0 when not 1.
     """
 
     hidden: tuple[int, ...] = (256, 256, 128)
@@ -243,14 +247,24 @@ class PolicyConfig:
     anchor: float = 0.05
     anchor_reach: float = 0.0
     anchor_iterations: int = 3
+    anchor_lookahead: int = 1
 
     def __post_init__(self):
+        from adadex.modules.anchor import LOOKAHEADS
+
         self.hidden = tuple(int(h) for h in self.hidden)
         check_numbers("PolicyConfig", self, ("residual", "init_scale", "loc_bound", "anchor", "anchor_reach"))
         check_number("PolicyConfig.anchor_iterations", self.anchor_iterations, low=1, integer=True)
         if self.anchor_reach > 0 and not self.anchor > 0:
             raise ConfigError(f"PolicyConfig.anchor_reach={self.anchor_reach} limits the object anchor, which is off "
                               f"(anchor={self.anchor}); set policy.anchor > 0 or drop anchor_reach")
+        if isinstance(self.anchor_lookahead, bool) or self.anchor_lookahead not in LOOKAHEADS:
+            raise ConfigError(f"PolicyConfig.anchor_lookahead must be one of {LOOKAHEADS} (control steps ahead), "
+                              f"got {self.anchor_lookahead!r}")
+        self.anchor_lookahead = int(self.anchor_lookahead)
+        if self.anchor_lookahead != 1 and not self.anchor > 0:
+            raise ConfigError(f"PolicyConfig.anchor_lookahead={self.anchor_lookahead} times the object anchor, which "
+                              f"is off (anchor={self.anchor}); set policy.anchor > 0 or drop anchor_lookahead")
 
     def tracker(self, max_action: float | None = None):
         """The :class:`~adadex.modules.tracker.Tracker` these settings describe (untrained): the one place a

@@ -142,19 +142,20 @@ def reference_subset(buffer, fraction: float, seed: int) -> TensorDictReplayBuff
 
 def teacher_settings(info: dict) -> dict:
     """The Tracker settings a student must share with its teachers (``residual``, ``max_action``,
-    ``anchor``, ``anchor_reach``, ``anchor_iterations``), from the teachers' configs in
+    ``anchor``, ``anchor_reach``, ``anchor_iterations``, ``anchor_lookahead``), from the teachers' configs in
     ``rollouts.json`` (a key a teacher's checkpoint predates takes the value it then meant); teachers
     that disagree are refused."""
     configs = [Tracker.upgrade_config(dict(t["config"])) for t in info["teachers"]]
     out = {}
-    for k in ("residual", "max_action", "anchor", "anchor_reach", "anchor_iterations"):
-        values = sorted({float(c.get(k, 0.0)) for c in configs
-                         if k != "anchor_iterations" or float(c.get("anchor", 0.0)) > 0})   # only an anchor iterates
+    anchored = ("anchor_iterations", "anchor_lookahead")        # only an anchor iterates and looks ahead
+    for k in ("residual", "max_action", "anchor", "anchor_reach", *anchored):
+        values = sorted({float(c.get(k, 1 if k == "anchor_lookahead" else 0.0)) for c in configs
+                         if k not in anchored or float(c.get("anchor", 0.0)) > 0})
         if len(values) > 1:
             raise RolloutsError(f"the teachers disagree on Tracker.{k} ({values}); one student cannot imitate "
                                 f"them all with one setting")
         if values:
-            out[k] = int(values[0]) if k == "anchor_iterations" else values[0]
+            out[k] = int(values[0]) if k in anchored else values[0]
     out["init_scale"] = float(configs[0].get("init_scale", 1.0))
     out["loc_bound"] = float(configs[0].get("loc_bound", 0.0))
     return out

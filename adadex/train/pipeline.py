@@ -574,6 +574,8 @@ class Pipeline:
         if not settings["env"]:
             del settings["env"]            # default episodes: the settings of stages run before env was one
         settings["ppo"] = {k: v for k, v in settings["ppo"].items() if k != "update_threads"}   # speed, not result
+        if settings["policy"]["anchor_lookahead"] == 1:
+            del settings["policy"]["anchor_lookahead"]   # its default: the settings of stages run before it existed
         if teacher is not None:
             settings["teacher"] = teacher[0]
 

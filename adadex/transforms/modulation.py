@@ -496,7 +496,8 @@ class AnchorReach(LatchedChoice, ChannelTransform, channel="A"):
 
     Args:
         config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`);
-            this one reads ``reach_latched`` and ``reach_smooth``; the anchor's own
+            this one reads ``reach_latched``, ``reach_smooth`` and ``reach_lookahead`` (the reference
+            frame ahead whose object travel times the anchor's hold and release); the anchor's other
             settings are :data:`~adadex.modules.modulator.PRIOR_ANCHOR`.
     """
 
@@ -505,7 +506,8 @@ class AnchorReach(LatchedChoice, ChannelTransform, channel="A"):
         from adadex.modules.anchor import ObjectAnchor, PalmShift
         from adadex.modules.modulator import PRIOR_ANCHOR
 
-        self._anchor = ObjectAnchor(**PRIOR_ANCHOR)
+        self._anchor = ObjectAnchor(**PRIOR_ANCHOR, lookahead=config.reach_lookahead)
+        self._frame = REF_OFFSETS.index(self._anchor.lookahead)
         self._shift = PalmShift(self._anchor.damping, self._anchor.iterations)
 
     def weight(self, td: TensorDictBase) -> torch.Tensor | None:
@@ -521,7 +523,7 @@ class AnchorReach(LatchedChoice, ChannelTransform, channel="A"):
         if w is None:
             return td
         start, ref_start = td.get(OBJECT_START), td.get(REF_OBJECT_START)
-        travel = torch.linalg.vector_norm(td.get(REF_OBJECT_POSE)[..., 1, :3] - ref_start[..., :3], dim=-1)
+        travel = torch.linalg.vector_norm(td.get(REF_OBJECT_POSE)[..., self._frame, :3] - ref_start[..., :3], dim=-1)
         palm = self._anchor.palm_shift(start[..., :2] - ref_start[..., :2], travel) * w[..., None]
         return move_visible_reference(td, self._shift, palm)
 

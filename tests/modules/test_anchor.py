@@ -88,6 +88,26 @@ def test_anchor_fades_as_the_reference_object_travels(tiny_dataset):
     assert (anchor(obs, ref_start, ref_start) == 0).all()          # no offset, no shift
 
 
+def test_a_lookahead_reads_the_reference_object_that_many_steps_ahead(tiny_dataset):
+    """``lookahead=4``: the weight follows the reference object's travel at t+4 (the observation's third
+    future frame), not at t+1 — the hand starts back before the reference moves the object."""
+    from adadex.modules.anchor import LOOKAHEADS, ref_object_slice
+
+    obs, start, ref_start = _inputs(tiny_dataset)
+    t4 = ref_object_slice(4)
+    assert LOOKAHEADS == (1, 2, 4, 12) and ref_object_slice(1) == NEXT_REF_OBJECT and t4.start == NEXT_REF_OBJECT.start + 14
+    obs[:, t4] = ref_start[:, :3]                                   # at rest at t+4 too
+    ahead = ObjectAnchor(release=0.05, lookahead=4, iterations=1)         # linear: the shift scales with w
+    next_frame = ObjectAnchor(release=0.05, iterations=1)
+    rest = ahead(obs, start, ref_start)
+    torch.testing.assert_close(rest, next_frame(obs, start, ref_start))     # at rest everywhere: the same shift
+    lifting = obs.clone()
+    lifting[:, t4.start + 2] += 0.045                              # lifted 4.5 cm by t+4, not yet at t+1
+    torch.testing.assert_close(ahead(lifting, start, ref_start), 0.5 * rest, atol=2e-4, rtol=2e-2)
+    torch.testing.assert_close(next_frame(lifting, start, ref_start), rest)
+    torch.testing.assert_close(ahead.weight(lifting, ref_start), torch.full((len(obs),), 0.5))
+
+
 def test_reach_leaves_objects_displaced_beyond_it_alone(tiny_dataset):
     obs, start, ref_start = _inputs(tiny_dataset, n=8)
     offsets = torch.tensor([0.0, 0.03, 0.06, 0.085, 0.095, 0.12, 0.2, 0.089])
@@ -109,10 +129,21 @@ def test_bad_settings():
         ObjectAnchor(reach=-0.1)
     with pytest.raises(ValueError, match="iterations"):
         ObjectAnchor(iterations=0)
+    for bad in (3, 0, True):
+        with pytest.raises(ConfigError, match=r"lookahead must be one of .*\(1, 2, 4, 12\)"):
+            ObjectAnchor(lookahead=bad)
     with pytest.raises(ConfigError, match="residual"):
         Tracker(hidden=(8,), anchor=0.05)
     with pytest.raises(ConfigError, match="anchor_reach"):
         Tracker(hidden=(8,), residual=0.25, anchor_reach=0.09)
+    with pytest.raises(ConfigError, match="anchor_lookahead=4"):
+        Tracker(hidden=(8,), residual=0.25, anchor_lookahead=4)
+    from adadex.train.config import PolicyConfig
+
+    with pytest.raises(ConfigError, match=r"PolicyConfig.anchor_lookahead must be one of \(1, 2, 4, 12\)"):
+        PolicyConfig(anchor_lookahead=3)
+    with pytest.raises(ConfigError, match="anchor_lookahead=4 times the object anchor, which is off"):
+        PolicyConfig(anchor=0.0, anchor_lookahead=4)
 
 
 def test_untrained_anchored_tracker_is_shifted_replay_and_round_trips(tiny_dataset, tmp_path):
@@ -138,6 +169,10 @@ def test_untrained_anchored_tracker_is_shifted_replay_and_round_trips(tiny_datas
     del old["config"]["anchor_iterations"]                       # saved before the anchor iterated
     torch.save(old, tmp_path / "old.pt")
     assert Tracker.load(tmp_path / "old.pt").actor._sampling_parts[1].module.anchor.iterations == 1
+    assert "anchor_lookahead" not in reaching.config           # at its default the config reads as before it existed
+    assert Tracker.load(tmp_path / "r.pt").actor._sampling_parts[1].module.anchor.lookahead == 1
+    Tracker(hidden=(16,), residual=0.25, anchor=0.05, anchor_lookahead=4).save(tmp_path / "ahead.pt")
+    assert Tracker.load(tmp_path / "ahead.pt").actor._sampling_parts[1].module.anchor.lookahead == 4
     # a weightless setting taken differently at load time: the same network, another reach
     wider = Tracker.load(tmp_path / "r.pt", anchor_reach=0.10)
     assert wider.actor._sampling_parts[1].module.anchor.reach == 0.10 and wider.config["anchor_reach"] == 0.10

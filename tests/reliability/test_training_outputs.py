@@ -217,3 +217,8 @@ def test_a_setting_added_later_resumes_older_runs_only_at_the_value_they_ran_wit
     assert changed_settings(old, {"modulator": {"channels": "K", "hidden": [8], "focus": {}}}) == {}
     assert "modulator.focus.K" in changed_settings(old, {"modulator": {"channels": "K", "hidden": [8],
                                                                       "focus": {"K": ["phase"]}}})
+    # the anchor's lookahead: runs before it read the reference object at t+1
+    tracker = {"policy": {"anchor": 0.05}}
+    assert changed_settings(tracker, {"policy": {"anchor": 0.05, "anchor_lookahead": 1}}) == {}
+    assert changed_settings(tracker, {"policy": {"anchor": 0.05, "anchor_lookahead": 4}}) == {
+        "policy.anchor_lookahead": (1, 4)}

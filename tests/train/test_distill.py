@@ -262,3 +262,7 @@ def test_teachers_must_place_the_anchored_palm_alike():
         teacher_settings({"teachers": [{"config": old}, {"config": config(3)}]})
     unanchored = teacher_settings({"teachers": [{"config": config(1, anchor=0.0)}, {"config": config(3, anchor=0.0)}]})
     assert Tracker(hidden=(8,), **unanchored).config["anchor"] == 0.0        # nothing to place: no conflict
+    ahead = Tracker(hidden=(8,), residual=0.25, anchor=0.05, anchor_lookahead=4).config
+    assert teacher_settings({"teachers": [{"config": ahead}, {"config": dict(ahead)}]})["anchor_lookahead"] == 4
+    with pytest.raises(RolloutsError, match="anchor_lookahead"):          # a teacher saved before it read t+1
+        teacher_settings({"teachers": [{"config": ahead}, {"config": config(3)}]})

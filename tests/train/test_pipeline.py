@@ -334,6 +334,23 @@ def test_pipeline_trackers_are_unanchored_unless_asked(tiny_dataset, tmp_path):
             assert pipe._train_config(tmp_path / "run", 0, group.ppo, group.policy).policy.anchor == anchor
 
 
+def test_the_anchor_lookahead_keys_a_stage_only_when_set(tiny_dataset, tmp_path, monkeypatch):
+    """A training stage's settings name ``policy.anchor_lookahead`` only away from its default (1), so the
+    stages of runs from before the setting existed are still theirs; set, it reaches the tracker."""
+    from adadex.train import pipeline as pipeline_module
+
+    for policy, stamped in (({}, None), ({"anchor": 0.05, "anchor_lookahead": 4}, 4)):
+        cfg = PipelineConfig(out=str(tmp_path), specialist={"policy": policy})
+        pipe = pipeline_module.Pipeline(cfg)
+        pipe.ds = ReferenceDataset(tiny_dataset)
+        seen = []
+        monkeypatch.setattr(pipe, "_stage", lambda folder, settings, fn, label: seen.append(settings) or {})
+        tc = pipe._train_config(tmp_path / "run", 0, cfg.specialist.ppo, cfg.specialist.policy)
+        pipe._ppo(tc, "specialist")
+        assert seen[0]["policy"].get("anchor_lookahead") == stamped
+        assert tc.policy.tracker().config.get("anchor_lookahead") == stamped
+
+
 def test_sim_backend_reaches_every_training_run_and_keys_the_stages(tiny_dataset, tmp_path):
     """``sim.backend=warp``: every training run's config carries it, and a stage run on one backend is
     not reused on the other (the default backend's stages keep their settings as before)."""

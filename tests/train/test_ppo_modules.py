@@ -172,10 +172,10 @@ def test_policy_config_builds_the_tracker_it_describes():
     from adadex.train.config import PolicyConfig
 
     pc = PolicyConfig(hidden=(32, 16), residual=0.2, init_scale=0.1, loc_bound=4.0, anchor=0.04,
-                      anchor_reach=0.12, anchor_iterations=2)
+                      anchor_reach=0.12, anchor_iterations=2, anchor_lookahead=4)
     cfg = pc.tracker(max_action=0.2).config
     assert cfg["hidden"] == [32, 16] and cfg["max_action"] == 0.2
-    for k in ("residual", "init_scale", "loc_bound", "anchor", "anchor_reach", "anchor_iterations"):
+    for k in ("residual", "init_scale", "loc_bound", "anchor", "anchor_reach", "anchor_iterations", "anchor_lookahead"):
         assert cfg[k] == getattr(pc, k), k
 
 

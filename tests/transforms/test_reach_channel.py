@@ -79,6 +79,25 @@ def test_the_smooth_reach_map_gives_every_action_its_own_reach(tiny_dataset):
                                _rollout(tiny_dataset, "A", scripted([1.0], 1))["next", "proprio", "joint_target"])
 
 
+def test_the_reach_lookahead_starts_the_return_earlier_and_is_checked(tiny_dataset):
+    """``reach_lookahead=4``: the full reach is the anchored feed-forward whose anchor reads the reference
+    object four steps ahead — the same hand while the object rests, back on the path sooner once the
+    reference carries it; a lookahead the observation does not hold is refused naming the setting."""
+    import pytest
+
+    from adadex.errors import ConfigError
+
+    ahead = _rollout(tiny_dataset, "A", scripted([1.0], 1), steps=80, config=ModulationConfig(reach_lookahead=4))
+    next_frame = _rollout(tiny_dataset, "A", scripted([1.0], 1), steps=80)     # the tiny references lift at 57–84
+    assert torch.equal(ahead["next", REACH_STATE], next_frame["next", REACH_STATE])
+    targets = ahead["next", "proprio", "joint_target"], next_frame["next", "proprio", "joint_target"]
+    assert torch.equal(targets[0][:, :50], targets[1][:, :50])                # at rest at t+4 in the first steps
+    assert (targets[0] - targets[1]).abs().max() > 1e-3                        # the return began earlier
+    for bad in (3, 0, 13):
+        with pytest.raises(ConfigError, match=r"ModulationConfig.reach_lookahead must be one of \(1, 2, 4, 12\)"):
+            ModulationConfig(reach_lookahead=bad)
+
+
 def test_a_reset_world_chooses_its_reach_again_and_the_view_shows_it(tiny_dataset):
     torch.manual_seed(0)
     mod = Modulator("A+T", hidden=(16, 16))

@@ -82,3 +82,36 @@ def write_result(path, result: dict, *, name: str, force: bool = False, indent: 
     atomic_write_text(path, json.dumps(result, indent=indent, ensure_ascii=ensure_ascii))
     mark_file(path, _kind(name))
     return path
+
+
+def refuse(name: str, message) -> SystemExit:
+    """The benchmark ``name``'s refusal of bad input: one line on stderr (``benchmarks/NAME.py: error: …``)
+    and exit code 2, as :func:`check_result` and every adadex command report it. ``message``: text or an
+    :class:`~adadex.errors.AdadexError`. Raise what it returns."""
+    from adadex.errors import AdadexError, ConfigError, report_error
+
+    error = message if isinstance(message, AdadexError) else ConfigError(str(message))
+    return SystemExit(report_error(f"benchmarks/{name}.py", error))
+
+
+def settings(text: str, defaults, flag: str, name: str) -> dict:
+    """``"k=v,k=v"`` → ``{k: v}``, each value of its default's type in ``defaults`` (a config instance;
+    ``true``/``false`` for switches); a key it lacks, or a value not of its type, ends the benchmark
+    ``name`` (:func:`refuse`) naming ``flag``."""
+    out = {}
+    for kv in filter(None, text.split(",")):
+        k, eq, v = kv.partition("=")
+        if not eq or not hasattr(defaults, k):
+            raise refuse(name, f"{flag}: {kv!r} is not k=v with k a {type(defaults).__name__} setting")
+        default = getattr(defaults, k)
+        if isinstance(default, bool):
+            if v not in ("true", "false"):
+                raise refuse(name, f"{flag}: {k} is a switch, true or false, got {v!r}")
+            out[k] = v == "true"
+            continue
+        try:
+            out[k] = type(default)(v)
+        except (TypeError, ValueError):
+            kind = {int: "an integer", float: "a number"}.get(type(default), type(default).__name__)
+            raise refuse(name, f"{flag}: {k} must be {kind}, got {v!r}") from None
+    return out

@@ -40,7 +40,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from _data import check_result, write_result
+from _data import check_result, refuse, settings, write_result
+
+NAME = "modulator_quality"
 from adadex.io import atomic_write_text
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -80,19 +82,6 @@ def parse_row(text: str) -> dict:
                              "learner=ppo|paired)")
     row["name"] = text.replace("+", "").replace(":", "_").replace(".", "").replace("=", "")
     return row
-
-
-def settings(text: str, defaults, flag: str) -> dict:
-    """``"k=v,k=v"`` → ``{k: v}``, each value of its default's type in ``defaults`` (a config instance;
-    ``true``/``false`` for switches); a key it lacks ends the run naming ``flag``."""
-    out = {}
-    for kv in filter(None, text.split(",")):
-        k, _, v = kv.partition("=")
-        if not hasattr(defaults, k):
-            raise SystemExit(f"{flag}: {k!r} is not a {type(defaults).__name__} setting")
-        default = getattr(defaults, k)
-        out[k] = v == "true" if isinstance(default, bool) else type(default)(v)
-    return out
 
 
 #: the object's horizontal start offset |Δ| (m): bins of the latched-choice report (channels A, L and K)
@@ -180,21 +169,24 @@ def main(argv=None) -> dict:
     from adadex.modules.channels import ModulationConfig
 
     # as the pipeline trains its modulators
-    ppo = {"desired_kl": 0.0, "update_threads": 1, **settings(a.ppo, PPOConfig(), "--ppo")}
+    ppo = {"desired_kl": 0.0, "update_threads": 1, **settings(a.ppo, PPOConfig(), "--ppo", NAME)}
     reward = {k: float(v) for k, v in (kv.split("=") for kv in filter(None, a.reward.split(",")))}
-    modulation = settings(a.modulation, ModulationConfig(), "--modulation")
-    mconfig = ModulationConfig(**modulation)
-    collector = settings(a.collector, CollectorConfig(), "--collector")
+    modulation = settings(a.modulation, ModulationConfig(), "--modulation", NAME)
+    try:
+        mconfig = ModulationConfig(**modulation)
+    except ConfigError as e:
+        raise refuse(NAME, f"--modulation: {e}") from None
+    collector = settings(a.collector, CollectorConfig(), "--collector", NAME)
     try:
         arms = tuple(float(v) if "/" not in v else tuple(float(x) for x in v.split("/")) for v in a.arms.split(","))
-        fit_settings = settings(a.paired, PairedChoiceConfig(), "--paired")
+        fit_settings = settings(a.paired, PairedChoiceConfig(), "--paired", NAME)
         if "arms" in fit_settings:
-            raise SystemExit("--paired: give the arms with --arms")
+            raise refuse(NAME, "--paired: give the arms with --arms")
         fit_config = PairedChoiceConfig(**fit_settings, arms=arms)
     except ConfigError as e:
-        raise SystemExit(f"--arms/--paired: {e}") from None
+        raise refuse(NAME, f"--arms/--paired: {e}") from None
     except ValueError:
-        raise SystemExit(f"--arms: numbers, or values joined by '/', got {a.arms!r}") from None
+        raise refuse(NAME, f"--arms: numbers, or values joined by '/', got {a.arms!r}") from None
     a.runs.mkdir(parents=True, exist_ok=True)
     tracker_path = a.tracker
     if tracker_path is None:

@@ -13,6 +13,7 @@ where the bin's mean return difference is positive) against none and against rea
 most a choice by offset can add under that reward, on these episodes.
 
     python benchmarks/reach_by_offset.py --dataset data/small_pg [--split train] [--weights 1,2] [--seed 777]
+        [--modulation reach_lookahead=4]
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _data import result_arguments, write_result
+from _data import refuse, result_arguments, settings, write_result
 from modulator_quality import OFFSET_BINS, first_step
 
 #: per-episode field → the name printed (each × 100: the fraction of the episode's frames)
@@ -63,24 +64,34 @@ def main(argv=None) -> dict:
     p.add_argument("--weights", default="1,2", help="RewardConfig.w_object_success values (default 1,2)")
     p.add_argument("--repeats", type=int, default=4, help="Table 3 draws per reference (default 4)")
     p.add_argument("--seed", type=int, default=777, help="the env seed (default 777)")
+    p.add_argument("--modulation", default="", help="ModulationConfig settings k=v,… for channel A, e.g. "
+                                                     "'reach_lookahead=4'")
     a = result_arguments(p, "reach_by_offset")(argv)
     try:
         weights = [float(w) for w in a.weights.split(",")]
     except ValueError:
-        raise SystemExit(f"benchmarks/reach_by_offset.py: error: --weights must be numbers, got {a.weights!r}") from None
+        raise refuse("reach_by_offset", f"--weights must be numbers, got {a.weights!r}") from None
+    from adadex.errors import ConfigError
+    from adadex.modules.channels import ModulationConfig
+
+    modulation = settings(a.modulation, ModulationConfig(), "--modulation", "reach_by_offset")
+    try:
+        mconfig = ModulationConfig(**modulation)
+    except ConfigError as e:
+        raise refuse("reach_by_offset", f"--modulation: {e}") from None
     t0 = time.perf_counter()
     ds = ReferenceDataset(a.dataset)
     tracker = Tracker.replay().freeze()
     episodes = episode_references(ds, ("unseen_trajectory", a.split), TrackingConfig().window) * a.repeats
     result = {"benchmark": "reach_by_offset", "dataset": str(a.dataset), "split": f"unseen_trajectory {a.split}",
-              "episodes": len(episodes), "seed": a.seed, "offset_bins_cm": [100 * b for b in OFFSET_BINS[:-1]],
+              "episodes": len(episodes), "seed": a.seed, "modulation": modulation, "offset_bins_cm": [100 * b for b in OFFSET_BINS[:-1]],
               "weights": {}}
     offset = None
     for w in weights:
         config = dataclasses.replace(TrackingConfig(), reward=RewardConfig(w_object_success=w))
         runs = {}
         for name in ("reach", "none"):
-            policy = make_policy(tracker, forced_reach(name == "reach"))
+            policy = make_policy(tracker, forced_reach(name == "reach"), config=mconfig)
             res = evaluate(policy, ds, split=None, references=episodes, max_worlds=64, env_transform=policy.primer,
                            config=config, randomize=Randomization(), seed=a.seed, progress=False, nthread=2)
             runs[name] = {k: np.asarray(v, float) for k, v in res["per_episode"].items()

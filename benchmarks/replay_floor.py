@@ -1,14 +1,24 @@
 """The floor every learned tracker must beat: kinematic replay of the reference on TrackingEnv.
 
-Runs :func:`adadex.envs.replay.replay_policy` once over every reference of a split (default: the
+Runs :func:`adadex.envs.replay.replay_policy` over every reference of a split (default: the
 ``small`` dataset's unseen-trajectory test part), with the paper's metrics: mean errors and both
-success rates (mean-error and completion).
+success rates (mean-error and completion), and the object-centric ones beside them.
 
     python benchmarks/replay_floor.py [--dataset DIR] [--split unseen_trajectory] [--part test] [--out FILE]
-    python benchmarks/replay_floor.py --randomize [--action-noise-scale 10]
+    python benchmarks/replay_floor.py --randomize [--action-noise-scale 10] [--repeats 4] [--seed 20000]
+    python benchmarks/replay_floor.py --randomize --repeats 4 --seed 20000 \
+        --feed-forward anchor=0.05,anchor_reach=0.10,anchor_lookahead=4        # the anchored feed-forward
+    python benchmarks/replay_floor.py --randomize --repeats 4 --seed 20000 --randomization object_xy_std=0,object_yaw_std=0
 
 ``--action-noise-scale`` multiplies Table 3's action-noise standard deviations (the env adds them in
 units of the action bound, 0.1 rad; 10 gives the radian reading used before 2026-11-25).
+``--randomization k=v,…`` changes Table 3's fields (:class:`adadex.envs.randomization.Randomization`),
+e.g. the object's displacement off: how much of a floor the displacement costs. ``--feed-forward
+k=v,…`` evaluates, instead of replay, the untrained residual tracker with those feed-forward settings
+(:class:`adadex.modules.tracker.Tracker`'s ``anchor``, ``anchor_reach``, ``anchor_iterations``,
+``anchor_lookahead``: the object-anchored feed-forward) and also replay on the same draws, and prints
+the paired differences with 95 % bootstrap intervals over references. ``--repeats`` lists every
+reference that many times (one Table 3 draw each), ``--seed`` is the env seed (the evaluation's draws).
 
 Without ``--dataset`` the ``small`` preset is built into ``data/small`` first (a few minutes).
 """
@@ -19,8 +29,11 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from _data import check_result, write_result
+import numpy as np
 
+from _data import check_result, refuse, settings, write_result
+
+NAME = "replay_floor"
 RESULTS = Path(__file__).resolve().parent / "results"
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -34,40 +47,96 @@ def main(argv=None) -> dict:
     p.add_argument("--action-noise-scale", type=float, default=1.0,
                    help="with --randomize: multiply Table 3's action-noise stds by this (default 1)")
     p.add_argument("--max-worlds", type=int, default=64, help="worlds stepped together (default 64)")
+    p.add_argument("--repeats", type=int, default=1, help="episodes per reference, one draw each (default 1)")
+    p.add_argument("--seed", type=int, default=None, help="the env seed (default: the env's)")
+    p.add_argument("--randomization", default="", help="with --randomize: Table 3 fields k=v,… to change")
+    p.add_argument("--feed-forward", default="", help="Tracker feed-forward settings k=v,… (anchor, anchor_reach, "
+                                                      "anchor_iterations, anchor_lookahead) to evaluate beside replay")
     p.add_argument("--out", type=Path, default=RESULTS / "replay_floor.json")
     p.add_argument("--force", action="store_true",
                    help="replace --out even if it is not an earlier result of this benchmark")
     a = p.parse_args(argv)
-    check_result(a.out, name="replay_floor", force=a.force)      # before any work: refuse a file not ours
+    check_result(a.out, name=NAME, force=a.force)      # before any work: refuse a file not ours
+    if a.repeats < 1:
+        raise refuse(NAME, f"--repeats must be ≥ 1, got {a.repeats}")
+    if a.randomization and not a.randomize:
+        raise refuse(NAME, "--randomization changes Table 3: give --randomize too")
 
     from adadex.data.build import build_dataset
     from adadex.envs.randomization import Randomization
     from adadex.envs.replay import replay_policy
+    from adadex.envs.tracking import TrackingConfig, episode_references
+    from adadex.errors import ConfigError
     from adadex.eval.evaluate import evaluate, format_summary
+    from adadex.eval.paired import paired_bootstrap
+    from adadex.modules.tracker import Tracker
+    from adadex.transforms.policy import make_policy
+
+    feed_forward = settings(a.feed_forward, _FeedForward(), "--feed-forward", NAME)
+    changes = settings(a.randomization, Randomization(), "--randomization", NAME)
+    try:
+        table3 = dataclasses.replace(Randomization(), **changes)
+        anchored = Tracker(hidden=(16,), residual=0.25, **feed_forward).zero_mean().freeze() if feed_forward else None
+    except ConfigError as e:
+        raise refuse(NAME, f"--randomization/--feed-forward: {e}") from None
 
     dataset = a.dataset
     if dataset is None:
         dataset = ROOT / "data" / "small"
         if not (dataset / "index.json").exists():
             build_dataset("small", dataset, seed=0)
-    table3 = Randomization()
     scale = a.action_noise_scale
     randomize = dataclasses.replace(table3, action_noise_correlated=scale * table3.action_noise_correlated,
                                     action_noise_uncorrelated=scale * table3.action_noise_uncorrelated)
-    res = evaluate(replay_policy(), dataset, split=(a.split, a.part), max_worlds=a.max_worlds,
-                   randomize=randomize if a.randomize else None)
+    split = (a.split, a.part)
+    if a.repeats > 1:          # every reference listed `repeats` times: the same episodes for every policy
+        from adadex.data.reference import ReferenceDataset
+
+        split = None
+        references = episode_references(ReferenceDataset(dataset), (a.split, a.part), TrackingConfig().window)
+    kw = dict(split=split, max_worlds=a.max_worlds, randomize=randomize if a.randomize else None,
+              **({"references": references * a.repeats} if split is None else {}),
+              **({"seed": a.seed} if a.seed is not None else {}))
+    res = evaluate(replay_policy(), dataset, **kw)
     summary = res["summary"]
     result = {"dataset": str(dataset), "split": [a.split, a.part], "references": res["references"],
               "randomize": a.randomize, "action_noise_scale": a.action_noise_scale if a.randomize else None,
+              "randomization": changes,
+              "repeats": a.repeats, "seed": a.seed,
               "steps": res["steps"], "wall_s": res["wall_s"], **summary,
               "per_reference": res["per_reference"]}
-    write_result(a.out, result, name="replay_floor", force=a.force, indent=1)
     noise = f", action noise × {a.action_noise_scale:g}" if a.randomize and a.action_noise_scale != 1 else ""
-    print(f"kinematic replay on {res['references']} references of {a.split}/{a.part}"
-          f"{' with randomization' if a.randomize else ''}{noise} ({res['wall_s']:.0f} s):")
+    changed = f" (changed: {a.randomization})" if a.randomization else ""
+    print(f"kinematic replay on {res['references']} episodes of {a.split}/{a.part}"
+          f"{' with randomization' if a.randomize else ''}{changed}{noise} ({res['wall_s']:.0f} s):")
     print(format_summary(summary))
+    if anchored is not None:
+        ff = evaluate(make_policy(anchored, None, channels="none"), dataset, **kw)
+        refs = ff["per_episode"]["reference"]
+        diffs = {}
+        for field in ("completion", "object_completion", "carried"):
+            d = paired_bootstrap(100 * np.asarray(ff["per_episode"][field], float),
+                                 100 * np.asarray(res["per_episode"][field], float), np.asarray(refs))
+            diffs[f"{field}_pct"] = {"diff": d["estimate"], "ci95": d["ci95"]}
+        result["feed_forward"] = {"settings": feed_forward, **ff["summary"], "vs_replay": diffs,
+                                  "per_reference": ff["per_reference"]}
+        print(f"the untrained residual tracker with {a.feed_forward} ({ff['wall_s']:.0f} s):")
+        print(format_summary(ff["summary"]))
+        print("  against replay on the same episodes: " + ", ".join(
+            f"{k.removesuffix('_pct').replace('_', ' ')} {v['diff']:+.1f} [{v['ci95'][0]:+.1f}, {v['ci95'][1]:+.1f}]"
+            for k, v in diffs.items()))
+    write_result(a.out, result, name=NAME, force=a.force, indent=1)
     print(f"wrote {a.out}")
     return result
+
+
+class _FeedForward:
+    """The Tracker settings ``--feed-forward`` takes, with their types (what :func:`settings` reads)."""
+
+    anchor = 0.05
+    anchor_reach = 0.0
+    anchor_iterations = 3
+    anchor_lookahead = 1
 
 
 if __name__ == "__main__":

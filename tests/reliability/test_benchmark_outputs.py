@@ -107,6 +107,39 @@ def test_result_arguments_add_out_and_force_and_check_before_any_work(bench, tmp
     assert parse([]).out == data.RESULTS / "demo.json"
 
 
+def test_settings_read_k_v_of_a_config_and_refuse_the_rest_in_one_line(bench, capsys):
+    from adadex.modules.channels import ModulationConfig
+
+    data = bench("_data")
+    got = data.settings("reach_lookahead=4,reach_smooth=true,lambda_palm=0.05", ModulationConfig(), "--modulation", "demo")
+    assert got == {"reach_lookahead": 4, "reach_smooth": True, "lambda_palm": 0.05}
+    assert data.settings("", ModulationConfig(), "--modulation", "demo") == {}
+    for text, says in (("reach_lookahed=4", "'reach_lookahed=4' is not k=v with k a ModulationConfig setting"),
+                       ("reach_lookahead", "is not k=v"), ("reach_lookahead=four", "reach_lookahead must be an integer"),
+                       ("lambda_palm=wide", "lambda_palm must be a number"), ("reach_smooth=yes", "true or false")):
+        with pytest.raises(SystemExit) as e:
+            data.settings(text, ModulationConfig(), "--modulation", "demo")
+        err = capsys.readouterr().err.strip()
+        assert e.value.code == 2 and "\n" not in err and err.startswith("benchmarks/demo.py: error: --modulation: "), err
+        assert says in err, err
+
+
+def test_replay_floor_refuses_bad_feed_forward_and_randomization_before_any_work(bench, tmp_path, monkeypatch, capsys):
+    floor = bench("replay_floor")
+    _trap(monkeypatch, "adadex.envs.replay.replay_policy")            # its first work
+    out = tmp_path / "floor.json"
+    for args, says in ((["--feed-forward", "anchor_lookahead=3"], "anchor_lookahead=3) times the object anchor"),
+                       (["--feed-forward", "anchor=0.05,anchor_lookahead=3"], "lookahead must be one of the observation's reference frames ahead (1, 2, 4, 12)"),
+                       (["--randomization", "object_xy_std=0"], "give --randomize too"),
+                       (["--randomize", "--randomization", "object_xy_sd=0"], "not k=v with k a Randomization setting"),
+                       (["--repeats", "0"], "--repeats must be ≥ 1")):
+        with pytest.raises(SystemExit) as e:
+            floor.main(["--dataset", str(tmp_path), "--out", str(out), *args])
+        err = capsys.readouterr().err.strip()
+        assert e.value.code == 2 and "\n" not in err and says in err, (args, err)
+    assert not out.exists()
+
+
 # ------------------------------------------------------------------------------------------ a real benchmark
 
 

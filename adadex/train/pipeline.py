@@ -98,7 +98,9 @@ def _pipeline_policy() -> PolicyConfig:
     randomized unseen-trajectory evaluation (47 references × 4 draws, seed 0) the anchored feed-forward
     alone completed 68.7 % against replay's 82.2 %, and vanilla PPO trained on it 67.9 % against 81.3 %
     for the same PPO without the anchor (docs/training-log.md, Table 1). ``specialist.policy.anchor=0.05``
-    (``baseline.policy.anchor=0.05``) restores it."""
+    (``baseline.policy.anchor=0.05``) restores it; with ``anchor_reach=0.10`` and ``anchor_lookahead=4`` the
+    anchored generalists kept replay's completion and carried the object (three training seeds, outside
+    Table 1 so far: docs/modulation.md), so that is the anchored setting to try."""
     return PolicyConfig(anchor=0.0)
 
 

@@ -235,7 +235,7 @@ CHANNELS: Mapping[str, Channel] = _registry(
                                                 "frames ahead, 1, 2, 4 or 12): further ahead, the hand starts "
                                                 "bringing the object back onto the reference path before the "
                                                 "reference moves it, ahead of the servos' lag",
-                          choices=(1, 2, 4, 12))),
+                          choices=REF_OFFSETS[1:])),
             edits="observation", init_scale=1.0, latch="reach_latched"),
     Channel("O", "object latent",
             entries=((LATENT, (LATENT_DIM,)),),

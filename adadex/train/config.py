@@ -258,7 +258,7 @@ class PolicyConfig:
         if self.anchor_reach > 0 and not self.anchor > 0:
             raise ConfigError(f"PolicyConfig.anchor_reach={self.anchor_reach} limits the object anchor, which is off "
                               f"(anchor={self.anchor}); set policy.anchor > 0 or drop anchor_reach")
-        if isinstance(self.anchor_lookahead, bool) or self.anchor_lookahead not in LOOKAHEADS:
+        if isinstance(self.anchor_lookahead, bool) or self.anchor_lookahead not in LOOKAHEADS:    # as ObjectAnchor
             raise ConfigError(f"PolicyConfig.anchor_lookahead must be one of {LOOKAHEADS} (control steps ahead), "
                               f"got {self.anchor_lookahead!r}")
         self.anchor_lookahead = int(self.anchor_lookahead)

@@ -176,6 +176,9 @@ def main(argv=None) -> dict:
         mconfig = ModulationConfig(**modulation)
     except ConfigError as e:
         raise refuse(NAME, f"--modulation: {e}") from None
+    for row in rows:                 # a C prior reads the reference as far ahead as the env's reach does
+        if row["modulator"].get("prior") is not None and mconfig.reach_lookahead != 1:
+            row["modulator"]["prior_lookahead"] = mconfig.reach_lookahead
     collector = settings(a.collector, CollectorConfig(), "--collector", NAME)
     try:
         arms = tuple(float(v) if "/" not in v else tuple(float(x) for x in v.split("/")) for v in a.arms.split(","))

@@ -25,8 +25,9 @@ Two settings shift the action around a point other than zero (both off by defaul
   (:meth:`adadex.modules.anchor.ObjectAnchor.palm_shift`: the object's horizontal start offset,
   faded as the reference carries the object), expressed in C's units (÷ ``lambda_palm``). The
   untrained modulator (heads at zero) *is* the anchored feed-forward around the tracker it modulates;
-  training learns corrections, including not reaching. It reads the view's ``start_offset`` and
-  ``original_future`` and the reference object's start, ``("object", "reference_start")`` — the
+  training learns corrections, including not reaching; ``prior_lookahead`` times its hold and
+  release by the reference object at t+1 (default), t+2, t+4 or t+12, as ``Tracker(anchor_lookahead=…)``
+  does. It reads the view's ``start_offset`` and ``original_future`` and the reference object's start, ``("object", "reference_start")`` — the
   entry the view's start offset and the anchored tracker read; nothing the simulator hides.
 * ``hold_steps=k`` with ``hold_scale`` — temporally correlated exploration: while the policy samples
   (``ExplorationType.RANDOM``: collectors, ``evaluate(sample=True)``) the chosen channels' action is
@@ -78,7 +79,7 @@ from torch import nn
 
 from adadex.envs.observation import OBS_DIM, OBSERVATION, REF_OBJECT_START, REF_OFFSETS
 from adadex.errors import ConfigError, check_number
-from adadex.modules.anchor import ObjectAnchor
+from adadex.modules.anchor import LOOKAHEADS, ObjectAnchor
 from adadex.modules.channels import CHANNELS, PALM, ModulationLayout
 from adadex.modules.modulator_view import VIEW, ViewLayout
 from adadex.modules.nets import ActorCritic, make_actor, make_critic
@@ -107,20 +108,24 @@ class ActionShift(nn.Module):
         lambda_palm: m per unit of C's palm action (the env's ``ModulationConfig.lambda_palm``).
         hold_steps: k, steps the noise is held (0: no held noise).
         hold_scale: (D,) held-noise scale per flat action entry (0 where none).
+        lookahead: the reference frame ahead (one of :data:`~adadex.modules.anchor.LOOKAHEADS`) whose
+            object travel times the prior's hold and release, as the env's ``ModulationConfig.reach_lookahead``.
     """
 
     def __init__(self, layout: ViewLayout, prior: str | None = None, lambda_palm: float = _DEFAULT_LAMBDA_PALM,
-                 hold_steps: int = 0, hold_scale: torch.Tensor | None = None):
+                 hold_steps: int = 0, hold_scale: torch.Tensor | None = None, lookahead: int = 1):
         super().__init__()
         self.prior, self.lambda_palm, self.hold_steps = prior, float(lambda_palm), int(hold_steps)
         part = layout.slices()
         future = part["original_future"]
-        obj_t1 = future.start + (len(REF_OFFSETS) - 1) * NUM_JOINTS       # the object pose at t+1
-        self._obj_t1 = slice(obj_t1, obj_t1 + 3)
+        self._anchor = ObjectAnchor(**PRIOR_ANCHOR, lookahead=lookahead) if prior == "anchor" else None
+        # original_future holds the joints at t+1, t+2, t+4, t+12, then the object poses at the same frames
+        obj = future.start + (len(REF_OFFSETS) - 1) * NUM_JOINTS + 7 * LOOKAHEADS.index(self._anchor.lookahead) \
+            if self._anchor is not None else 0
+        self._obj_ahead = slice(obj, obj + 3)
         self._offset = slice(part["start_offset"].start, part["start_offset"].start + 2)
         self._phase = part["phase"].start
         self._palm = next((sl for key, sl, _ in layout.channels.segments if key == PALM), None)
-        self._anchor = ObjectAnchor(**PRIOR_ANCHOR) if prior == "anchor" else None
         self._dim = layout.action_dim
         self._hold_scale = None if hold_scale is None else hold_scale.detach().clone().float()
         self._held = None            # (…, D) the held noise of each world
@@ -128,7 +133,7 @@ class ActionShift(nn.Module):
     def forward(self, view: torch.Tensor, ref_object_start: torch.Tensor | None = None):
         shift = view.new_zeros(*view.shape[:-1], self._dim)
         if self._anchor is not None:
-            travel = torch.linalg.vector_norm(view[..., self._obj_t1] - ref_object_start[..., :3], dim=-1)
+            travel = torch.linalg.vector_norm(view[..., self._obj_ahead] - ref_object_start[..., :3], dim=-1)
             palm = self._anchor.palm_shift(view[..., self._offset], travel) / self.lambda_palm
             shift = torch.cat([shift[..., :self._palm.start], palm, shift[..., self._palm.stop:]], -1)
         if self.hold_steps and interaction_type() is InteractionType.RANDOM:
@@ -209,6 +214,8 @@ class Modulator(ActorCritic):
             anchor's palm shift (see the module docstring; needs C and the view).
         lambda_palm: m per unit of C's palm action, as the env's ``ModulationConfig.lambda_palm``
             (the prior is expressed in C's units).
+        prior_lookahead: the reference frame ahead (1, 2, 4 or 12) whose object travel times the
+            prior's hold and release, as the env's ``ModulationConfig.reach_lookahead`` (default 1).
         hold_steps: > 0 holds exploration noise for this many steps on the ``hold_scale`` channels
             (see the module docstring; needs the view); 0: off.
         hold_scale: the held noise's scale in action units: a number for every channel, or
@@ -236,7 +243,7 @@ class Modulator(ActorCritic):
     def __init__(self, channels="R+O+T", hidden: Sequence[int] = (512, 256, 128), init_scale=None,
                  loc_bound: float = 0.0, inputs: str = "view", history: int = 3, prior: str | None = None,
                  lambda_palm: float = _DEFAULT_LAMBDA_PALM, hold_steps: int = 0, hold_scale=None,
-                 reach_latched: bool = True, lead_latched: bool = True, gain_latched: bool = True,
+                 prior_lookahead: int = 1, reach_latched: bool = True, lead_latched: bool = True, gain_latched: bool = True,
                  context_free: Sequence[str] = (), context_free_rate: float = 30.0,
                  focus: Mapping[str, Sequence[str]] | None = None):
         super().__init__()
@@ -249,12 +256,14 @@ class Modulator(ActorCritic):
         scales = channel_scales(self.layout, init_scale)
         self.view = ViewLayout(self.layout.channels, history) if inputs == "view" else None
         self.obs_key, obs_dim = (VIEW, self.view.dim) if self.view is not None else (OBSERVATION, OBS_DIM)
-        shift, held = self._shift(prior, lambda_palm, hold_steps, hold_scale)
+        shift, held = self._shift(prior, lambda_palm, hold_steps, hold_scale, prior_lookahead)
         self.config = {"channels": self.layout.name, "hidden": list(hidden), "init_scale": scales,
                        "loc_bound": float(loc_bound), "inputs": inputs, "history": int(history)}
         if shift is not None:         # only then: checkpoints without these settings keep their config
             self.config.update(prior=prior, lambda_palm=float(lambda_palm), hold_steps=int(hold_steps),
                                hold_scale=held)
+        if prior is not None and prior_lookahead != 1:      # the same: saved priors read t+1
+            self.config["prior_lookahead"] = int(prior_lookahead)
         switches = {"reach_latched": reach_latched, "lead_latched": lead_latched, "gain_latched": gain_latched}
         fixed = []                       # entries the env ignores after the episode's first step
         for record in self.layout.records:
@@ -285,10 +294,13 @@ class Modulator(ActorCritic):
                                        for c, parts in focus.items()})
         self.critic = make_critic(self.obs_key, obs_dim, hidden)
 
-    def _shift(self, prior, lambda_palm, hold_steps, hold_scale):
+    def _shift(self, prior, lambda_palm, hold_steps, hold_scale, lookahead=1):
         """The :class:`ActionShift` bounds module and the held scales per channel, or (None, {})."""
         if prior not in PRIORS:
             raise ConfigError(f"Modulator.prior must be one of {PRIORS}, got {prior!r}")
+        if lookahead not in LOOKAHEADS or isinstance(lookahead, bool):
+            raise ConfigError(f"Modulator.prior_lookahead must be one of the observation's reference frames ahead "
+                              f"{LOOKAHEADS}, got {lookahead!r}")
         check_number("Modulator.lambda_palm", lambda_palm, strict_low=True)
         check_number("Modulator.hold_steps", hold_steps, integer=True)
         if prior == "anchor" and "C" not in self.layout:
@@ -317,7 +329,7 @@ class Modulator(ActorCritic):
         for key, sl, _ in self.layout.segments:         # an entry's own scale before its channel's
             scale[sl] = held.get(key[-1], held.get(entries[key[-1]], 0.0))
         keys = [VIEW] + ([REF_OBJECT_START] if prior == "anchor" else [])
-        module = ActionShift(self.view, prior, lambda_palm, hold_steps, scale if hold_steps else None)
+        module = ActionShift(self.view, prior, lambda_palm, hold_steps, scale if hold_steps else None, lookahead)
         return TensorDictModule(module, in_keys=keys, out_keys=[("modulator", "low"), ("modulator", "high")]), held
 
     @property

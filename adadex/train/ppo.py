@@ -202,6 +202,8 @@ class PPOTrainer:
                                     inputs=m.inputs, history=m.history, prior=m.prior, hold_steps=m.hold_steps,
                                     hold_scale=m.hold_scale, context_free=m.context_free, focus=m.focus,
                                     lambda_palm=ModulationConfig(**m.modulation).lambda_palm,
+                                    prior_lookahead=ModulationConfig(**m.modulation).reach_lookahead
+                                    if m.prior is not None else 1,
                                     **{c.latch: getattr(ModulationConfig(**m.modulation), c.latch)
                                        for c in CHANNELS.values() if c.latch})
         self.ppo = cfg.ppo

@@ -56,6 +56,25 @@ def test_untrained_anchor_prior_around_replay_is_the_anchored_feed_forward(tiny_
     torch.testing.assert_close(c["action"], a["action"][:, :5], atol=1e-2, rtol=0)
 
 
+def test_anchor_prior_reads_the_reference_as_far_ahead_as_told(tiny_dataset, tmp_path):
+    """prior_lookahead=4: the untrained prior around replay is the anchored feed-forward reading t+4
+    (``Tracker(anchor_lookahead=4)``), which starts bringing the object back earlier than at t+1."""
+    ahead = Tracker(hidden=(16,), residual=0.25, anchor=0.05, anchor_lookahead=4).zero_mean()
+    mod = Modulator("C", hidden=(16, 16), prior="anchor", prior_lookahead=4).zero_mean()
+    policy = make_policy(Tracker.replay(), mod)
+    a = _rollout(tiny_dataset, ahead.actor, steps=120)
+    b = _rollout(tiny_dataset, policy, policy.primer(), steps=120)
+    torch.testing.assert_close(b["action"], a["action"], atol=1e-5, rtol=0)
+    t1 = make_policy(Tracker.replay(), Modulator("C", hidden=(16, 16), prior="anchor").zero_mean())
+    c = _rollout(tiny_dataset, t1, t1.primer(), steps=120)
+    assert (c["action"] - b["action"]).abs().max() > 1e-3                  # the timing changed the hand
+    loaded = Modulator.load(mod.save(tmp_path / "m.pt"))
+    assert loaded.config["prior_lookahead"] == 4
+    assert "prior_lookahead" not in Modulator("C", hidden=(16,), prior="anchor").config
+    with pytest.raises(ConfigError, match=r"prior_lookahead must be one of .*\(1, 2, 4, 12\), got 3"):
+        Modulator("C", hidden=(16,), prior="anchor", prior_lookahead=3)
+
+
 def test_anchor_prior_follows_objects_past_lambda_palm_and_its_own_lambda(tiny_dataset):
     """The prior is in C's units: with λ_palm halved the palm action doubles (past 1: C's palm entry
     takes ±2) and the joints stay the anchored feed-forward's."""

@@ -5,6 +5,7 @@ transforms, and the refusal of a policy that does not fit the run. Toy runs: the
 from __future__ import annotations
 
 import csv
+import dataclasses
 import functools
 import pickle
 import re
@@ -221,6 +222,9 @@ def test_modulator_prior_and_held_exploration_reach_the_trained_modulator(tiny_d
                       progress=False, collector=CollectorConfig(worlds=2), modulator=m)
     got = PPOTrainer(cfg).policy.config
     assert (got["prior"], got["hold_steps"], got["lambda_palm"]) == ("anchor", 5, 0.08)
+    assert "prior_lookahead" not in got                                  # t+1, as saved priors read
+    ahead = dataclasses.replace(m, modulation={"lambda_palm": 0.08, "reach_lookahead": 4})
+    assert PPOTrainer(dataclasses.replace(cfg, modulator=ahead)).policy.config["prior_lookahead"] == 4
     assert got["focus"] == {"C": ["start_offset", "phase"]}
     with pytest.raises(ConfigError, match=r"modulator.focus.*\['edit'\]"):       # C+T's view has no R edit
         ModulatorSettings(tracker=str(tmp_path / "tracker.pt"), channels="C+T", focus={"C": ["edit"]})

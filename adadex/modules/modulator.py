@@ -27,8 +27,9 @@ Two settings shift the action around a point other than zero (both off by defaul
   untrained modulator (heads at zero) *is* the anchored feed-forward around the tracker it modulates;
   training learns corrections, including not reaching; ``prior_lookahead`` times its hold and
   release by the reference object at t+1 (default), t+2, t+4 or t+12, as ``Tracker(anchor_lookahead=…)``
-  does. It reads the view's ``start_offset`` and ``original_future`` and the reference object's start, ``("object", "reference_start")`` — the
-  entry the view's start offset and the anchored tracker read; nothing the simulator hides.
+  does. It reads the view's ``start_offset`` and ``original_future`` and the reference object's
+  start, ``("object", "reference_start")`` — the entry the view's start offset and the anchored
+  tracker read; nothing the simulator hides.
 * ``hold_steps=k`` with ``hold_scale`` — temporally correlated exploration: while the policy samples
   (``ExplorationType.RANDOM``: collectors, ``evaluate(sample=True)``) the chosen channels' action is
   shifted by ``hold_scale · z``, ``z ~ N(0, I)`` drawn at the episode's steps 0, k, 2k, … (the

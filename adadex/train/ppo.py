@@ -198,14 +198,13 @@ class PPOTrainer:
         elif m is None:
             self.policy = cfg.policy.tracker(max_action=env_config.max_action)
         else:
+            env_channels = ModulationConfig(**m.modulation)
             self.policy = Modulator(m.channels, hidden=m.hidden, init_scale=m.init_scale, loc_bound=m.loc_bound,
                                     inputs=m.inputs, history=m.history, prior=m.prior, hold_steps=m.hold_steps,
                                     hold_scale=m.hold_scale, context_free=m.context_free, focus=m.focus,
-                                    lambda_palm=ModulationConfig(**m.modulation).lambda_palm,
-                                    prior_lookahead=ModulationConfig(**m.modulation).reach_lookahead
-                                    if m.prior is not None else 1,
-                                    **{c.latch: getattr(ModulationConfig(**m.modulation), c.latch)
-                                       for c in CHANNELS.values() if c.latch})
+                                    lambda_palm=env_channels.lambda_palm,
+                                    prior_lookahead=env_channels.reach_lookahead if m.prior is not None else 1,
+                                    **{c.latch: getattr(env_channels, c.latch) for c in CHANNELS.values() if c.latch})
         self.ppo = cfg.ppo
         self.device = self._check_device(torch.device(self.ppo.device))
         self.policy.to(self.device)                # before the loss takes its parameters

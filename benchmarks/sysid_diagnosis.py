@@ -134,10 +134,15 @@ WORST = (
 )
 
 
+#: the diagnosis's modules (:mod:`adadex.sysid.diagnose` and the steps it calls): a replay is credited to them
+DIAGNOSIS_FILES = tuple(f"adadex/sysid/{m}.py" for m in ("diagnose", "scoring", "source_first", "load_search",
+                                                         "joint_selection"))
+
+
 class _Counter:
     """Counts the replays (calls, and sequences replayed) of every :class:`~adadex.sysid.replay.Replayer` while
-    installed, by the step of :mod:`adadex.sysid.diagnose` that asked (the outermost function under
-    ``diagnose``: ``_source_first``, ``_forward_selection``, ``_follows``, …) and the kind of replay."""
+    installed, by the step of the diagnosis that asked (the outermost function of :data:`DIAGNOSIS_FILES`
+    under ``diagnose``: ``_source_first``, ``_forward_selection``, ``_follows``, …) and the kind of replay."""
 
     def __init__(self):
         from adadex.sysid.replay import Replayer
@@ -154,11 +159,11 @@ class _Counter:
 
         def wrapped(rep, *args, **kwargs):
             frame = inspect.currentframe().f_back
-            while frame is not None and not frame.f_code.co_filename.endswith(("diagnose.py",)):
+            while frame is not None and not _in_diagnosis(frame):
                 frame = frame.f_back
-            # the outermost diagnose.py function below diagnose() names the step
+            # the outermost diagnosis function below diagnose() names the step
             site, f = "other", frame
-            while f is not None and f.f_code.co_filename.endswith("diagnose.py"):
+            while f is not None and _in_diagnosis(f):
                 if f.f_code.co_name != "diagnose":
                     site = f.f_code.co_name
                 f = f.f_back
@@ -175,6 +180,10 @@ class _Counter:
 
         for name, orig in self._orig.items():
             setattr(Replayer, name, orig)
+
+
+def _in_diagnosis(frame) -> bool:
+    return frame.f_code.co_filename.replace("\\", "/").endswith(DIAGNOSIS_FILES)
 
 
 def worst_cases(seed: int, threads: int, only=None) -> dict:

@@ -1,5 +1,5 @@
 """A joint moved exactly as measured (:meth:`~adadex.sysid.replay.Replayer.simulate_imposed`): the test the
-diagnosis uses to tell a knock-on from a source (:func:`~adadex.sysid.diagnose._follows`), on the tiny arm of
+diagnosis uses to tell a knock-on from a source (:func:`~adadex.sysid.joint_selection._follows`), on the tiny arm of
 :mod:`tests.sysid.user_model` with effects hidden by ``MjSpec`` edits (as in test_user_model_diagnosis.py)."""
 
 import numpy as np

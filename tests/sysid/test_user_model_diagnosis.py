@@ -104,13 +104,13 @@ def test_a_source_found_first_on_a_user_model_is_one_torque_limit_on_its_shoulde
     on a model that is not adadex's: its joints' links and bounds are the user model's. The tiny arm has
     three joints and the finger never fails, so the step is asked for from two failing joints here (on the
     built-in robot it runs from three: tests/sysid/test_worst_case.py)."""
-    import sys
+    from adadex.sysid import source_first
+    from adadex.sysid.diagnose import diagnose
 
-    diagnose_module = sys.modules["adadex.sysid.diagnose"]
-    monkeypatch.setattr(diagnose_module, "SOURCE_MIN_FAILING", 2)
+    monkeypatch.setattr(source_first, "SOURCE_MIN_FAILING", 2)
     truth = edited_arm(arm, torque_limit("shoulder", SHOULDER_LIMIT), "shoulder_limited")
     rec = arm_recording(arm, truth, ["shoulder", "elbow"], seed=1)
-    d = diagnose_module.diagnose(rec, progress=False)
+    d = diagnose(rec, progress=False)
     assert d.model == ModelSource(arm).robot().model_id
     assert d.stage_times_s["source"] > 0 and d.stage_times_s["fit"] == 0.0, d.stage_times_s
     assert d.verdict == "explained", d.findings

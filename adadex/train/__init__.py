@@ -25,6 +25,7 @@ _EXPORTS = {
     "adadex.train.paired_choice": ("fit_paired_choice", "PairedChoiceConfig"),
     "adadex.train.pipeline": ("PipelineConfig", "run_pipeline", "SpecialistStage", "RolloutStage", "DistillStage",
                               "ModulatorStage", "BaselineStage", "EvaluationStage"),
+    "adadex.train.table_so_far": ("table_so_far",),
 }
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
@@ -41,3 +42,4 @@ if TYPE_CHECKING:      # the same names, for type checkers and IDEs
     from adadex.train.paired_choice import fit_paired_choice, PairedChoiceConfig
     from adadex.train.pipeline import (PipelineConfig, run_pipeline, SpecialistStage, RolloutStage, DistillStage,
                                        ModulatorStage, BaselineStage, EvaluationStage)
+    from adadex.train.table_so_far import table_so_far

@@ -40,10 +40,11 @@ def train_node() -> dict:
 
 def pipeline_node() -> dict:
     """The pipeline recipe's node (``adadex_pipeline``): :class:`~adadex.train.pipeline.PipelineConfig`'s
-    fields and its stage groups, and the recipe's ``force``."""
+    fields and its stage groups, and the recipe's ``force`` and ``table_so_far`` (write the table of what
+    ``out`` has evaluated so far, :mod:`adadex.train.table_so_far`, and train nothing)."""
     from adadex.train.pipeline import PipelineConfig
 
-    return {**PipelineConfig.node(), "force": False}
+    return {**PipelineConfig.node(), "force": False, "table_so_far": False}
 
 
 def distill_node() -> dict:

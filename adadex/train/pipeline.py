@@ -73,6 +73,7 @@ from adadex.train.config import (CollectorConfig, ModulatorSettings, PolicyConfi
                                  TrainConfig, randomization_with)
 from adadex.train.schema import ENV_CODE_ONLY, RANDOMIZATION_CODE_ONLY, changes, check_fields, field_default
 from adadex.train.stages import STAGE, run_in_processes, run_stage
+from adadex.train.table_so_far import collect
 
 #: modulator rows of the table → the channel set each trains
 MODULATOR_ROWS = {"R": "R", "RT": "R+T", "ROT": "R+O+T", "O": "O"}
@@ -785,20 +786,15 @@ class Pipeline:
         workers = min(self.cfg.seed_workers, len(seeds))
         chains = (run_in_processes(_seed_chain, [(self.cfg, self.env_config, s) for s in seeds], workers)
                   if workers > 1 else [self.chain(s) for s in seeds])
-        summaries: dict = {}
-        episodes: dict = {}        # per key, one per_episode record (or None: an older stage) per seed, in seed order
         scaling: dict = {}
         paths_by_seed = {}
         distilled = {}             # per seed: the generalist against each of its teachers
-        for seed, (paths, evaluations, fractions, checks) in zip(seeds, chains):
+        for seed, (paths, _, fractions, checks) in zip(seeds, chains):
             paths_by_seed[seed] = paths
             distilled[str(seed)] = checks
-            for key, r in evaluations.items():
-                summaries.setdefault(key, []).append(r["summary"])
-                episodes.setdefault(key, []).append(r.get("per_episode"))
             for f, s in fractions.items():
                 scaling.setdefault(f, []).append(s)
-        table = aggregate(summaries, episodes)
+        table = aggregate(*collect([evaluations for _, evaluations, _, _ in chains]))
         atomic_write_text(self.out / "table1.json", json.dumps(table, indent=1))
         atomic_write_text(self.out / "table1.md", table_markdown(table) + "\n")
         atomic_write_text(self.out / "generalist_vs_teachers.json", json.dumps(distilled, indent=1))

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -25,7 +26,8 @@ from adadex.train.checkpoint import load_checkpoint
 from adadex.train.distill import DistillConfig, reference_subset
 from adadex.train.config import PPOConfig
 from adadex.train.pipeline import PipelineConfig, specialist_blocks
-from adadex.train.stages import run_stage
+from adadex.train.stages import STAGE, run_stage
+from adadex.train.table_so_far import table_so_far
 
 ROOT = Path(__file__).resolve().parents[2]
 FIGURES = ("ablation.png", "fig4_object_path.png", "fig5_latent.png", "fig6_scaling.png", "fig12_smoothness.png",
@@ -134,6 +136,43 @@ def test_a_second_run_skips_every_stage_and_a_killed_one_resumes(tiny_run, tiny_
     # other settings for finished stages are refused, not silently mixed
     bad = _pipeline(tmp, out, tiny_dataset, "specialist.ppo.total_frames=1024")
     assert bad.returncode == 2 and "run with other settings" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_the_table_so_far_pools_the_seeds_whose_rows_are_in(tiny_run, tiny_dataset, tmp_path):
+    _, out, _ = tiny_run
+    # a finished run: the same table as the one the pipeline wrote
+    full = json.loads((out / "table1.json").read_text())
+    copy = tmp_path / "t1"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns("table1*", "wandb", "figures"))
+    r = _pipeline(tmp_path, copy, tiny_dataset, "table_so_far=true")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "[run ]" not in r.stdout and not (copy / "table1.json").exists()      # nothing trained or evaluated
+    so_far = json.loads((copy / "table1_so_far.json").read_text())
+    assert so_far["table"] == full
+    assert so_far["seeds"] == {f"{s}/{c}": [0, 1] for s in SPLITS for c in CONDITIONS}
+    assert "Pooled so far" in (copy / "table1_so_far.md").read_text()
+    # seed 1 stopped before its +R+T row on unseen objects, randomized: that block pools seed 0 alone
+    shutil.rmtree(copy / "seed_1" / "eval" / "unseen_object" / "randomized" / "RT")
+    table = table_so_far(copy)
+    assert table["seeds"]["unseen_object/randomized"] == [0] and table["seeds"]["unseen_trajectory/randomized"] == [0, 1]
+    block = table["table"]["unseen_object"]["randomized"]
+    assert {e["seeds"] for e in block.values()} == {1}
+    assert table["table"]["unseen_trajectory"] == full["unseen_trajectory"]
+    seed0 = json.loads((out / "seed_0" / "eval" / "unseen_object" / "randomized" / "ROT" / STAGE).read_text())
+    assert block["ROT"]["completion_pct"] == pytest.approx(seed0["result"]["summary"]["completion_pct"], abs=1e-9)
+    assert block["ROT"]["episodes"] == seed0["result"]["summary"]["trajectories"]
+    assert full["unseen_object"]["randomized"]["ROT"]["episodes"] == 2 * block["ROT"]["episodes"]
+    # seeds evaluated with different repeats are not pooled; a folder that is no pipeline's is refused
+    stage = copy / "seed_1" / "eval" / "unseen_trajectory" / "nominal" / "tracker" / STAGE
+    record = json.loads(stage.read_text())
+    record["settings"]["repeats"] += 1
+    stage.write_text(json.dumps(record))
+    with pytest.raises(ConfigError, match="unseen_trajectory, nominal evaluations were run with different repeats"):
+        table_so_far(copy)
+    (tmp_path / "mine").mkdir()
+    bad = _pipeline(tmp_path, tmp_path / "mine", tiny_dataset, "table_so_far=true")
+    assert bad.returncode == 2 and "not a pipeline run's folder" in bad.stderr and "Traceback" not in bad.stderr
+    assert list((tmp_path / "mine").iterdir()) == []
 
 
 def test_bad_settings_are_one_line_errors(tiny_dataset, tmp_path):

@@ -95,15 +95,13 @@ def _pipeline_ppo(total_frames: int) -> PPOConfig:
 
 def _pipeline_policy() -> PolicyConfig:
     """The pipeline's trackers are plain residual trackers (kinematic replay plus a learned correction),
-    not object-anchored ones (``PolicyConfig.anchor``, which the specialist recipes keep): on Table 1's
-    randomized unseen-trajectory evaluation (47 references × 4 draws, seed 0) the anchored feed-forward
-    alone completed 68.7 % against replay's 82.2 %, and vanilla PPO trained on it 67.9 % against 81.3 %
-    for the same PPO without the anchor (docs/training-log.md, Table 1). ``specialist.policy.anchor=0.05``
+    not object-anchored ones (``PolicyConfig.anchor``, which the specialist recipes keep): the full anchor
+    costs Table 1's randomized completion several points against replay. ``specialist.policy.anchor=0.05``
     (``baseline.policy.anchor=0.05``) restores it; with ``anchor_reach=0.10`` and ``anchor_lookahead=4`` the
-    anchored chain carries the object but completes fewer frames than replay: on Table 1's 16 draws
-    (seeds 0 and 1) the tracker is 3.1 points [0.3, 5.9] below replay on completion and 10.7 [8.0, 13.5]
-    above it on object completion (docs/table1.md). The paper's metric is the headline, so the default
-    stays unanchored; that is the anchored setting where carrying the object is what counts."""
+    anchored chain carries the object (object completion about ten points above replay) but completes a few
+    points fewer frames than replay, both resolved over three seeds (docs/table1.md). The paper's metric is
+    the headline, so the default stays unanchored; the anchored setting is for where carrying the object is
+    what counts."""
     return PolicyConfig(anchor=0.0)
 
 

@@ -140,6 +140,18 @@ def atomic_write(path, write: Callable[[BinaryIO], object]) -> Path:
     return path
 
 
+def json_default(obj):
+    """``json.dumps(…, default=json_default)``: numpy scalars and arrays as Python numbers and lists
+    (anything else is refused, as ``json`` refuses it)."""
+    import numpy as np
+
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"{type(obj).__name__} is not JSON-serializable")
+
+
 def atomic_write_text(path, text: str) -> Path:
     """Write ``text`` (UTF-8) to ``path`` atomically (:func:`atomic_write`); return the path."""
     return atomic_write(path, lambda f: f.write(text.encode("utf-8")))

@@ -101,7 +101,7 @@ from adadex.data.recording_errors import (
     unknown_joint,
 )
 from adadex.errors import ConfigTypeError
-from adadex.io import atomic_write
+from adadex.io import atomic_write, json_default
 from adadex.sim.robot import HOME_QPOS, JOINT_NAMES, NUM_JOINTS, joint_index, joint_limits
 
 __all__ = ["Recording", "load_recording", "from_csv", "to_csv", "csv_file_name", "LIMIT_TOLERANCE",
@@ -125,14 +125,6 @@ MEASURED_RANGE_MARGIN = float(np.pi)
 
 REQUIRED_KEYS = ("time", "joint_names", "command", "joint_pos")
 OPTIONAL_KEYS = ("joint_vel", "sequence_labels", "initial_qpos", "meta")
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"{type(obj).__name__} is not JSON-serializable")
 
 
 def _float_array(value, name: str) -> np.ndarray:
@@ -247,7 +239,7 @@ class Recording:
         if not isinstance(meta, Mapping):
             raise RecordingError(f"meta: expected a dict, got {type(meta).__name__}")
         try:
-            return json.loads(json.dumps(dict(meta), default=_json_default))
+            return json.loads(json.dumps(dict(meta), default=json_default))
         except (TypeError, ValueError) as e:
             raise RecordingError(f"meta: not JSON-serializable ({e})") from None
 

@@ -54,7 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from adadex.errors import AdadexError
-from adadex.io import OutputExistsError, atomic_write_text, output_folder
+from adadex.io import OutputExistsError, atomic_write_text, json_default, output_folder
 from adadex.sim.objects import REGISTRY, UnknownObjectError
 from adadex.sim.robot import JOINT_NAMES, NUM_JOINTS, TRACKED_SITES, joint_limits
 from adadex.sim.scene import CONTROL_HZ
@@ -417,16 +417,10 @@ def save_dataset(refs: Sequence[Reference], path, *, splits: dict | None = None,
                        option="force=True (--force on the command line)") as tmp:
         _frames_tensordict(refs).memmap(str(tmp / "frames"))
         atomic_write_text(tmp / "splits.json", json.dumps(splits, indent=1))
-        atomic_write_text(tmp / "index.json", json.dumps(index, indent=1, default=_json_default))
+        atomic_write_text(tmp / "index.json", json.dumps(index, indent=1, default=json_default))
     return path
 
 
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"{type(obj).__name__} is not JSON-serializable")
 
 
 class ReferenceDataset(Sequence):

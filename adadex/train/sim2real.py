@@ -674,7 +674,7 @@ def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "smal
     from adadex.envs.randomization import Randomization
     from adadex.envs.tracking import TrackingConfig, episode_references
     from adadex.data.reference import ReferenceDataset
-    from adadex.io import atomic_write_text, mark_output_dir
+    from adadex.io import atomic_write_text, json_default, mark_output_dir
     from adadex.modules.channels import ModulationConfig
     from adadex.modules.modulator import Modulator
     from adadex.modules.tracker import Tracker
@@ -789,7 +789,7 @@ def run_sim2real(real, out, *, tracker: str = "replay", preset_name: str = "smal
               "context_free_actions": choices,
               "stage_minutes": minutes,
               "per_episode": {k: v["per_episode"] for k, v in evaluations.items()}}
-    atomic_write_text(out / "sim2real.json", json.dumps(result, indent=1, default=_json_default))
+    atomic_write_text(out / "sim2real.json", json.dumps(result, indent=1, default=json_default))
     plot(result, out / "sim2real.png")
     return result
 
@@ -808,9 +808,3 @@ def _keep(res: dict) -> dict:
     return {"summary": res["summary"], "per_episode": res["per_episode"], "wall_s": res["wall_s"]}
 
 
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"not JSON serializable: {type(o).__name__}")

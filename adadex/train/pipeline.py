@@ -72,7 +72,7 @@ from adadex.io import atomic_write_text, check_output_dir, mark_output_dir
 from adadex.train.config import (CollectorConfig, ModulatorSettings, PolicyConfig, PPOConfig, SimConfig,
                                  TrainConfig, randomization_with)
 from adadex.train.schema import ENV_CODE_ONLY, RANDOMIZATION_CODE_ONLY, changes, check_fields, field_default
-from adadex.train.stages import STAGE, run_in_processes, run_stage
+from adadex.train.stages import PIPELINE_RUN, earlier_pipeline, run_in_processes, run_stage
 from adadex.train.table_so_far import collect
 
 #: modulator rows of the table → the channel set each trains
@@ -832,19 +832,10 @@ def _seed_chain(args) -> tuple[dict, dict, dict, list]:
     return p.chain(seed)
 
 
-#: the output kind of the pipeline's ``out`` (its marker, :mod:`adadex.io`)
-PIPELINE_RUN = "table1 pipeline"
-
-
-def _earlier_pipeline(out: Path) -> bool:
-    """An ``out`` the pipeline wrote before it was marked: the ``stage.json`` of a stage under ``seed_<s>/``."""
-    return any(True for pattern in ("seed_*/*/" + STAGE, "seed_*/*/*/" + STAGE) for _ in Path(out).glob(pattern))
-
-
 def check_pipeline_out(out, *, force: bool = False, ignore=()) -> Path:
     """The pipeline's output guard, before any work: ``out`` is absent, empty, or an earlier pipeline's
     (whose stages then resume or are skipped); anything else is refused unless ``force``. Writes nothing."""
-    return check_output_dir(out, PIPELINE_RUN, force=force, recognize=_earlier_pipeline, option="force=true",
+    return check_output_dir(out, PIPELINE_RUN, force=force, recognize=earlier_pipeline, option="force=true",
                             ignore=ignore)
 
 

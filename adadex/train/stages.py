@@ -27,6 +27,13 @@ from adadex.io import atomic_write_text
 
 #: the file a finished stage leaves in its folder: its label, settings, result and wall time
 STAGE = "stage.json"
+#: the output kind of the pipeline's ``out`` (its marker, :mod:`adadex.io`)
+PIPELINE_RUN = "table1 pipeline"
+
+
+def earlier_pipeline(out: Path) -> bool:
+    """An ``out`` the pipeline wrote before it was marked: the ``stage.json`` of a stage under ``seed_<s>/``."""
+    return any(True for pattern in ("seed_*/*/" + STAGE, "seed_*/*/*/" + STAGE) for _ in Path(out).glob(pattern))
 
 
 def _plain(x):

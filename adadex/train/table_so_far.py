@@ -22,7 +22,7 @@ from pathlib import Path
 from adadex.errors import ConfigError
 from adadex.eval.table1 import CONDITIONS, ROWS, SPLITS, aggregate, table_markdown
 from adadex.io import atomic_write_text, output_kind
-from adadex.train.stages import STAGE
+from adadex.train.stages import PIPELINE_RUN, STAGE, earlier_pipeline
 
 #: what :func:`table_so_far` writes in the run's folder (``.json`` and ``.md``)
 SO_FAR = "table1_so_far"
@@ -81,10 +81,8 @@ def stored_evaluations(out) -> dict[tuple[str, str], dict[int, dict]]:
 
 def check_run_folder(out) -> Path:
     """``out`` as a Path if it is a pipeline run's folder, else :class:`ConfigError` (nothing written)."""
-    from adadex.train.pipeline import PIPELINE_RUN, _earlier_pipeline
-
     out = Path(out)
-    if output_kind(out, _earlier_pipeline, PIPELINE_RUN) != PIPELINE_RUN:
+    if output_kind(out, earlier_pipeline, PIPELINE_RUN) != PIPELINE_RUN:
         raise ConfigError(f"{out}: not a pipeline run's folder (recipes/pipeline.py out=… writes one)")
     return out
 

@@ -242,7 +242,7 @@ def _recipe_config(*overrides) -> PipelineConfig:
     config_store.register()
     with initialize_config_dir(config_dir=str(ROOT / "recipes"), version_base="1.3"):
         cfg = OmegaConf.to_container(compose(config_name="pipeline", overrides=list(overrides)), resolve=True)
-    assert cfg.pop("force") is False
+    assert cfg.pop("force") is False and cfg.pop("table_so_far") is False      # the recipe's own keys
     return PipelineConfig.from_dict(cfg)
 
 

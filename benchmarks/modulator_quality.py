@@ -56,8 +56,9 @@ def parse_row(text: str) -> dict:
     the exploration noise is held), ``hold_X=scale`` (channel X's held-noise scale) and
     ``focus_X=part+part`` (channel X's head reads only those view parts), the
     :class:`~adadex.modules.modulator.Modulator` settings ``prior``, ``hold_steps``, ``hold_scale``, ``focus``;
-    and ``learner=paired`` (fit latched channels to paired rollouts, :mod:`adadex.train.paired_choice`,
-    instead of PPO)."""
+    ``learner=paired`` (fit latched channels to paired rollouts, :mod:`adadex.train.paired_choice`,
+    instead of PPO); ``history=N`` (previous frames in the view, ``ModulatorSettings.history``); and
+    ``core=gru`` (a recurrent core, ``Modulator(core=…)``)."""
     parts = text.split(":")
     options = [p for p in parts[1:] if "=" in p]
     parts = [p for p in parts if "=" not in p]
@@ -77,9 +78,13 @@ def parse_row(text: str) -> dict:
             row["modulator"].setdefault("focus", {})[key[6:]] = value.split("+")
         elif key == "learner" and value in ("ppo", "paired"):
             row["learner"] = value
+        elif key == "history" and value.isdigit():
+            row["history"] = int(value)
+        elif key == "core":
+            row["modulator"]["core"] = value
         else:
             raise SystemExit(f"--rows: unknown option {key!r} in {text!r} (prior=, hold=, hold_X=, focus_X=, "
-                             "learner=ppo|paired)")
+                             "learner=ppo|paired, history=N, core=gru)")
     row["name"] = text.replace("+", "").replace(":", "_").replace(".", "").replace("=", "")
     return row
 
@@ -241,7 +246,7 @@ def main(argv=None) -> dict:
         for seed in seeds:
             folder = a.runs / f"{row['name']}_s{seed}"
             m = ModulatorSettings(tracker=tracker_path, channels=row["channels"], inputs=row["inputs"],
-                                  init_scale=row["init_scale"], modulation=modulation)
+                                  init_scale=row["init_scale"], history=row.get("history", 3), modulation=modulation)
             tc = TrainConfig(dataset=str(a.dataset), out=str(folder), seed=seed,
                              resume=(folder / "checkpoint.pt").is_file(),
                              ppo=PPOConfig(**{**ppo, "total_frames": a.frames}), collector=CollectorConfig(**collector),

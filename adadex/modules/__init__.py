@@ -18,7 +18,8 @@ _EXPORTS = {
     "adadex.modules.channels": ("ModulationLayout", "Channel", "parse_channels"),
     "adadex.modules.anchor": ("ObjectAnchor", "PalmShift"),
     "adadex.modules.nets": ("ActorCritic", "make_actor", "make_critic", "GaussianHeads",
-                            "Normalizer", "SamplingPolicy", "fit_normalizers"),
+                            "Normalizer", "SamplingPolicy", "fit_normalizers", "make_core",
+                            "recurrent_state_shapes"),
 }
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
@@ -32,5 +33,6 @@ if TYPE_CHECKING:      # the same names, for type checkers and IDEs
     from adadex.modules.channels import ModulationLayout, Channel, parse_channels
     from adadex.modules.anchor import ObjectAnchor, PalmShift
     from adadex.modules.nets import (
-        ActorCritic, make_actor, make_critic, GaussianHeads, Normalizer, SamplingPolicy, fit_normalizers
+        ActorCritic, make_actor, make_critic, GaussianHeads, Normalizer, SamplingPolicy, fit_normalizers, make_core,
+        recurrent_state_shapes
     )

@@ -49,6 +49,14 @@ the per-step marginal, as gSDE does, is not: given s_t the held noise is not ind
 state it steered.) The critic does not see ``z``; its value is a baseline, so that biases nothing
 beyond what a bootstrapped value already does.
 
+A recurrent core (``core="gru"``, off by default): TorchRL's ``GRUModule`` reads the (normalized) input
+at every step and the trunk reads its summary of the episode so far beside it
+(:func:`adadex.modules.nets.make_core`), for what a few stacked frames cannot show: how this robot and
+this object have answered the tracker over the episode. It carries its hidden state
+``("modulator", "core_state")`` in the env as the view does (the trainer's env and
+:func:`adadex.transforms.policy.make_policy`'s primer hold it; :func:`adadex.modules.nets.recurrent_state_shapes`
+names it), and PPO updates it over whole sequences. Not with ``prior`` or ``hold_steps``.
+
 * ``modulator.actor`` — in: its input; out: ``"action"`` (D), ``"action_log_prob"``,
   ``("modulator", "loc")``, ``("modulator", "scale")``.
 * ``modulator.critic`` — in: its input; out: ``"state_value"``.
@@ -83,7 +91,7 @@ from adadex.errors import ConfigError, check_number
 from adadex.modules.anchor import LOOKAHEADS, ObjectAnchor
 from adadex.modules.channels import CHANNELS, PALM, ModulationLayout
 from adadex.modules.modulator_view import VIEW, ViewLayout
-from adadex.modules.nets import ActorCritic, make_actor, make_critic
+from adadex.modules.nets import CORES, ActorCritic, make_actor, make_core, make_critic
 from adadex.sim.robot import NUM_JOINTS
 
 #: what a modulator may read (see the module docstring)
@@ -237,6 +245,8 @@ class Modulator(ActorCritic):
             through a small trunk of its own (:class:`~adadex.modules.nets.GaussianHeads`' ``focus``),
             e.g. ``{"A": ["start_offset"]}``: whether to reach for the object, from where it lies.
             Needs the view; default none.
+        core: ``"gru"``: a recurrent core over the input (see the module docstring); ``None`` (default): none.
+        core_size: the core's hidden size (default 128).
     """
 
     kind = "modulator"
@@ -246,7 +256,7 @@ class Modulator(ActorCritic):
                  lambda_palm: float = _DEFAULT_LAMBDA_PALM, hold_steps: int = 0, hold_scale=None,
                  prior_lookahead: int = 1, reach_latched: bool = True, lead_latched: bool = True, gain_latched: bool = True,
                  context_free: Sequence[str] = (), context_free_rate: float = 30.0,
-                 focus: Mapping[str, Sequence[str]] | None = None):
+                 focus: Mapping[str, Sequence[str]] | None = None, core: str | None = None, core_size: int = 128):
         super().__init__()
         self.layout = ModulationLayout(channels)
         if not self.layout.dim:
@@ -285,6 +295,13 @@ class Modulator(ActorCritic):
         if focus:                        # only then: checkpoints without it keep their config
             self.config["focus"] = {c: list(parts) for c, parts in focus.items()}
         part = self.view.slices() if focus else {}
+        if core not in CORES:
+            raise ConfigError(f"Modulator.core must be one of {CORES}, got {core!r}")
+        check_number("Modulator.core_size", core_size, strict_low=True, integer=True)
+        if core is not None:
+            if shift is not None:
+                raise ConfigError("Modulator(core=…) cannot be combined with prior=… or hold_steps=… (per-sample bounds)")
+            self.config.update(core=core, core_size=int(core_size))    # only then: saved configs stay as they were
         self.actor = make_actor(self.obs_key, obs_dim, self.layout.channel_sizes, -1.0, 1.0, hidden,
                                 namespace="modulator", init_scale=[scales[c] for c in self.layout.channels],
                                 loc_bound=loc_bound, bounds=shift, latched=latched,
@@ -292,7 +309,10 @@ class Modulator(ActorCritic):
                                 blind_rate=context_free_rate,
                                 focus={self.layout.channels.index(c): [j for p in parts for j in
                                                                        range(part[p].start, part[p].stop)]
-                                       for c, parts in focus.items()})
+                                       for c, parts in focus.items()},
+                                core=None if core is None else make_core(self.obs_key, obs_dim, core_size,
+                                                                         namespace="modulator"),
+                                core_dim=int(core_size) if core is not None else 0)
         self.critic = make_critic(self.obs_key, obs_dim, hidden)
 
     def _shift(self, prior, lambda_palm, hold_steps, hold_scale, lookahead=1):

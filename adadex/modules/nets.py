@@ -19,7 +19,7 @@ from tensordict.nn import (InteractionType, NormalParamExtractor, TensorDictModu
 from tensordict.nn.probabilistic import interaction_type
 from torch import nn
 from torchrl.data import Bounded
-from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.modules import MLP, GRUModule, LSTMModule, ProbabilisticActor, TanhNormal, ValueOperator
 
 from adadex.errors import ArrayError, CheckpointError, ConfigError, ConfigTypeError, check_number
 from adadex.io import atomic_write
@@ -95,6 +95,10 @@ class GaussianHeads(nn.Module):
     parameters moves its own; at PPO's 3e-4 a K head's bias ended 250 k frames at a gain of 0.03,
     and ×30 at the arm gain a fixed-gain sweep finds best (docs/sim2real.md).
 
+    ``extra_dim`` (optional): features read beside the normalized observation, not normalized — a
+    recurrent core's summary of the episode so far (:func:`make_actor`'s ``core``): the trunk reads
+    ``[norm(obs), extra]``; ``forward(obs, extra)``.
+
     ``focus`` (optional): ``{head index: observation indices}`` — heads that read only those entries
     of the (normalized) observation, through a small trunk of their own (``focus_hidden``). For a
     choice that depends on a few numbers the policy can see (channel A's reach on the object's start
@@ -114,14 +118,17 @@ class GaussianHeads(nn.Module):
         blind_rate: their bias's scale (above; default 30).
         focus: ``{head index: observation indices}`` read by those heads alone (above; default none).
         focus_hidden: the widths of each focused head's own trunk (default (32, 32)).
+        extra_dim: features the trunk reads beside the normalized observation (above; default 0: none).
     """
 
     def __init__(self, obs_dim: int, head_sizes: Sequence[int], hidden: Sequence[int], *,
                  init_gain: float = 0.01, init_scale: float | Sequence[float] = 1.0, activation=nn.ELU,
                  loc_bound: float = 0.0, latched: tuple[int, slice | Sequence[int]] | None = None,
                  blind: Sequence[int] = (), blind_rate: float = 30.0,
-                 focus: Mapping[int, Sequence[int]] | None = None, focus_hidden: Sequence[int] = (32, 32)):
+                 focus: Mapping[int, Sequence[int]] | None = None, focus_hidden: Sequence[int] = (32, 32),
+                 extra_dim: int = 0):
         super().__init__()
+        self.extra_dim = int(check_number("GaussianHeads extra_dim", extra_dim, integer=True))
         self.blind = frozenset(int(i) for i in blind)
         self.blind_rate = float(check_number("GaussianHeads blind_rate", blind_rate, strict_low=True))
         if not self.blind <= set(range(len(head_sizes))):
@@ -145,7 +152,7 @@ class GaussianHeads(nn.Module):
             mask[latched[1] if isinstance(latched[1], slice) else list(latched[1])] = True
             self.register_buffer("latched_entries", mask, persistent=False)
         self.norm = Normalizer(obs_dim)
-        self.trunk = MLP(in_features=obs_dim, out_features=hidden[-1], num_cells=list(hidden[:-1]),
+        self.trunk = MLP(in_features=obs_dim + self.extra_dim, out_features=hidden[-1], num_cells=list(hidden[:-1]),
                          activation_class=activation, activate_last_layer=True)
         self.heads = nn.ModuleList(nn.Linear(focus_hidden[-1] if i in focus else hidden[-1], 2 * n)
                                    for i, n in enumerate(head_sizes))
@@ -164,9 +171,9 @@ class GaussianHeads(nn.Module):
             return self.focus_nets[str(i)](x[..., getattr(self, f"focus_index_{i}")])
         return z
 
-    def forward(self, obs: torch.Tensor):
+    def forward(self, obs: torch.Tensor, extra: torch.Tensor | None = None):
         x = self.norm(obs)
-        z = self.trunk(x)
+        z = self.trunk(torch.cat([x, extra], -1) if self.extra_dim else x)
         locs, scales = zip(*(extract(self.blind_rate * h.bias.expand(*z.shape[:-1], -1) if i in self.blind
                                      else h(self._head_input(i, x, z)))
                              for i, (extract, h) in enumerate(zip(self.extracts, self.heads))))
@@ -181,12 +188,74 @@ class GaussianHeads(nn.Module):
         return loc, scale
 
 
+#: the recurrent cores a policy body may have (``None``: none; ``"gru"``: :func:`make_core`)
+CORES = (None, "gru")
+
+
+def make_core(obs_key, obs_dim: int, size: int, *, namespace: str) -> TensorDictSequential:
+    """A recurrent core: a :class:`Normalizer` of ``obs_key``, then TorchRL's ``GRUModule`` over it,
+    writing its summary of the episode so far, ``(namespace, "memory")`` (``size``), and carrying its
+    hidden state ``(namespace, "core_state")`` (1 × ``size``) from step to step, reset where the env
+    marks ``"is_init"`` (an episode's first frame; :class:`~adadex.envs.tracking.TrackingEnv` writes it).
+
+    Why a core beside the stacked frames a view may hold: a few frames show what moved, not how the
+    robot and object have answered over the episode (a slipping grasp, a servo that lags), which is
+    what a policy needs to infer dynamics it cannot observe (the paper's Sec. 3.2). Step by step (a
+    collector, ``env.rollout``) the env must carry the state —
+    :func:`recurrent_state_shapes` names it, and the trainer and :func:`~adadex.transforms.policy.make_policy`'s
+    primer add it; over a batch of whole sequences (a PPO update) run it under
+    ``torchrl.modules.set_recurrent_mode(True)``, which starts each sequence from its stored state.
+
+    Args:
+        obs_key: the key of the flat observation it reads.
+        obs_dim: the observation's size.
+        size: the GRU's hidden size (the memory's size).
+        namespace: the key prefix of its entries.
+
+    >>> import torch
+    >>> from tensordict import TensorDict
+    >>> core = make_core("obs", 4, 8, namespace="p")
+    >>> td = TensorDict({"obs": torch.zeros(3, 4), "p": {"core_state": torch.zeros(3, 1, 8)},
+    ...                  "is_init": torch.ones(3, 1, dtype=torch.bool)}, [3])
+    >>> core(td)["p", "memory"].shape, td["next", "p", "core_state"].shape
+    (torch.Size([3, 8]), torch.Size([3, 1, 8]))
+    """
+    check_number("make_core size", size, strict_low=True, integer=True)
+    hidden = (namespace, "core_input")
+    state = (namespace, "core_state")
+    return TensorDictSequential(
+        TensorDictModule(Normalizer(obs_dim), in_keys=[obs_key], out_keys=[hidden]),
+        GRUModule(input_size=obs_dim, hidden_size=int(size), in_keys=[hidden, state, "is_init"],
+                  out_keys=[(namespace, "memory"), ("next", *state)]))
+
+
+def recurrent_state_shapes(module: nn.Module) -> dict:
+    """``{key: shape}`` of the state every TorchRL ``GRUModule`` / ``LSTMModule`` inside ``module`` carries
+    from step to step (without the batch dimensions): what an env must prime, zeroed at reset, for the
+    module to run step by step. Empty for a feed-forward module.
+
+    Args:
+        module: any module (an actor, a critic, a whole policy).
+
+    >>> recurrent_state_shapes(make_core("obs", 4, 8, namespace="p"))
+    {('p', 'core_state'): (1, 8)}
+    """
+    shapes = {}
+    for m in module.modules():
+        if isinstance(m, (GRUModule, LSTMModule)):
+            primers = m.make_tensordict_primer().primers
+            for key in primers.keys(True, True):
+                shapes[key] = tuple(primers[key].shape)
+    return shapes
+
+
 def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, high: float, hidden: Sequence[int], *,
                namespace: str, action_key="action", init_scale: float | Sequence[float] = 1.0,
                bounds: TensorDictModule | None = None, loc_bound: float = 0.0,
                torchrl_tanh_loc: bool = False, latched: tuple[int, slice | Sequence[int]] | None = None,
                blind: Sequence[int] = (), blind_rate: float = 30.0,
-               focus: Mapping[int, Sequence[int]] | None = None) -> ProbabilisticActor:
+               focus: Mapping[int, Sequence[int]] | None = None,
+               core: TensorDictModuleBase | None = None, core_dim: int = 0) -> ProbabilisticActor:
     """A TanhNormal actor reading ``obs_key`` (flat), writing ``action_key`` and its log-prob, with
     the distribution parameters under ``(namespace, "loc")`` / ``(namespace, "scale")``.
 
@@ -201,6 +270,8 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
 
     ``latched`` (optional): entries fixed to N(0, 1) where an observation entry is > 0 (:class:`GaussianHeads`).
     ``blind`` (optional): heads that read no observation, one learned distribution each (:class:`GaussianHeads`).
+    ``core`` (optional): a recurrent core (:func:`make_core`) run first; the trunk reads its
+    ``(namespace, "memory")`` (``core_dim``) beside the normalized observation. Not with ``bounds``.
 
     ``torchrl_tanh_loc`` bounds it with TorchRL's ``TanhNormal(tanh_loc=True)`` instead, as checkpoints
     saved before 2026-11-25 did. That is not the same for per-sample bounds: TorchRL 0.14 then also
@@ -226,15 +297,24 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
         blind: indices of the heads that read no observation (default none).
         blind_rate: the scale of their bias (:class:`GaussianHeads`; default 30).
         focus: ``{head index: observation indices}``, heads that read only those (:class:`GaussianHeads`).
+        core: a recurrent core writing ``(namespace, "memory")`` (:func:`make_core`), or None (default).
+        core_dim: the size of its memory.
 
     Returns:
         the ``ProbabilisticActor`` (TanhNormal, writing the log-prob; :class:`SamplingPolicy` samples it faster).
     """
+    if core is not None and bounds is not None:
+        raise ConfigError("make_actor: a recurrent core with per-sample bounds (a prior, held noise, a feed-forward) "
+                          "is not supported")
     net = GaussianHeads(obs_dim, head_sizes, hidden, init_scale=init_scale,
                         loc_bound=0.0 if torchrl_tanh_loc else loc_bound, latched=latched, blind=blind,
-                        blind_rate=blind_rate, focus=focus)
+                        blind_rate=blind_rate, focus=focus, extra_dim=core_dim if core is not None else 0)
     loc, scale = (namespace, "loc"), (namespace, "scale")
-    module = TensorDictModule(net, in_keys=[obs_key], out_keys=[loc, scale])
+    if core is None:
+        module = TensorDictModule(net, in_keys=[obs_key], out_keys=[loc, scale])
+    else:
+        module = TensorDictSequential(core, TensorDictModule(net, in_keys=[obs_key, (namespace, "memory")],
+                                                             out_keys=[loc, scale]))
     dim = sum(head_sizes)
     dist_keys, dist_kwargs = {"loc": loc, "scale": scale}, {"low": low, "high": high}
     if bounds is not None:
@@ -249,6 +329,7 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
         distribution_kwargs=dist_kwargs, return_log_prob=True)
     # plain references (a tuple is not registered as a submodule: the state dict is unchanged)
     actor._sampling_parts = (net, bounds, obs_key, loc, scale, dist_keys, dist_kwargs)
+    actor._core = core
     return actor
 
 
@@ -297,7 +378,7 @@ class SamplingPolicy(TensorDictModuleBase):
     holds the actor (its parameters), so a collector's weight updates reach both paths.
 
     Args:
-        actor: an actor built by :func:`make_actor` (another raises
+        actor: an actor built by :func:`make_actor` without a recurrent core (another raises
             :class:`~adadex.errors.ConfigTypeError`).
 
     Examples:
@@ -317,6 +398,9 @@ class SamplingPolicy(TensorDictModuleBase):
         parts = getattr(actor, "_sampling_parts", None)
         if parts is None:
             raise ConfigTypeError(f"SamplingPolicy needs an actor built by make_actor, got {type(actor).__name__}")
+        if getattr(actor, "_core", None) is not None:
+            raise ConfigTypeError("SamplingPolicy runs the actor's network alone; an actor with a recurrent core "
+                                  "runs as it is")
         self.actor = actor
         self.in_keys, self.out_keys = list(actor.in_keys), list(actor.out_keys)
         sampler = actor.module[-1]                  # the ProbabilisticTensorDictModule: its output keys

@@ -15,7 +15,7 @@ _EXPORTS = {
     "adadex.train.ppo": ("PPOTrainer", "train", "default_loss", "TrainingDiverged"),
     "adadex.train.config": ("TrainConfig", "PPOConfig", "PolicyConfig", "CollectorConfig",
                             "ModulatorSettings", "SimConfig"),
-    "adadex.train.envs": ("TrackingEnvFactory", "ModulatedEnv"),
+    "adadex.train.envs": ("TrackingEnvFactory", "ModulatedEnv", "StatePrimer"),
     "adadex.train.collectors": ("make_collector", "local_collector"),
     "adadex.train.distill": ("Distiller", "DistillConfig", "distill"),
     "adadex.train.encoder": ("train_encoder", "evaluate_encoder"),
@@ -32,7 +32,7 @@ __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 if TYPE_CHECKING:      # the same names, for type checkers and IDEs
     from adadex.train.ppo import PPOTrainer, train, default_loss, TrainingDiverged
     from adadex.train.config import TrainConfig, PPOConfig, PolicyConfig, CollectorConfig, ModulatorSettings, SimConfig
-    from adadex.train.envs import TrackingEnvFactory, ModulatedEnv
+    from adadex.train.envs import TrackingEnvFactory, ModulatedEnv, StatePrimer
     from adadex.train.collectors import make_collector, local_collector
     from adadex.train.distill import Distiller, DistillConfig, distill
     from adadex.train.encoder import train_encoder, evaluate_encoder

@@ -319,6 +319,10 @@ class ModulatorSettings:
             (:mod:`adadex.train.paired_choice`) instead of PPO; ``ppo.*`` is then unused.
         paired: :class:`~adadex.train.paired_choice.PairedChoiceConfig` fields for ``learner=paired``
             (``arms``, ``repeats``, ``steps``, …; default none changed).
+        core: ``"gru"``: a recurrent core (TorchRL's ``GRUModule``) over the modulator's input, its state
+            carried in the env and PPO's updates run on whole sequences; ``None`` (default): none. Not
+            with ``prior``, ``hold_steps`` or ``learner=paired``. See :class:`~adadex.modules.modulator.Modulator`.
+        core_size: the core's hidden size (default 128).
     """
 
     tracker: str
@@ -336,6 +340,8 @@ class ModulatorSettings:
     focus: dict = field(default_factory=dict)
     learner: str = "ppo"
     paired: dict = field(default_factory=dict)
+    core: str | None = None
+    core_size: int = 128
 
     def __post_init__(self):
         from adadex.modules.modulator import INPUTS, ModulationLayout, channel_scales
@@ -377,6 +383,7 @@ class ModulatorSettings:
             raise ConfigError(f"ModulatorSettings: {e}") from None
         check_number("ModulatorSettings.loc_bound", self.loc_bound)
         check_number("ModulatorSettings.history", self.history, integer=True)
+        self._check_core()
         if self.inputs not in INPUTS:
             raise ConfigError(f"ModulatorSettings.inputs must be one of {INPUTS}, got {self.inputs!r}")
         from adadex.modules.channels import ModulationConfig
@@ -395,6 +402,21 @@ class ModulatorSettings:
         except CheckpointError as e:
             raise ConfigError(f"ModulatorSettings.tracker: {e}") from None
 
+
+    def _check_core(self) -> None:
+        """``core`` and ``core_size``, and what a core cannot be combined with, before any work."""
+        from adadex.modules.nets import CORES
+
+        if self.core not in CORES:
+            raise ConfigError(f"ModulatorSettings.core (modulator.core) must be one of {CORES}, got {self.core!r}")
+        check_number("ModulatorSettings.core_size", self.core_size, strict_low=True, integer=True)
+        if self.core is None:
+            return
+        clash = [name for name, on in (("prior", self.prior is not None), ("hold_steps", self.hold_steps > 0),
+                                       ("learner=paired", self.learner == "paired")) if on]
+        if clash:
+            raise ConfigError(f"ModulatorSettings.core={self.core!r} (modulator.core) cannot be combined with "
+                              f"{', '.join(clash)}")
 
     def _check_learner(self, layout, modulation) -> None:
         """``learner`` and ``paired``, before any work (a paired fit needs every channel latched)."""

@@ -21,6 +21,7 @@ from adadex.modules.channels import ModulationConfig
 from adadex.modules.modulator_view import ViewLayout
 from adadex.modules.tracker import Tracker
 from adadex.transforms.modulation import modulation
+from adadex.transforms.policy import state_primer
 
 
 @dataclass(frozen=True)
@@ -123,3 +124,18 @@ class ModulatedEnv:
     def __call__(self):
         view = None if self.history is None else ViewLayout(self.channels, self.history)
         return modulation(self.channels, Tracker.load(self.tracker).freeze(), self.config, view=view)
+
+
+@dataclass(frozen=True)
+class StatePrimer:
+    """Picklable :func:`~adadex.transforms.policy.state_primer` factory: the env carries this state from
+    step to step, zeros at reset (a recurrent policy's hidden state, in each collector worker).
+
+    Attributes:
+        shapes: ``((key, shape), …)`` per world, e.g. ``((("modulator", "core_state"), (1, 128)),)``.
+    """
+
+    shapes: tuple
+
+    def __call__(self):
+        return state_primer(dict(self.shapes))

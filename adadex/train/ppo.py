@@ -47,6 +47,7 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import Bounded, Composite, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
+from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss, LossModule
 from torchrl.objectives.value import GAE
 
@@ -57,7 +58,8 @@ from adadex.envs.tracking import TrackingConfig, episode_references
 from adadex.errors import AdadexError, ConfigError
 from adadex.eval.evaluate import evaluate
 from adadex.eval.metrics import ERROR_NAMES, SUMMARY_SCALE, frame_success, with_units
-from adadex.modules.nets import ActorCritic, Normalizer, ObservationMoments, fit_normalizers, stored_bounds_actor
+from adadex.modules.nets import (ActorCritic, Normalizer, ObservationMoments, fit_normalizers,
+                                 recurrent_state_shapes, stored_bounds_actor)
 from adadex.modules.channels import CHANNELS, ModulationConfig
 from adadex.modules.modulator import Modulator
 from adadex.modules.tracker import Tracker
@@ -66,8 +68,8 @@ from adadex.train.checkpoint import TRAINING_RUN, check_run, save_checkpoint, se
 from adadex.train.collectors import make_collector, start_worker_server
 from adadex.sim.robot import NUM_JOINTS
 from adadex.train.config import PPOConfig, TrainConfig
-from adadex.train.envs import ModulatedEnv, TrackingEnvFactory
-from adadex.transforms.policy import make_policy
+from adadex.train.envs import ModulatedEnv, StatePrimer, TrackingEnvFactory
+from adadex.transforms.policy import make_policy, state_primer
 from adadex.train.logs import RunLog
 from adadex.train.threads import torch_threads
 
@@ -204,7 +206,13 @@ class PPOTrainer:
                                     hold_scale=m.hold_scale, context_free=m.context_free, focus=m.focus,
                                     lambda_palm=env_channels.lambda_palm,
                                     prior_lookahead=env_channels.reach_lookahead if m.prior is not None else 1,
+                                    core=m.core, core_size=m.core_size,
                                     **{c.latch: getattr(env_channels, c.latch) for c in CHANNELS.values() if c.latch})
+        #: the state a recurrent policy (TorchRL's GRUModule / LSTMModule in its actor or critic) carries in
+        #: the env, ``{key: shape}``; empty for a feed-forward one. The env primes it; updates run on whole sequences
+        self.recurrent = {**recurrent_state_shapes(self.policy.actor), **recurrent_state_shapes(self.policy.critic)}
+        if self.recurrent:
+            self.env_transforms = (*self.env_transforms, StatePrimer(tuple(self.recurrent.items())))
         self.ppo = cfg.ppo
         self.device = self._check_device(torch.device(self.ppo.device))
         self.policy.to(self.device)                # before the loss takes its parameters
@@ -225,6 +233,9 @@ class PPOTrainer:
         self.teacher = None if teacher is None else tuple(t.to(self.device) for t in teacher)
         if teacher is not None and not self.ppo.imitation_coef > 0:
             raise ConfigError("a teacher table was given but ppo.imitation_coef is 0")
+        if teacher is not None and self.recurrent:
+            raise ConfigError(f"{run_name}: imitation of a teacher (IL+RL) scores single frames; the policy has a "
+                              f"recurrent core (state {sorted(self.recurrent, key=str)})")
         self.iteration, self.frames = 0, 0
         #: ``tracker.pt`` or ``modulator.pt``: loads with ``Tracker.load`` / ``Modulator.load``
         self.policy_path = self.out / f"{self.policy.kind}.pt"
@@ -359,29 +370,41 @@ class PPOTrainer:
         self.policy.save(self.policy_path)
 
     def _update(self, data: TensorDictBase) -> dict:
-        """GAE, then ``epochs`` passes of minibatch PPO updates over ``data`` ([N, T])."""
+        """GAE, then ``epochs`` passes of minibatch PPO updates over ``data`` ([N, T]).
+
+        A minibatch is ``ppo.minibatch_size`` frames drawn at random, or for a recurrent policy
+        (:attr:`recurrent`) ``minibatch_size // T`` whole rows: each world's T steps in order, which
+        TorchRL's recurrent mode runs from the state the collector stored at the row's first step (and
+        from zero after an ``"is_init"``). Its log-probabilities are then those of the collection, as
+        they would be frame by frame from each step's stored state, but the gradient also reaches back
+        through the sequence, so the core learns what to keep from earlier steps."""
         data = data.to(self.device)
-        with torch.no_grad():
+        with torch.no_grad(), set_recurrent_mode(bool(self.recurrent)):
             self.gae(data)
             if self.ppo.advantage == "group":
                 group_advantage(data, self.cfg.collector.group_size, self.loss.tensor_keys)
-        flat = data.select(*self._minibatch_keys()).reshape(-1)
-        if self.buffer is None or self.buffer.storage.max_size != flat.numel():
-            self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(flat.numel(), device=self.device),
-                                                 sampler=SamplerWithoutReplacement(),
-                                                 batch_size=self.ppo.minibatch_size)
+        if self.recurrent:
+            items = data.select(*self._minibatch_keys())                 # [N, T]: rows of whole sequences
+            per = max(1, min(items.shape[0], self.ppo.minibatch_size // items.shape[-1]))
+        else:
+            items = data.select(*self._minibatch_keys()).reshape(-1)
+            per = self.ppo.minibatch_size
+        if self.buffer is None or self.buffer.storage.max_size != items.shape[0] or self.buffer.batch_size != per:
+            self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(items.shape[0], device=self.device),
+                                                 sampler=SamplerWithoutReplacement(), batch_size=per)
         buffer = self.buffer
         buffer.empty()
-        buffer.extend(flat)
+        buffer.extend(items)
         stats: dict[str, list] = {}
-        steps = max(1, flat.numel() // self.ppo.minibatch_size)
+        steps = max(1, items.shape[0] // per)
         skipped = 0
         if self.ppo.anneal_lr:
             self._set_lr(self.ppo.annealed_lr(self.frames))
         for _ in range(self.ppo.epochs):
             for _ in range(steps):
                 batch = buffer.sample()
-                out = self.loss(batch)
+                with set_recurrent_mode(bool(self.recurrent)):
+                    out = self.loss(batch)
                 total = out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
                 for k in sorted(k for k in out.keys() if isinstance(k, str) and k.startswith("loss_")
                                 and k not in ("loss_objective", "loss_critic", "loss_entropy")):
@@ -502,7 +525,7 @@ class PPOTrainer:
                      if self.cfg.eval_split is not None else refs)[: self.cfg.eval_max_references]
         # evaluated on the host, beside the env: a copy when the run trains on another device
         trained = self.policy if self.device.type == "cpu" else copy.deepcopy(self.policy).to("cpu")
-        policy, primer = trained.actor, None
+        policy, primer = trained.actor, (state_primer(self.recurrent) if self.recurrent else None)
         if self.transform is not None:
             t = self.transform
             policy = make_policy(Tracker.load(t.tracker), trained, channels=t.channels, config=t.config)

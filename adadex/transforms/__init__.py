@@ -18,7 +18,7 @@ _EXPORTS = {
                                      "read_ahead", "move_visible_reference", "ChannelTransform",
                                      "TrackerInTheLoop", "FlatModulationAction",
                                      "ModulatorView"),
-    "adadex.transforms.policy": ("make_policy", "ModulatedPolicy"),
+    "adadex.transforms.policy": ("make_policy", "ModulatedPolicy", "state_primer"),
     "adadex.transforms.object_points": ("ObjectPoints",),
 }
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
@@ -29,5 +29,5 @@ if TYPE_CHECKING:      # the same names, for type checkers and IDEs
         CompactModulation, AnchorReach, ReferenceLead, GainModulation, read_ahead, move_visible_reference,
         ChannelTransform, TrackerInTheLoop, FlatModulationAction, ModulatorView
     )
-    from adadex.transforms.policy import make_policy, ModulatedPolicy
+    from adadex.transforms.policy import make_policy, ModulatedPolicy, state_primer
     from adadex.transforms.object_points import ObjectPoints

@@ -15,7 +15,8 @@ The policy writes:
   reference edit carried to the next step, and for a modulator that reads its view
   (:mod:`adadex.modules.modulator_view`) the view's state, ``("next", "modulation",
   "last_action"/"steps"/"history")`` (in general: the state of every transform of the chain that
-  carries one, see :meth:`adadex.transforms.modulation.ChannelTransform.state_shapes`). Like TorchRL's
+  carries one, see :meth:`adadex.transforms.modulation.ChannelTransform.state_shapes`), and a modulator's
+  recurrent core its hidden state, ``("next", "modulator", "core_state")``. Like TorchRL's
   recurrent modules, the env must carry that state: ``env.append_transform(policy.primer())`` (a
   ``TensorDictPrimer`` that zeroes it at reset); without it the policy raises instead of silently
   forgetting its edits.
@@ -59,6 +60,7 @@ from adadex.envs.observation import JOINT_POS, LATENT_DIM, LINK_POSE, OBJECT_LAT
 from adadex.errors import ConfigError, ConfigTypeError, UnknownKeyError
 from adadex.modules.channels import MOD, ModulationConfig, ModulationLayout
 from adadex.modules.encoder import PointCloudAutoencoder, PointCloudEncoder
+from adadex.modules.nets import recurrent_state_shapes
 from adadex.transforms.modulation import ChannelTransform, ModulatorView, modulation
 from adadex.transforms.object_points import DEFAULT_POINTS, ObjectPoints
 
@@ -202,14 +204,25 @@ class ModulatedPolicy(TensorDictSequential):
 
     def primer(self) -> Transform:
         """What the env must carry for this policy: a ``TensorDictPrimer`` of its state (zeros at reset;
-        empty without persistent R, view or encoder) and, with the encoder in the graph, first an
-        :class:`~adadex.transforms.object_points.ObjectPoints` (the encoder's input, the cloud its
+        empty without persistent R, view, encoder or recurrent core) and, with the encoder in the graph,
+        first an :class:`~adadex.transforms.object_points.ObjectPoints` (the encoder's input, the cloud its
         latent table used) — then a ``Compose`` of the two. A new transform at each call (one per env)."""
-        spec = {key: Unbounded(shape=shape) for key, shape in self.state_shapes.items()}
-        primer = TensorDictPrimer(Composite(spec), default_value=0.0, expand_specs=True)
+        primer = state_primer(self.state_shapes)
         if self._points is None:
             return primer
         return Compose(ObjectPoints(**self._points), primer)
+
+
+def state_primer(state_shapes: dict) -> TensorDictPrimer:
+    """A ``TensorDictPrimer`` of ``{key: shape}`` (per world; the env's batch dimensions are added):
+    zeros at reset, carried from step to step by the env — the state a policy graph or a recurrent
+    module (:func:`adadex.modules.nets.recurrent_state_shapes`) needs in the env.
+
+    Args:
+        state_shapes: ``{key: shape}`` per world.
+    """
+    spec = {key: Unbounded(shape=shape) for key, shape in state_shapes.items()}
+    return TensorDictPrimer(Composite(spec), default_value=0.0, expand_specs=True)
 
 
 def make_policy(tracker, modulator=None, channels=None,
@@ -290,5 +303,6 @@ def make_policy(tracker, modulator=None, channels=None,
         modules.append(_ShowState(stateful))
     if modulator is not None:
         modules.append(getattr(modulator, "actor", modulator))
+        state_shapes.update(recurrent_state_shapes(modules[-1]))     # a recurrent core's hidden state
     modules.append(_TrackerStage(chain, layout, stateful))
     return ModulatedPolicy(*modules, layout=layout, state_shapes=state_shapes, points=points)

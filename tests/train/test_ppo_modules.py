@@ -11,6 +11,7 @@ import pickle
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -232,3 +233,20 @@ def test_modulator_prior_and_held_exploration_reach_the_trained_modulator(tiny_d
         ModulatorSettings(tracker=str(tmp_path / "tracker.pt"), channels="C+T", prior="object")
     with pytest.raises(ConfigError, match="hold_scale"):
         ModulatorSettings(tracker=str(tmp_path / "tracker.pt"), channels="C+T", hold_steps=5)
+
+
+def test_updates_past_the_trust_region_are_reported(tiny_dataset, tmp_path, capsys):
+    """The result says how far the updates moved the policy (median KL and clip fraction over the
+    iterations), and a run whose samples were mostly clipped is told so in one warning line."""
+    cfg = _config(tiny_dataset, tmp_path / "fast", split=None)
+    cfg = dataclasses.replace(cfg, ppo=dataclasses.replace(cfg.ppo, lr=0.01, desired_kl=0.0, epochs=4))
+    result = train(cfg, policy=TanhCriticPolicy())
+    rows = _rows(cfg.out)
+    assert result["updates"]["iterations"] == len(rows) == 2
+    assert result["updates"]["clip_fraction_median"] > 0.6
+    assert result["updates"]["kl_median"] == pytest.approx(float(np.median([float(r["kl_approx"]) for r in rows])))
+    err = capsys.readouterr().err
+    assert "ran past PPO's trust region" in err and "ppo.desired_kl" in err
+    gentle = dataclasses.replace(cfg, out=str(tmp_path / "gentle"), ppo=dataclasses.replace(cfg.ppo, lr=1e-6))
+    assert train(gentle, policy=TanhCriticPolicy())["updates"]["clip_fraction_median"] < 0.6
+    assert "trust region" not in capsys.readouterr().err

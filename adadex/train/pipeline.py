@@ -83,7 +83,7 @@ EVAL_SPLITS = ("unseen_trajectory", "unseen_object")
 #: the paired learner fits only channels chosen once per episode, and every row of :data:`MODULATOR_ROWS`
 #: acts every step)
 MODULATOR_SETTINGS = ("hidden", "init_scale", "loc_bound", "inputs", "history", "prior", "hold_steps", "hold_scale",
-                      "context_free", "focus")
+                      "context_free", "focus", "core", "core_size")
 
 
 def _pipeline_ppo(total_frames: int) -> PPOConfig:
@@ -228,6 +228,9 @@ class ModulatorStage:
             in the rows that train them (default none).
         focus: ``{channel: view parts}`` read by those channels' heads alone (:attr:`ModulatorSettings.focus`),
             in the rows that train them (default none).
+        core: ``"gru"``: a recurrent core over each modulator's input (:attr:`ModulatorSettings.core`);
+            default ``None``.
+        core_size: its hidden size (:attr:`ModulatorSettings.core_size`).
         group_size: the modulators' worlds in groups on common random numbers
             (:attr:`~adadex.train.config.CollectorConfig.group_size`; with ``ppo.advantage=group``);
             default ``None``: the chain's ``collector.group_size``.
@@ -246,6 +249,8 @@ class ModulatorStage:
     hold_scale: Any = _modulator_default("hold_scale")
     context_free: tuple[str, ...] = _modulator_default("context_free")
     focus: dict = _modulator_default("focus")
+    core: str | None = _modulator_default("core")
+    core_size: int = _modulator_default("core_size")
     group_size: int | None = None
 
     def __post_init__(self):
@@ -579,6 +584,9 @@ class Pipeline:
         settings["ppo"] = {k: v for k, v in settings["ppo"].items() if k != "update_threads"}   # speed, not result
         if settings["policy"]["anchor_lookahead"] == 1:
             del settings["policy"]["anchor_lookahead"]   # its default: the settings of stages run before it existed
+        if settings.get("modulator") and settings["modulator"].get("core") is None:
+            for k in ("core", "core_size"):              # the same: no recurrent core, as every stage before it
+                settings["modulator"].pop(k, None)
         if teacher is not None:
             settings["teacher"] = teacher[0]
 

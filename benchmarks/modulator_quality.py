@@ -57,8 +57,9 @@ def parse_row(text: str) -> dict:
     ``focus_X=part+part`` (channel X's head reads only those view parts), the
     :class:`~adadex.modules.modulator.Modulator` settings ``prior``, ``hold_steps``, ``hold_scale``, ``focus``;
     ``learner=paired`` (fit latched channels to paired rollouts, :mod:`adadex.train.paired_choice`,
-    instead of PPO); ``history=N`` (previous frames in the view, ``ModulatorSettings.history``); and
-    ``core=gru`` (a recurrent core, ``Modulator(core=…)``)."""
+    instead of PPO); ``history=N`` (previous frames in the view, ``ModulatorSettings.history``);
+    ``core=gru`` (a recurrent core, ``Modulator(core=…)``); and ``decide=K`` (a decision every K control
+    steps, held in between, ``Modulator(decide_every=…)``)."""
     parts = text.split(":")
     options = [p for p in parts[1:] if "=" in p]
     parts = [p for p in parts if "=" not in p]
@@ -82,9 +83,11 @@ def parse_row(text: str) -> dict:
             row["history"] = int(value)
         elif key == "core":
             row["modulator"]["core"] = value
+        elif key == "decide" and value.isdigit():
+            row["modulator"]["decide_every"] = int(value)
         else:
             raise SystemExit(f"--rows: unknown option {key!r} in {text!r} (prior=, hold=, hold_X=, focus_X=, "
-                             "learner=ppo|paired, history=N, core=gru)")
+                             "learner=ppo|paired, history=N, core=gru, decide=K)")
     row["name"] = text.replace("+", "").replace(":", "_").replace(".", "").replace("=", "")
     return row
 

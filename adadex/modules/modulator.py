@@ -57,6 +57,13 @@ this object have answered the tracker over the episode. It carries its hidden st
 :func:`adadex.transforms.policy.make_policy`'s primer hold it; :func:`adadex.modules.nets.recurrent_state_shapes`
 names it), and PPO updates it over whole sequences. Not with ``prior`` or ``hold_steps``.
 
+Decisions every k steps (``decide_every=k``, off by default): the modulator chooses at the episode's
+steps 0, k, 2k, … and the env holds that action for the k steps
+(:class:`adadex.transforms.modulation.ModulatorView`; the view's ``held`` part says which steps hold).
+Between decisions its heads are a fixed N(0, 1) that no parameter moves, so PPO scores one choice per
+k steps, each acting long enough for the return to show it — where a per-step edit of a few
+hundredths of a radian, redrawn every 83 ms, is lost in the noise of the others (docs/modulation.md).
+
 * ``modulator.actor`` — in: its input; out: ``"action"`` (D), ``"action_log_prob"``,
   ``("modulator", "loc")``, ``("modulator", "scale")``.
 * ``modulator.critic`` — in: its input; out: ``"state_value"``.
@@ -247,6 +254,9 @@ class Modulator(ActorCritic):
             Needs the view; default none.
         core: ``"gru"``: a recurrent core over the input (see the module docstring); ``None`` (default): none.
         core_size: the core's hidden size (default 128).
+        decide_every: k > 1: the modulator decides at the episode's steps 0, k, 2k, … and its action holds
+            for the k steps (see the module docstring; needs the view, not with ``prior`` or ``hold_steps``);
+            1 (default): every step.
     """
 
     kind = "modulator"
@@ -256,7 +266,8 @@ class Modulator(ActorCritic):
                  lambda_palm: float = _DEFAULT_LAMBDA_PALM, hold_steps: int = 0, hold_scale=None,
                  prior_lookahead: int = 1, reach_latched: bool = True, lead_latched: bool = True, gain_latched: bool = True,
                  context_free: Sequence[str] = (), context_free_rate: float = 30.0,
-                 focus: Mapping[str, Sequence[str]] | None = None, core: str | None = None, core_size: int = 128):
+                 focus: Mapping[str, Sequence[str]] | None = None, core: str | None = None, core_size: int = 128,
+                 decide_every: int = 1):
         super().__init__()
         self.layout = ModulationLayout(channels)
         if not self.layout.dim:
@@ -265,7 +276,10 @@ class Modulator(ActorCritic):
         if inputs not in INPUTS:
             raise ConfigError(f"Modulator.inputs must be one of {INPUTS}, got {inputs!r}")
         scales = channel_scales(self.layout, init_scale)
-        self.view = ViewLayout(self.layout.channels, history) if inputs == "view" else None
+        check_number("Modulator.decide_every", decide_every, low=1, integer=True)
+        if decide_every > 1 and inputs != "view":
+            raise ConfigError(f"Modulator(decide_every={decide_every}) reads when it decides from the view: inputs='view'")
+        self.view = ViewLayout(self.layout.channels, history, decide_every) if inputs == "view" else None
         self.obs_key, obs_dim = (VIEW, self.view.dim) if self.view is not None else (OBSERVATION, OBS_DIM)
         shift, held = self._shift(prior, lambda_palm, hold_steps, hold_scale, prior_lookahead)
         self.config = {"channels": self.layout.name, "hidden": list(hidden), "init_scale": scales,
@@ -284,7 +298,13 @@ class Modulator(ActorCritic):
                     for key, sl, _ in self.layout.segments:
                         if key in record.keys:
                             fixed += range(sl.start, sl.stop)
-        latched = (self.view.slices()["phase"].start, fixed) if fixed else None
+        latched = [(self.view.slices()["phase"].start, fixed)] if fixed else []
+        if decide_every > 1:             # between decisions the env holds the last action: no entry acts
+            if shift is not None:
+                raise ConfigError("Modulator(decide_every=…) cannot be combined with prior=… or hold_steps=… "
+                                  "(per-sample bounds)")
+            latched.append((self.view.slices()["held"].start, range(self.layout.dim)))
+            self.config["decide_every"] = int(decide_every)     # only then: saved configs stay as they were
         context_free = tuple(dict.fromkeys(str(c) for c in context_free))
         unknown = [c for c in context_free if c not in self.layout.channels]
         if unknown:
@@ -304,7 +324,7 @@ class Modulator(ActorCritic):
             self.config.update(core=core, core_size=int(core_size))    # only then: saved configs stay as they were
         self.actor = make_actor(self.obs_key, obs_dim, self.layout.channel_sizes, -1.0, 1.0, hidden,
                                 namespace="modulator", init_scale=[scales[c] for c in self.layout.channels],
-                                loc_bound=loc_bound, bounds=shift, latched=latched,
+                                loc_bound=loc_bound, bounds=shift, latched=latched or None,
                                 blind=[self.layout.channels.index(c) for c in context_free],
                                 blind_rate=context_free_rate,
                                 focus={self.layout.channels.index(c): [j for p in parts for j in

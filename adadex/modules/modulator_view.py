@@ -24,11 +24,19 @@ reference, nor the state of the servos, nor where in the episode it is. The view
 ``servo_lag``          22              joint targets minus joint positions
 ``last_action``        D               the modulator's previous action (its flat action, [−1, 1])
 ``phase``              1               control steps since the episode began, ÷ 100
+``held``               1 (k > 1 only)  1 between the modulator's decisions, 0 where it decides
+                                       (``decide_every`` = k: at the episode's steps 0, k, 2k, …)
 ``history``            H × 51          the H previous frames' joint positions (22), joint targets (22)
                                        and object pose (7), newest first (zeros before the first step)
 =====================  ==============  =============================================================
 
-The last three are state the modulator's environment carries from step to step (zero at reset):
+With ``decide_every`` = k > 1 the modulator decides every k control steps and its action holds in
+between (:class:`adadex.transforms.modulation.ModulatorView` repeats its last action there; the
+modulator's heads are a fixed N(0, 1) that no parameter moves where ``held`` is set). One decision
+then moves the tracker for k steps — an edit large enough for the return to show — and PPO scores
+one choice per k steps instead of k nearly invisible ones.
+
+The view's state is what the modulator's environment carries from step to step (zero at reset):
 ``("modulation", "last_action")``, ``("modulation", "steps")`` and ``("modulation", "history")``.
 :class:`adadex.transforms.modulation.ModulatorView` carries them in the transformed env (training);
 :func:`adadex.transforms.policy.make_policy` carries them through its primer (evaluation on a plain
@@ -68,10 +76,12 @@ _ROWS = list(REF_OFFSETS)
 class ViewLayout:
     """The parts of the view for a channel set and history length (see the module docstring)."""
 
-    def __init__(self, channels="R+O+T", history: int = 3):
+    def __init__(self, channels="R+O+T", history: int = 3, decide_every: int = 1):
         check_number("ViewLayout.history", history, integer=True)
+        check_number("ViewLayout.decide_every", decide_every, low=1, integer=True)
         self.channels = ModulationLayout(channels)
         self.history = int(history)
+        self.decide_every = int(decide_every)
         self.action_dim = self.channels.dim
         parts = [("observation", OBS_DIM), ("original_error", NUM_JOINTS + 7),
                  ("original_future", _FUTURE * (NUM_JOINTS + 7))]
@@ -83,8 +93,10 @@ class ViewLayout:
             parts.append(("reach", 1))
         if "K" in self.channels:
             parts.append(("gain", 2))
-        parts += [("start_offset", 3), ("servo_lag", NUM_JOINTS), ("last_action", self.action_dim), ("phase", 1),
-                  ("history", self.history * FRAME_DIM)]
+        parts += [("start_offset", 3), ("servo_lag", NUM_JOINTS), ("last_action", self.action_dim), ("phase", 1)]
+        if self.decide_every > 1:
+            parts.append(("held", 1))
+        parts.append(("history", self.history * FRAME_DIM))
         self.parts = tuple(parts)
         self.dim = sum(n for _, n in parts)
 
@@ -101,7 +113,13 @@ class ViewLayout:
         return {LAST_ACTION: (self.action_dim,), STEPS: (1,), HISTORY: (self.history, FRAME_DIM)}
 
     def __repr__(self) -> str:
-        return f"ViewLayout({self.channels.name!r}, history={self.history}, dim={self.dim})"
+        every = f", decide_every={self.decide_every}" if self.decide_every > 1 else ""
+        return f"ViewLayout({self.channels.name!r}, history={self.history}{every}, dim={self.dim})"
+
+    def held(self, steps: torch.Tensor) -> torch.Tensor:
+        """(…, 1) bool: where the modulator's action holds at this step (``steps``: control steps
+        taken in the episode, the view's state) — every step that is not a multiple of ``decide_every``."""
+        return (steps.round().long() % self.decide_every) != 0
 
 
 def _zeros_like_state(td: TensorDictBase, layout: ViewLayout) -> dict:
@@ -149,6 +167,7 @@ def view_features(td: TensorDictBase, layout: ViewLayout) -> torch.Tensor:
         "servo_lag": td.get(JOINT_TARGET) - joint_pos,
         "last_action": state[LAST_ACTION],
         "phase": state[STEPS] / 100.0,
+        "held": layout.held(state[STEPS]).to(joint_pos.dtype),
         "history": state[HISTORY].reshape(*lead, -1),
     }
     if "R" in layout.channels:

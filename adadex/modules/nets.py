@@ -10,6 +10,7 @@ their own :class:`Normalizer`, so a saved module carries its statistics.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -83,7 +84,8 @@ class GaussianHeads(nn.Module):
     list of indices of the output) are a fixed N(0, 1) that no parameter moves — entries the environment ignores there (a
     choice it latched earlier, e.g. channel A's reach after the episode's first step). Their samples
     then carry no parameter's log-probability, so PPO's ratio and gradient come only from the entries
-    that act, instead of from noise the environment throws away.
+    that act, instead of from noise the environment throws away. A list of such pairs applies each
+    (e.g. A's reach after the first step, and every entry between a modulator's decisions).
 
     ``blind`` (optional): indices of heads that read no observation — their loc and scale are
     ``blind_rate ·`` the head's bias, one learned distribution for every input (the weights stay,
@@ -113,7 +115,7 @@ class GaussianHeads(nn.Module):
         init_scale: initial exploration scale, one for all heads or one per head (default 1.0).
         activation: the trunk's activation class (default ``nn.ELU``).
         loc_bound: > 0: ``loc = b·tanh(loc/b)`` (default 0: unbounded).
-        latched: ``(i, entries)`` (above), or None.
+        latched: ``(i, entries)`` (above), a list of them, or None.
         blind: indices of the heads that read no observation (above; default none).
         blind_rate: their bias's scale (above; default 30).
         focus: ``{head index: observation indices}`` read by those heads alone (above; default none).
@@ -123,7 +125,7 @@ class GaussianHeads(nn.Module):
 
     def __init__(self, obs_dim: int, head_sizes: Sequence[int], hidden: Sequence[int], *,
                  init_gain: float = 0.01, init_scale: float | Sequence[float] = 1.0, activation=nn.ELU,
-                 loc_bound: float = 0.0, latched: tuple[int, slice | Sequence[int]] | None = None,
+                 loc_bound: float = 0.0, latched=None,
                  blind: Sequence[int] = (), blind_rate: float = 30.0,
                  focus: Mapping[int, Sequence[int]] | None = None, focus_hidden: Sequence[int] = (32, 32),
                  extra_dim: int = 0):
@@ -146,11 +148,12 @@ class GaussianHeads(nn.Module):
         for i, idx in focus.items():      # not persistent: the config rebuilds them
             self.register_buffer(f"focus_index_{i}", torch.tensor(idx, dtype=torch.long), persistent=False)
         self.loc_bound = float(loc_bound)
-        self.latched = None if latched is None else int(latched[0])
-        if latched is not None:           # not persistent: the state dict is the same with or without it
+        rules = [] if latched is None else [latched] if isinstance(latched[0], int) else list(latched)
+        self.latched = [int(i) for i, _ in rules]
+        for n, (_, entries) in enumerate(rules):   # not persistent: the state dict is the same with or without them
             mask = torch.zeros(sum(head_sizes), dtype=torch.bool)
-            mask[latched[1] if isinstance(latched[1], slice) else list(latched[1])] = True
-            self.register_buffer("latched_entries", mask, persistent=False)
+            mask[entries if isinstance(entries, slice) else list(entries)] = True
+            self.register_buffer(f"latched_entries_{n}", mask, persistent=False)
         self.norm = Normalizer(obs_dim)
         self.trunk = MLP(in_features=obs_dim + self.extra_dim, out_features=hidden[-1], num_cells=list(hidden[:-1]),
                          activation_class=activation, activate_last_layer=True)
@@ -181,8 +184,9 @@ class GaussianHeads(nn.Module):
         if self.loc_bound > 0:
             loc = self.loc_bound * torch.tanh(loc / self.loc_bound)
         scale = torch.cat(scales, -1)
-        if self.latched is not None:
-            fixed = self.latched_entries & (obs[..., self.latched:self.latched + 1] > 0)
+        if self.latched:
+            fixed = functools.reduce(torch.logical_or, (getattr(self, f"latched_entries_{n}") & (obs[..., i:i + 1] > 0)
+                                                        for n, i in enumerate(self.latched)))
             loc = torch.where(fixed, torch.zeros_like(loc), loc)
             scale = torch.where(fixed, torch.ones_like(scale), scale)
         return loc, scale
@@ -252,7 +256,7 @@ def recurrent_state_shapes(module: nn.Module) -> dict:
 def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, high: float, hidden: Sequence[int], *,
                namespace: str, action_key="action", init_scale: float | Sequence[float] = 1.0,
                bounds: TensorDictModule | None = None, loc_bound: float = 0.0,
-               torchrl_tanh_loc: bool = False, latched: tuple[int, slice | Sequence[int]] | None = None,
+               torchrl_tanh_loc: bool = False, latched=None,
                blind: Sequence[int] = (), blind_rate: float = 30.0,
                focus: Mapping[int, Sequence[int]] | None = None,
                core: TensorDictModuleBase | None = None, core_dim: int = 0) -> ProbabilisticActor:
@@ -293,7 +297,8 @@ def make_actor(obs_key, obs_dim: int, head_sizes: Sequence[int], low: float, hig
         bounds: a module writing per-sample bounds (above), or None.
         loc_bound: bound of the pre-tanh mean (above; default 0: none).
         torchrl_tanh_loc: bound it TorchRL's way instead (above; default False).
-        latched: ``(observation index, entries)`` fixed to N(0, 1) where that entry is > 0, or None.
+        latched: ``(observation index, entries)`` fixed to N(0, 1) where that entry is > 0, a list of
+            them, or None.
         blind: indices of the heads that read no observation (default none).
         blind_rate: the scale of their bias (:class:`GaussianHeads`; default 30).
         focus: ``{head index: observation indices}``, heads that read only those (:class:`GaussianHeads`).

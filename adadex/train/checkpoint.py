@@ -160,7 +160,8 @@ _ABSENT = "(not set)"
 #: settings added after runs were saved without them, with the value that computes what those runs did:
 #: a checkpoint without the setting resumes under this value, and only under it
 _BEFORE_ADDED = {"modulator.context_free": [], "ppo.advantage": "gae", "collector.group_size": 1,
-                 "policy.anchor_lookahead": 1, "modulator.core": None, "modulator.core_size": 128}
+                 "policy.anchor_lookahead": 1, "modulator.core": None, "modulator.core_size": 128,
+                 "modulator.decide_every": 1}
 
 
 def _flat(d, prefix: str = "") -> dict:

@@ -323,6 +323,10 @@ class ModulatorSettings:
             carried in the env and PPO's updates run on whole sequences; ``None`` (default): none. Not
             with ``prior``, ``hold_steps`` or ``learner=paired``. See :class:`~adadex.modules.modulator.Modulator`.
         core_size: the core's hidden size (default 128).
+        decide_every: k > 1: the modulator decides every k control steps and its action holds in
+            between (PPO scores one choice per k steps); 1 (default): every step. Not with ``prior``,
+            ``hold_steps`` or ``learner=paired``; needs ``inputs="view"``. See
+            :class:`~adadex.modules.modulator.Modulator`.
     """
 
     tracker: str
@@ -342,6 +346,7 @@ class ModulatorSettings:
     paired: dict = field(default_factory=dict)
     core: str | None = None
     core_size: int = 128
+    decide_every: int = 1
 
     def __post_init__(self):
         from adadex.modules.modulator import INPUTS, ModulationLayout, channel_scales
@@ -384,6 +389,7 @@ class ModulatorSettings:
         check_number("ModulatorSettings.loc_bound", self.loc_bound)
         check_number("ModulatorSettings.history", self.history, integer=True)
         self._check_core()
+        self._check_decide_every()
         if self.inputs not in INPUTS:
             raise ConfigError(f"ModulatorSettings.inputs must be one of {INPUTS}, got {self.inputs!r}")
         from adadex.modules.channels import ModulationConfig
@@ -417,6 +423,18 @@ class ModulatorSettings:
         if clash:
             raise ConfigError(f"ModulatorSettings.core={self.core!r} (modulator.core) cannot be combined with "
                               f"{', '.join(clash)}")
+
+    def _check_decide_every(self) -> None:
+        """``decide_every`` and what it cannot be combined with, before any work."""
+        check_number("ModulatorSettings.decide_every (modulator.decide_every)", self.decide_every, low=1, integer=True)
+        if self.decide_every == 1:
+            return
+        clash = [name for name, on in (("prior", self.prior is not None), ("hold_steps", self.hold_steps > 0),
+                                       ("learner=paired", self.learner == "paired"),
+                                       (f"inputs={self.inputs!r}", self.inputs != "view")) if on]
+        if clash:
+            raise ConfigError(f"ModulatorSettings.decide_every={self.decide_every} (modulator.decide_every) cannot be "
+                              f"combined with {', '.join(clash)}")
 
     def _check_learner(self, layout, modulation) -> None:
         """``learner`` and ``paired``, before any work (a paired fit needs every channel latched)."""

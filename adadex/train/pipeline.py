@@ -83,7 +83,7 @@ EVAL_SPLITS = ("unseen_trajectory", "unseen_object")
 #: the paired learner fits only channels chosen once per episode, and every row of :data:`MODULATOR_ROWS`
 #: acts every step)
 MODULATOR_SETTINGS = ("hidden", "init_scale", "loc_bound", "inputs", "history", "prior", "hold_steps", "hold_scale",
-                      "context_free", "focus", "core", "core_size")
+                      "context_free", "focus", "core", "core_size", "decide_every")
 
 
 def _pipeline_ppo(total_frames: int) -> PPOConfig:
@@ -231,6 +231,8 @@ class ModulatorStage:
         core: ``"gru"``: a recurrent core over each modulator's input (:attr:`ModulatorSettings.core`);
             default ``None``.
         core_size: its hidden size (:attr:`ModulatorSettings.core_size`).
+        decide_every: k > 1: each modulator decides every k control steps, its action held in between
+            (:attr:`ModulatorSettings.decide_every`); default 1: every step.
         group_size: the modulators' worlds in groups on common random numbers
             (:attr:`~adadex.train.config.CollectorConfig.group_size`; with ``ppo.advantage=group``);
             default ``None``: the chain's ``collector.group_size``.
@@ -251,6 +253,7 @@ class ModulatorStage:
     focus: dict = _modulator_default("focus")
     core: str | None = _modulator_default("core")
     core_size: int = _modulator_default("core_size")
+    decide_every: int = _modulator_default("decide_every")
     group_size: int | None = None
 
     def __post_init__(self):
@@ -587,6 +590,8 @@ class Pipeline:
         if settings.get("modulator") and settings["modulator"].get("core") is None:
             for k in ("core", "core_size"):              # the same: no recurrent core, as every stage before it
                 settings["modulator"].pop(k, None)
+        if settings.get("modulator") and settings["modulator"].get("decide_every") == 1:
+            del settings["modulator"]["decide_every"]    # the same: a decision every step, as every stage before it
         if teacher is not None:
             settings["teacher"] = teacher[0]
 

@@ -94,6 +94,9 @@ class Sim2RealPreset:
     #: channels whose choice reads no observation — one learned value for every episode, the robot's
     #: (``ModulatorSettings.context_free``); those that ``channels`` lacks are left out
     context_free: tuple[str, ...] = ("K",)
+    #: the modulator decides every this many control steps, its action held in between
+    #: (``ModulatorSettings.decide_every``; 1: every step)
+    decide_every: int = 1
     gamma: float = 0.998            # PPO's discount and GAE λ: a choice latched at an episode's first step is
     lmbda: float = 1.0              # credited with the episode's return (docs/modulation.md, channel A)
     #: worlds that share a reference, a draw and the noise (``CollectorConfig.group_size``), and how PPO
@@ -166,7 +169,7 @@ def preset(name: str, **changes) -> Sim2RealPreset:
         if group in changes:
             changes[group] = {**getattr(PRESETS[name], group), **dict(changes[group])}
     p = dataclasses.replace(PRESETS[name], **changes)
-    for key in ("eval_repeats", "worlds", "frames", "frames_per_batch", "minibatch_size", "epochs"):
+    for key in ("eval_repeats", "worlds", "frames", "frames_per_batch", "minibatch_size", "epochs", "decide_every"):
         check_number(key, getattr(p, key), low=1, integer=True)
     for key, check in (("window", lambda: TrackingConfig(window=p.window)),
                        ("reward", lambda: RewardConfig(**p.reward)),
@@ -388,12 +391,13 @@ def train_modulator(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomi
     from adadex.train.config import ModulatorSettings
 
     m = ModulatorSettings(tracker=str(tracker), channels=p.channels, hidden=p.hidden, context_free=_context_free(p),
-                          modulation=dict(p.modulation))
+                          modulation=dict(p.modulation), decide_every=p.decide_every)
     return _train(folder, dataset=dataset, p=p, randomization=randomization, seed=seed, name=name,
                   progress=progress, modulator=m,
                   inputs={"channels": p.channels, "tracker": fingerprint(Tracker.load(tracker)),
                           **({"context_free": list(_context_free(p))} if _context_free(p) else {}),
-                          **({"modulation": dict(p.modulation)} if p.modulation else {})})
+                          **({"modulation": dict(p.modulation)} if p.modulation else {}),
+                          **({"decide_every": p.decide_every} if p.decide_every != 1 else {})})
 
 
 def finetune_tracker(folder, *, dataset, tracker: str, p: Sim2RealPreset, randomization, seed: int,

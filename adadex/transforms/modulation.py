@@ -50,9 +50,10 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adadex.envs.observation import JOINT_POS, OBJECT_LATENT, OBJECT_START, OBSERVATION, REF_JOINT_POS, REF_OBJECT_POSE, \
     REF_OBJECT_START, REF_OFFSETS, flat_from_tensordict
+from adadex.errors import UnknownKeyError
 from adadex.modules.channels import GRIP_JOINTS, HAND_EDIT, MOD, OBJECT_EDIT, PALM, Channel, ModulationConfig, \
     ModulationLayout, bind_transform
-from adadex.modules.modulator_view import VIEW, ViewLayout, next_view_state, view_features
+from adadex.modules.modulator_view import LAST_ACTION, STEPS, VIEW, ViewLayout, next_view_state, view_features
 from adadex.quat import quat_from_rotvec, quat_mul, rotvec_from_quat
 from adadex.sim.robot import JOINT_NAMES, NUM_JOINTS
 
@@ -684,7 +685,10 @@ class ModulatorView(CarriedState, Transform):
 
     It follows the channels' state protocol (:class:`CarriedState`), so
     :func:`adadex.transforms.policy.make_policy` carries the same state on a plain env through its
-    primer. Outermost in :func:`modulation`: on the forward path it runs after R has shown its edit.
+    primer. Outermost in :func:`modulation`: on the forward path it runs after R has shown its edit;
+    on the inverse path it runs first, and with the layout's ``decide_every`` = k > 1 it replaces the
+    modulator's action by its last one at every step between decisions (the view's ``held`` part), so
+    each decision acts for k control steps.
 
     Args:
         layout: the modulator's view layout (:attr:`~adadex.modules.modulator.Modulator.view`).
@@ -700,6 +704,18 @@ class ModulatorView(CarriedState, Transform):
     def next_state(self, td: TensorDictBase) -> dict:
         """The state for the next step, from this step's entries after the inverse path."""
         return next_view_state(td, self.layout)
+
+    def _inv_call(self, td: TensorDictBase) -> TensorDictBase:
+        """Between decisions (``decide_every`` > 1), the flat action is the one last applied."""
+        if self.layout.decide_every == 1:
+            return td
+        action, last, steps = td.get("action", None), td.get(LAST_ACTION, None), td.get(STEPS, None)
+        if action is None or last is None or steps is None:
+            missing = [k for k, v in (("action", action), (LAST_ACTION, last), (STEPS, steps)) if v is None]
+            raise UnknownKeyError(f"ModulatorView(decide_every={self.layout.decide_every}) needs {missing} in the "
+                                  "tensordict to hold the modulator's action between its decisions")
+        td.set("action", torch.where(self.layout.held(steps), last.to(action.dtype), action))
+        return td
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         spec = self._state_specs(observation_spec)

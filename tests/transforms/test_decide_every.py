@@ -1,0 +1,103 @@
+"""A modulator that decides every k steps (``Modulator(decide_every=k)``): the env holds its action for
+the k steps, the view says where it holds, the heads are a fixed N(0, 1) there (no parameter's
+log-probability), the policy graph runs as the transformed env, and a latched channel stays latched."""
+
+import pytest
+import torch
+from torchrl.envs import TransformedEnv
+from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
+
+from adadex.errors import ConfigError
+from adadex.envs.tracking import TrackingEnv
+from adadex.modules.channels import REACH_STATE
+from adadex.modules.modulator import Modulator
+from adadex.modules.modulator_view import LAST_ACTION, ViewLayout
+from adadex.modules.tracker import Tracker
+from adadex.transforms.modulation import modulation
+from adadex.transforms.policy import make_policy
+from tests.transforms.scripted import sampled_rollout
+
+K = 3
+
+
+def _env(dataset, mod, worlds=3):
+    return TransformedEnv(TrackingEnv(dataset, num_worlds=worlds, split=None, seed=3),
+                          modulation(mod.layout.channels, Tracker.replay().freeze(), view=mod.view))
+
+
+def _sampled(dataset, mod, steps=7):
+    env = _env(dataset, mod)
+    check_env_specs(env)
+    with set_exploration_type(ExplorationType.RANDOM), torch.no_grad():
+        td = env.rollout(steps, mod.actor, break_when_any_done=False)
+    env.close()
+    return td
+
+
+def test_the_action_holds_between_decisions_and_the_view_says_where(tiny_dataset):
+    torch.manual_seed(0)
+    mod = Modulator("R+T", hidden=(16, 16), decide_every=K)
+    assert [n for n, _ in mod.view.parts][-2:] == ["held", "history"]
+    assert ViewLayout("R+T").dim + 1 == mod.view.dim and mod.config["decide_every"] == K
+    td = _sampled(tiny_dataset, mod)
+    applied = td["next", *LAST_ACTION]                      # what the env applied at each step
+    held = td["modulator", "view"][..., mod.view.slices()["held"]][..., 0]
+    assert torch.equal(held[0], torch.tensor([0., 1., 1., 0., 1., 1., 0.]))
+    for t in range(7):
+        decision = t - t % K
+        torch.testing.assert_close(applied[:, t], td["action"][:, decision].clamp(-1, 1))
+    assert (td["action"][:, 1] - td["action"][:, 0]).abs().max() > 0.01        # the samples did differ
+    # the reference edit R carries grows by the held residual at every step, decided or not
+    assert (td["next", "modulation", "hand_edit"][:, 2] - td["next", "modulation", "hand_edit"][:, 1]).abs().max() > 0
+
+
+def test_between_decisions_no_entry_carries_a_parameters_log_probability(tiny_dataset):
+    torch.manual_seed(0)
+    mod = Modulator("T", hidden=(16, 16), decide_every=K)
+    td = _sampled(tiny_dataset, mod, steps=6)
+    loc, scale = td["modulator", "loc"], td["modulator", "scale"]
+    between = td[:, [1, 2, 4, 5]].reshape(-1).clone()
+    assert torch.equal(between["modulator", "loc"], torch.zeros_like(between["modulator", "loc"]))
+    assert torch.equal(between["modulator", "scale"], torch.ones_like(between["modulator", "scale"]))
+    assert (scale[:, 0] - 1).abs().max() > 0.1 and (scale[:, 3] - 1).abs().max() > 0.1   # T's own scale where it decides
+    mod.actor.get_dist(between).log_prob(between["action"]).sum().backward()
+    assert all(p.grad is None or p.grad.abs().max() == 0 for p in mod.actor.parameters())
+    decided = td[:, [0, 3]].reshape(-1).clone()
+    mod.actor.get_dist(decided).log_prob(decided["action"]).sum().backward()
+    assert mod.heads.heads[0].weight.grad.abs().max() > 0
+    assert loc.shape[-1] == 22
+
+
+def test_the_policy_graph_holds_as_the_env_does(tiny_dataset):
+    mod = Modulator("R+T", hidden=(16, 16), decide_every=K)
+    policy = make_policy(Tracker.replay().freeze(), mod)
+    a = sampled_rollout(TransformedEnv(TrackingEnv(tiny_dataset, num_worlds=2, split=None, seed=3), policy.primer()),
+                        policy, 6)
+    b = sampled_rollout(_env(tiny_dataset, mod, worlds=2), mod.actor, 6)
+    assert torch.equal(a["next", "proprio", "joint_pos"], b["next", "proprio", "joint_pos"])
+
+
+def test_a_latched_channel_stays_latched_at_later_decisions(tiny_dataset):
+    torch.manual_seed(0)
+    mod = Modulator("A+T", hidden=(16, 16), decide_every=2)
+    td = _sampled(tiny_dataset, mod, steps=5)
+    reach = td["next", REACH_STATE][..., 0]
+    assert torch.equal(reach, reach[:, :1].expand_as(reach))       # chosen at the first step, kept
+    at_two = td[:, 2]                                               # a decision: T live, A fixed
+    assert torch.equal(at_two["modulator", "loc"][..., 0], torch.zeros(3))
+    assert (at_two["modulator", "scale"][..., 1:] - 1).abs().max() > 0.1
+
+
+def test_a_saved_modulator_keeps_its_decision_interval(tmp_path):
+    mod = Modulator("T", hidden=(16, 16), decide_every=4)
+    mod.save(tmp_path / "m.pt")
+    assert Modulator.load(tmp_path / "m.pt").view.decide_every == 4
+    assert "decide_every" not in Modulator("T", hidden=(16, 16)).config       # saved configs stay as they were
+
+
+@pytest.mark.parametrize("kwargs, words", [({"decide_every": 0}, "decide_every"),
+                                           ({"decide_every": 2, "inputs": "observation"}, "inputs='view'"),
+                                           ({"decide_every": 2, "hold_steps": 4, "hold_scale": 0.1}, "hold_steps")])
+def test_bad_decision_intervals_are_refused(kwargs, words):
+    with pytest.raises(ConfigError, match=words):
+        Modulator("T", hidden=(16, 16), **kwargs)

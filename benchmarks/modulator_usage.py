@@ -54,7 +54,7 @@ def _paired(row: dict, base: dict, metric: str) -> dict:
 
 def modulator_options(spec: str) -> tuple[str, dict]:
     """``CHANNELS[:option=value …]`` → (channels, Modulator settings): ``prior=anchor``, ``hold=K``
-    (``hold_steps``), ``hold_X=scale`` (channel X's ``hold_scale``)."""
+    (``hold_steps``), ``hold_X=scale`` (channel X's ``hold_scale``), ``decide=K`` (``decide_every``)."""
     channels, *options = spec.split(":")
     out = {}
     for option in options:
@@ -65,8 +65,10 @@ def modulator_options(spec: str) -> tuple[str, dict]:
             out["hold_steps"] = int(value)
         elif key.startswith("hold_"):
             out.setdefault("hold_scale", {})[key[5:]] = float(value)
+        elif key == "decide" and value.isdigit():
+            out["decide_every"] = int(value)
         else:
-            raise SystemExit(f"--channels: unknown option {key!r} in {spec!r} (prior=, hold=, hold_X=)")
+            raise SystemExit(f"--channels: unknown option {key!r} in {spec!r} (prior=, hold=, hold_X=, decide=K)")
     return channels, out
 
 

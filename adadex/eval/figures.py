@@ -50,6 +50,7 @@ from adadex.eval.table1 import CONDITIONS, ROW_LABELS, ROWS, SPLITS
 from adadex.io import atomic_write
 from adadex.modules.channels import CHANNELS, LATENT, ModulationConfig, ModulationLayout
 from adadex.modules.encoder import chamfer_distance
+from adadex.modules.modulator_view import LAST_ACTION
 from adadex.sim.objects import get_object
 from adadex.transforms.modulation import LatentModulation
 from adadex.transforms.policy import SAMPLE
@@ -468,7 +469,9 @@ def plot_data_scaling(fractions, results: dict[str, list[tuple[float, float | No
 
 def channel_usage(rollouts, channels) -> dict[str, float]:
     """How much a modulator uses each of its action entries: the mean |a| (0: unused, 1: saturated) of
-    the stored modulator action ``("modulation", "sample")`` over every frame of ``rollouts`` (chunks
+    the modulator's action as the env applied it — the view's ``("next", "modulation", "last_action")``
+    where the modulator reads a view (a modulator deciding every k steps holds its action in between),
+    else the stored sample ``("modulation", "sample")`` — over every frame of ``rollouts`` (chunks
     of an evaluation with ``keep_rollouts``) before each world's first done, per entry of ``channels``
     (``"ref_hand"``, ``"latent"``, …)."""
     layout = ModulationLayout(channels)
@@ -477,7 +480,8 @@ def channel_usage(rollouts, channels) -> dict[str, float]:
     for td in rollouts:
         done = td.get(("next", "done")).reshape(td.batch_size).to(torch.bool)
         valid = ~(torch.cumsum(done.int(), 1) - done.int() > 0)
-        for key, value in layout.split(td.get(SAMPLE)[valid]).items():
+        applied = td.get(("next", *LAST_ACTION), None)
+        for key, value in layout.split((td.get(SAMPLE) if applied is None else applied)[valid]).items():
             name = key[-1] if isinstance(key, tuple) else key
             totals[name] = totals.get(name, 0.0) + float(value.abs().reshape(value.shape[0], -1).mean(1).sum())
         frames += int(valid.sum())

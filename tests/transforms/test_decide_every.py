@@ -9,6 +9,7 @@ from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration
 
 from adadex.errors import ConfigError
 from adadex.envs.tracking import TrackingEnv
+from adadex.eval.figures import channel_usage
 from adadex.modules.channels import REACH_STATE
 from adadex.modules.modulator import Modulator
 from adadex.modules.modulator_view import LAST_ACTION, ViewLayout
@@ -75,6 +76,9 @@ def test_the_policy_graph_holds_as_the_env_does(tiny_dataset):
                         policy, 6)
     b = sampled_rollout(_env(tiny_dataset, mod, worlds=2), mod.actor, 6)
     assert torch.equal(a["next", "proprio", "joint_pos"], b["next", "proprio", "joint_pos"])
+    # the channels' usage is that of the held actions the env applied, not of the ignored samples
+    decided = a["modulation", "sample"][:, [0, 0, 0, 3, 3, 3], 112:]
+    assert channel_usage([a], "R+T")["action"] == pytest.approx(float(decided.abs().mean()), rel=1e-5)
 
 
 def test_a_latched_channel_stays_latched_at_later_decisions(tiny_dataset):

@@ -114,15 +114,17 @@ class ModulatedEnv:
         channels: the active channels (default ``"R+O+T"``).
         config: the channels' settings (:class:`~adadex.modules.channels.ModulationConfig`).
         history: previous frames in the modulator's view, or None (default): no view.
+        decide_every: the modulator's decision interval (the view's; its action held in between).
     """
 
     tracker: str
     channels: str = "R+O+T"
     config: ModulationConfig = field(default_factory=ModulationConfig)
     history: int | None = None
+    decide_every: int = 1
 
     def __call__(self):
-        view = None if self.history is None else ViewLayout(self.channels, self.history)
+        view = None if self.history is None else ViewLayout(self.channels, self.history, self.decide_every)
         return modulation(self.channels, Tracker.load(self.tracker).freeze(), self.config, view=view)
 
 

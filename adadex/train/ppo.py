@@ -199,8 +199,11 @@ class PPOTrainer:
         m = cfg.modulator
         #: the user's extra env transforms (factories), after adadex's own
         self.env_transforms = self._check_env_transforms(env_transforms)
+        # a given modulator decides as it was built to (its view's interval), else as the settings say
+        decide = getattr(getattr(policy, "view", None), "decide_every", None) or (m.decide_every if m else 1)
         self.transform = None if m is None else ModulatedEnv(m.tracker, m.channels, ModulationConfig(**m.modulation),
-                                                             history=m.history if m.inputs == "view" else None)
+                                                             history=m.history if m.inputs == "view" else None,
+                                                             decide_every=decide)
         if policy is not None:
             self._check_policy(policy)
             self.policy = policy

@@ -105,3 +105,43 @@ def test_a_saved_modulator_keeps_its_decision_interval(tmp_path):
 def test_bad_decision_intervals_are_refused(kwargs, words):
     with pytest.raises(ConfigError, match=words):
         Modulator("T", hidden=(16, 16), **kwargs)
+
+
+def test_ppo_trains_a_modulator_that_decides_every_k_steps(tiny_dataset, tmp_path):
+    """``modulator.decide_every``: the trainer's env is built with the modulator's interval (its view,
+    with the ``held`` part, fits the modulator), the heads learn from the decisions, and the saved
+    modulator keeps its interval; a modulator given to the trainer brings its own interval to the env."""
+    from adadex.train.config import CollectorConfig, ModulatorSettings, PPOConfig, TrainConfig
+    from adadex.train.ppo import PPOTrainer
+
+    tracker = tmp_path / "replay.pt"
+    Tracker.replay().save(tracker)
+
+    def config(out, every):
+        return TrainConfig(dataset=str(tiny_dataset), out=str(tmp_path / out), wandb=False, progress=False,
+                           eval_max_references=0, split=None,
+                           ppo=PPOConfig(total_frames=256, frames_per_batch=128, minibatch_size=64, epochs=1,
+                                         update_threads=1),
+                           collector=CollectorConfig(worlds=4, workers=1, env_threads=1),
+                           modulator=ModulatorSettings(tracker=str(tracker), channels="T", hidden=(16,),
+                                                       decide_every=every))
+
+    trainer = PPOTrainer(config("mod", K))
+    head = trainer.policy.heads.heads[0].weight.detach().clone()
+    result = trainer.train()
+    assert not torch.equal(head, trainer.policy.heads.heads[0].weight)
+    assert Modulator.load(result["policy"]).view.decide_every == K
+    given = PPOTrainer(config("given", 1), policy=Modulator("T", hidden=(16,), decide_every=2))
+    env = given.transform()
+    assert env[-1].layout.decide_every == 2
+
+
+def test_bad_settings_are_refused_before_any_work(tmp_path):
+    from adadex.train.config import ModulatorSettings
+
+    tracker = tmp_path / "replay.pt"
+    Tracker.replay().save(tracker)
+    with pytest.raises(ConfigError, match=r"decide_every=4 \(modulator.decide_every\) cannot be combined with hold_steps"):
+        ModulatorSettings(tracker=str(tracker), channels="T", decide_every=4, hold_steps=2, hold_scale=0.1)
+    with pytest.raises(ConfigError, match="decide_every"):
+        ModulatorSettings(tracker=str(tracker), channels="T", decide_every=0)

@@ -27,6 +27,9 @@ Example (a few iterations on a tiny dataset)::
 
 A run whose updates mostly ran past PPO's clip range (median clip fraction above
 :data:`TRUST_REGION_CLIP`) ends with a one-line warning naming the settings that keep them within it.
+For a modulator deciding every k steps (``Modulator(decide_every=k)``) only its decisions, about one
+sample in k, carry a log-probability, so ``result["updates"]`` adds the medians at the decisions (k ×
+the loss's means) and the warning reads those.
 A recurrent policy (TorchRL's ``GRUModule`` / ``LSTMModule`` in its actor or critic) gets its state
 primed in the env and is updated on whole sequences (:meth:`PPOTrainer._update`).
 
@@ -608,9 +611,17 @@ class PPOTrainer:
             log.log(self.iteration, {**final, "frames": self.frames})
         log.close()
         updates = update_health(log.rows)
-        if updates.get("clip_fraction_median", 0.0) > TRUST_REGION_CLIP:
-            print(f"warning: {self.run_name}: the updates ran past PPO's trust region (median clip fraction "
-                  f"{updates['clip_fraction_median']:.2f}, approximate KL {updates['kl_median']:.3g} over "
+        every = getattr(getattr(self.policy, "view", None), "decide_every", 1)
+        if updates and every > 1:   # between decisions no sample moves: the loss's means count about 1 in k
+            updates.update(decide_every=every,
+                           clip_fraction_median_at_decisions=min(1.0, every * updates["clip_fraction_median"]),
+                           kl_median_at_decisions=every * updates["kl_median"])
+        clip = updates.get("clip_fraction_median_at_decisions", updates.get("clip_fraction_median", 0.0))
+        if clip > TRUST_REGION_CLIP:
+            kl = updates.get("kl_median_at_decisions", updates.get("kl_median"))
+            where = " at the modulator's decisions" if every > 1 else ""
+            print(f"warning: {self.run_name}: the updates ran past PPO's trust region (median clip fraction{where} "
+                  f"{clip:.2f}, approximate KL {kl:.3g} over "
                   f"{updates['iterations']} iterations): most samples were clipped; a lower ppo.lr or the "
                   f"KL-adaptive rate (ppo.desired_kl=0.016) keeps the updates within it", file=sys.stderr)
         return {**self._result(resumed, final), "updates": updates}

@@ -131,6 +131,9 @@ def test_ppo_trains_a_modulator_that_decides_every_k_steps(tiny_dataset, tmp_pat
     result = trainer.train()
     assert not torch.equal(head, trainer.policy.heads.heads[0].weight)
     assert Modulator.load(result["policy"]).view.decide_every == K
+    up = result["updates"]          # only the decisions move: their medians are k × the loss's means
+    assert up["decide_every"] == K and up["kl_median_at_decisions"] == pytest.approx(K * up["kl_median"])
+    assert up["clip_fraction_median_at_decisions"] == pytest.approx(min(1.0, K * up["clip_fraction_median"]))
     given = PPOTrainer(config("given", 1), policy=Modulator("T", hidden=(16,), decide_every=2))
     env = given.transform()
     assert env[-1].layout.decide_every == 2

@@ -63,6 +63,8 @@ steps 0, k, 2k, … and the env holds that action for the k steps
 Between decisions its heads are a fixed N(0, 1) that no parameter moves, so PPO scores one choice per
 k steps, each acting long enough for the return to show it — where a per-step edit of a few
 hundredths of a radian, redrawn every 83 ms, is lost in the noise of the others (docs/modulation.md).
+A held T edits every step's action alike; a held R (persistent) adds its residual to the carried
+reference edit at every step, so a decision sets how fast the edit moves for the k steps.
 
 * ``modulator.actor`` — in: its input; out: ``"action"`` (D), ``"action_log_prob"``,
   ``("modulator", "loc")``, ``("modulator", "scale")``.

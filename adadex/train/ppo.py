@@ -204,6 +204,9 @@ class PPOTrainer:
         self.env_transforms = self._check_env_transforms(env_transforms)
         # a given modulator decides as it was built to (its view's interval), else as the settings say
         decide = getattr(getattr(policy, "view", None), "decide_every", None) or (m.decide_every if m else 1)
+        #: the policy's decision interval: between decisions no sample carries a log-probability, so the
+        #: loss's KL and clip fraction (means over all samples) count about one sample in this many
+        self.decide_every = int(decide)
         self.transform = None if m is None else ModulatedEnv(m.tracker, m.channels, ModulationConfig(**m.modulation),
                                                              history=m.history if m.inputs == "view" else None,
                                                              decide_every=decide)
@@ -439,7 +442,7 @@ class PPOTrainer:
                 if self.teacher is not None:
                     stats.setdefault("loss_imitation", []).append(float(imitation.detach()))
                 if self.ppo.desired_kl > 0 and "kl_approx" in out.keys():
-                    self._adapt_lr(float(out["kl_approx"].detach().mean()))
+                    self._adapt_lr(self.decide_every * float(out["kl_approx"].detach().mean()))
                 for k in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "kl_approx", "clip_fraction",
                           "ESS", "kl"):
                     if k in out.keys():
@@ -473,7 +476,8 @@ class PPOTrainer:
     def _adapt_lr(self, kl: float) -> None:
         """The KL-adaptive learning rate (``ppo.desired_kl``): ÷1.5 when the minibatch's approximate
         KL from the collecting policy exceeds twice the target, ×1.5 below half of it. The rate lives
-        in the optimizer's state, so a resumed run continues with it."""
+        in the optimizer's state, so a resumed run continues with it. For a modulator deciding every k
+        steps the KL is that at its decisions (k × the minibatch's mean, :attr:`decide_every`)."""
         c = self.ppo
         lr = self.optim.param_groups[0]["lr"]
         if kl > 2.0 * c.desired_kl:
@@ -611,7 +615,7 @@ class PPOTrainer:
             log.log(self.iteration, {**final, "frames": self.frames})
         log.close()
         updates = update_health(log.rows)
-        every = getattr(getattr(self.policy, "view", None), "decide_every", 1)
+        every = self.decide_every
         if updates and every > 1:   # between decisions no sample moves: the loss's means count about 1 in k
             updates.update(decide_every=every,
                            clip_fraction_median_at_decisions=min(1.0, every * updates["clip_fraction_median"]),

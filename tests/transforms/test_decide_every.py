@@ -2,6 +2,8 @@
 the k steps, the view says where it holds, the heads are a fixed N(0, 1) there (no parameter's
 log-probability), the policy graph runs as the transformed env, and a latched channel stays latched."""
 
+import csv
+
 import pytest
 import torch
 from torchrl.envs import TransformedEnv
@@ -127,8 +129,16 @@ def test_ppo_trains_a_modulator_that_decides_every_k_steps(tiny_dataset, tmp_pat
                                                        decide_every=every))
 
     trainer = PPOTrainer(config("mod", K))
+    assert trainer.decide_every == K
     head = trainer.policy.heads.heads[0].weight.detach().clone()
+    seen = []                       # the KL-adaptive rate reads the KL at the decisions: k × the loss's mean
+    adapt = trainer._adapt_lr
+    trainer._adapt_lr = lambda kl: (seen.append(kl), adapt(kl))
     result = trainer.train()
+    with open(tmp_path / "mod" / "metrics.csv", newline="") as f:
+        logged = [float(r["kl_approx"]) for r in csv.DictReader(f) if r.get("kl_approx")]
+    assert len(seen) == 2 * len(logged) and seen[0] > 0      # two minibatches an iteration
+    assert sum(seen[:2]) / 2 == pytest.approx(K * logged[0], rel=1e-4)
     assert not torch.equal(head, trainer.policy.heads.heads[0].weight)
     assert Modulator.load(result["policy"]).view.decide_every == K
     up = result["updates"]          # only the decisions move: their medians are k × the loss's means

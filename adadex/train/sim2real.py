@@ -97,6 +97,9 @@ class Sim2RealPreset:
     #: the modulator decides every this many control steps, its action held in between
     #: (``ModulatorSettings.decide_every``; 1: every step)
     decide_every: int = 1
+    #: PPO's KL-adaptive rate (``PPOConfig.desired_kl``; for a modulator deciding every k steps, the KL at
+    #: its decisions); 0: the constant rate the pipeline trains its modulators with
+    desired_kl: float = 0.0
     gamma: float = 0.998            # PPO's discount and GAE λ: a choice latched at an episode's first step is
     lmbda: float = 1.0              # credited with the episode's return (docs/modulation.md, channel A)
     #: worlds that share a reference, a draw and the noise (``CollectorConfig.group_size``), and how PPO
@@ -184,6 +187,7 @@ def preset(name: str, **changes) -> Sim2RealPreset:
     # a bad backend or device is refused before any work, named as the recipe's keys
     for key in ("gamma", "lmbda"):
         check_number(key, getattr(p, key), high=1.0)
+    check_number("desired_kl", p.desired_kl, low=0.0)
     from adadex.train.config import CollectorConfig, PPOConfig
 
     def grouped():
@@ -332,7 +336,7 @@ def _ppo_config(p: Sim2RealPreset):
     from adadex.train.config import PPOConfig
 
     return PPOConfig(total_frames=p.frames, frames_per_batch=p.frames_per_batch, minibatch_size=p.minibatch_size,
-                     epochs=p.epochs, desired_kl=0.0, update_threads=1,    # as the pipeline trains modulators
+                     epochs=p.epochs, desired_kl=p.desired_kl, update_threads=1,    # 0 as the pipeline trains modulators
                      gamma=p.gamma, lmbda=p.lmbda, device=p.device, advantage=p.advantage)
 
 
@@ -365,6 +369,7 @@ def _train(folder, *, dataset, p: Sim2RealPreset, randomization, seed: int, name
                                                    "gamma", "lmbda")},
               **({"advantage": p.advantage, "group_size": p.group_size}
                  if (p.advantage, p.group_size) != ("gae", 1) else {}),
+              **({"desired_kl": p.desired_kl} if p.desired_kl else {}),
               **({"sim_backend": p.backend} if p.backend != SimConfig().backend else {})}
     stamp = folder.with_name(f"{folder.name}.inputs.json")      # beside the run: the trainer guards its folder
     same = stamp.is_file() and json.loads(stamp.read_text(encoding="utf-8")) == json.loads(json.dumps(inputs))

@@ -184,3 +184,18 @@ def test_refusals(tmp_path):
     refused(r["bad context_free"], "context_free", "'X'", "R/L")
     refused(r["group without groups"], "group_size=1", "advantage=group")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine", "notes.json"]      # nothing made
+
+
+def test_the_learner_settings_reach_the_trained_rows():
+    """``decide_every`` and ``desired_kl`` are preset keys (the trained rows' modulator and PPO settings):
+    the preset holds them and the rows' PPO config reads the rate; bad values are refused naming the key."""
+    from adadex.errors import ConfigError
+    from adadex.train.sim2real import _ppo_config, preset
+
+    p = preset("tiny", channels="T", decide_every=12, desired_kl=0.016)
+    assert p.decide_every == 12 and _ppo_config(p).desired_kl == 0.016
+    assert _ppo_config(preset("tiny")).desired_kl == 0.0              # the constant rate, as before
+    with pytest.raises(ConfigError, match="decide_every"):
+        preset("tiny", decide_every=0)
+    with pytest.raises(ConfigError, match="desired_kl"):
+        preset("tiny", desired_kl=-1.0)

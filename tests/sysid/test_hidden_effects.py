@@ -13,8 +13,11 @@ from adadex.sysid.excite import design_excitation, simulate_recording
 NOISE = 2e-4
 
 
-def _recording(joints, truth: ModelPatch, seed=0):
-    plan = design_excitation(joints, freqs=(0.5, 2.0), amps=(0.3, 1.0), kinds=("sine", "chirp"), duration=2.0)
+def _recording(joints, truth: ModelPatch, seed=0, poses=("loaded",)):
+    """Sines at two frequencies and amplitudes and a chirp, 2 s each, per joint, in the loaded pose (and the
+    unloaded one where a case needs it: ``BOTH_POSES``)."""
+    plan = design_excitation(joints, freqs=(0.5, 2.0), amps=(0.3, 1.0), kinds=("sine", "chirp"), duration=2.0,
+                             poses=poses)
     return simulate_recording(plan, truth, noise=NOISE, seed=seed)
 
 
@@ -40,10 +43,17 @@ CASES = [  # (effect, joint, value): one arm and one finger joint per library ef
 ]
 
 
+#: cases the loaded pose alone does not show (2026-12-07): the thumb's last joint carries its payload
+#: nearly along gravity there (nothing to see: "nothing missing"), and arm_j2's backlash and arm_j5's
+#: friction with armature are told from their look-alikes only with the unloaded pose's sequences beside it
+BOTH_POSES = {("payload_mass", "th_ipl"), ("backlash", "arm_j2")}
+
+
 @pytest.mark.parametrize("effect, joint, value", CASES, ids=[f"{e}-{j}" for e, j, _ in CASES])
 def test_single_hidden_effect_is_found(effect, joint, value):
     truth = ModelPatch().with_effect(effect, [joint], value)
-    d = diagnose(_recording([joint], truth), progress=False)
+    poses = ("loaded", "unloaded") if (effect, joint) in BOTH_POSES else ("loaded",)
+    d = diagnose(_recording([joint], truth, poses=poses), progress=False)
     assert d.verdict == "explained", d.findings
     top, ok = _top1_matches(d, effect, joint)
     assert ok, f"top-1 is {top['effect']} ({top['alternatives']}), truth {effect}"
@@ -67,7 +77,7 @@ def test_two_effects_at_once_are_both_selected():
 def test_two_effects_on_one_joint_forward_selection():
     truth = (ModelPatch().with_effect("coulomb_friction", ["arm_j5"], 1.5)
              .with_effect("armature", ["arm_j5"], 0.08))
-    d = diagnose(_recording(["arm_j5"], truth, seed=4), progress=False)
+    d = diagnose(_recording(["arm_j5"], truth, seed=4, poses=("loaded", "unloaded")), progress=False)
     chosen = {h["effect"] for h in d.selected}
     assert {"coulomb_friction", "armature"} <= chosen, d.findings
     assert d.verdict == "explained"

@@ -41,7 +41,7 @@ def test_a_mass_on_a_fingertip_is_one_payload_on_that_link(fingertip_load):
 @pytest.fixture(scope="module")
 def palm_load():
     model = hidden.edited_model(hidden.hang_mass("palm", PALM_MASS, PALM_COM), "palm_load")
-    rec = hidden.recording(model, ["arm_j2", "arm_j3", "arm_j5", "th_mcp"], seed=0)
+    rec = hidden.recording(model, ["arm_j2", "arm_j3", "arm_j5", "th_mcp"], poses=("loaded",), seed=0)
     return diagnose(rec, progress=False)
 
 
@@ -60,7 +60,7 @@ def test_a_mass_at_the_palms_centre_of_mass_is_one_payload_on_its_link(palm_load
 @pytest.fixture(scope="module")
 def flange_load():
     model = hidden.edited_model(hidden.hang_mass("palm", PALM_MASS, (0.0, 0.0, 0.0)), "flange_load")
-    rec = hidden.recording(model, ["arm_j2", "arm_j3", "arm_j5", "th_mcp"], seed=0)
+    rec = hidden.recording(model, ["arm_j2", "arm_j3", "arm_j5", "th_mcp"], poses=("loaded",), seed=0)
     return diagnose(rec, progress=False)
 
 

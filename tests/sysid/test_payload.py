@@ -88,15 +88,17 @@ SOFT_LOAD = 1.5   # kg at the palm's own centre of mass
 def soft_arm_with_load():
     model = hidden.edited_model(hidden.both(hidden.soft_servos(ARM, SOFT), hidden.hang_mass("palm", SOFT_LOAD, PALM_COM)),
                                 "soft_arm_load")
-    rec = hidden.recording(model, ARM, amps=(1.0,), poses=("loaded",), seed=1, measured=ARM)   # one amplitude, one pose
+    rec = hidden.recording(model, ARM, amps=(1.0,), poses=("loaded",), duration=1.0, seed=1,
+                           measured=ARM)   # one amplitude, one pose, 1-s sequences: enough here
     return diagnose(rec, progress=False)
 
 
 def test_softer_servos_carrying_a_load_are_one_softness_and_one_payload(soft_arm_with_load):
     """Joint by joint, softer servos under a load look like softness of different sizes (the pitch joints
-    sag too: kp × 0.40 on arm_j2 and arm_j3, 0.30 elsewhere, 85–90 % explained there) and the load screen
-    finds nothing while the softness dominates; tried as one softness on every arm joint with a load
-    screened on top, the servos and the load are found: kp × 0.30 on all six, 1.5 kg on the palm's link."""
+    sag too: kp × 0.40 on arm_j2 and arm_j3, 0.30 elsewhere, 85–90 % explained there, with 2-s sequences in
+    both poses) and the load screen finds nothing while the softness dominates; tried as one softness on every
+    arm joint with a load screened on top, the servos and the load are found: kp × 0.30 on all six, 1.5 kg on
+    the palm's link."""
     d = soft_arm_with_load
     assert d.verdict == "explained", d.findings
     assert [(h["effect"], h["joints"]) for h in d.selected] == [("kp_scale", ARM), ("payload_mass", ["arm_j6"])], d.selected
@@ -114,7 +116,7 @@ def soft_arm_heavy_links():
     model = hidden.edited_model(hidden.both(hidden.soft_servos(ARM, SOFT),
                                             hidden.heavier_links([f"link{i}" for i in range(2, 7)], HEAVY)),
                                 "soft_arm_heavy_links")
-    rec = hidden.recording(model, ARM, poses=("loaded",), seed=2, measured=ARM)     # the arm loaded: half the cost
+    rec = hidden.recording(model, ARM, poses=("loaded",), duration=1.0, seed=2, measured=ARM)   # the arm loaded, 1 s
     return diagnose(rec, progress=False)
 
 

@@ -44,8 +44,8 @@ CASES = [  # (effect, joint, value): one arm and one finger joint per library ef
 
 
 #: cases the loaded pose alone does not show (2026-12-07): the thumb's last joint carries its payload
-#: nearly along gravity there (nothing to see: "nothing missing"), and arm_j2's backlash and arm_j5's
-#: friction with armature are told from their look-alikes only with the unloaded pose's sequences beside it
+#: nearly along gravity there (nothing to see: "nothing missing"), and arm_j2's backlash (like arm_j5's
+#: friction with armature, below) is explained to 80 % only with the unloaded pose's sequences beside it
 BOTH_POSES = {("payload_mass", "th_ipl"), ("backlash", "arm_j2")}
 
 

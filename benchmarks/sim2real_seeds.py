@@ -63,6 +63,7 @@ def main(argv=None) -> dict:
         if key in pooled:
             d = pooled[key]
             print(f"{a_row} − {b_row}: {d['estimate']:+.1f} points {_ci(d['ci95'])}")
+    print(f"verdict: {pooled['verdict']['kind']} — {pooled['verdict']['text']}")
     write_result(a.out, pooled, name="sim2real_seeds", force=a.force)
     print(f"wrote {a.out}")
     return pooled

@@ -33,7 +33,8 @@ Stages (:func:`run_sim2real`), each the library's own code:
 "object_success_pct_ci95", "T_o", …, "vs_tracker_real": {…}}}, "gap_points", "gap_points_ci95",
 "recovered_fraction", "recovered_fraction_ci95", "diagnosis": {…}, "identified_patch", "stage_minutes",
 …}`` with ``recovered_fraction`` = (modulator_identified_real − tracker_real) / (tracker_nominal −
-tracker_real) in completion points (``None`` when the hidden robot loses nothing); intervals are
+tracker_real) in completion points (``None`` when the hidden robot loses nothing) and ``"verdict"``
+(:func:`verdict`: nothing to recover, beyond the channels' reach, recovered, partly or not); intervals are
 percentile bootstraps over references (all of a reference's repeats together). ``object_success_pct`` is
 the object-centric success (object completion: frames with the object within 5 cm of the reference).
 ``out/sim2real.png``: each row's completion and T_o, and the sysid error falling.
@@ -67,6 +68,10 @@ RECOVERING = ("modulator_identified_real", "modulator_table3_real", "finetuned_i
 #: paired completion differences reported beside the table: (row, row it is compared with, key)
 CONTRASTS = (("modulator_identified_real", "modulator_table3_real", "identified_vs_table3_points"),
              ("modulator_identified_real", "finetuned_identified_real", "identified_vs_finetuned_points"))
+
+
+#: the share of the gap the loop aims to take back (the sim-to-real issue's target): the verdict's bar
+RECOVERY_TARGET = 0.5
 
 
 class Sim2RealError(AdadexError, ValueError):
@@ -525,7 +530,52 @@ def row_statistics(evaluations: dict[str, dict], *, seed: int = 0) -> dict:
             if {a, b} <= set(evaluations):
                 d = paired_bootstrap(c[a], c[b], refs, seed=seed)
                 out[key] = {"estimate": d["estimate"], "ci95": d["ci95"]}
+    out["verdict"] = verdict(out)
     return out
+
+
+def verdict(result: dict) -> dict:
+    """What the table says about the hidden robot, in one word and one line: ``{"kind", "text"}``.
+
+    ``kind`` is ``"no_gap"`` (the gap's interval reaches 0: nothing to recover), ``"beyond_reach"`` (the
+    oracle row — a modulator trained on the hidden robot itself — takes back less than
+    :data:`RECOVERY_TARGET` of the gap even at its interval's upper end: no identification can help this
+    channel; a servo at its torque limit is the typical case), ``"recovered"`` (the identified modulator
+    takes back at least :data:`RECOVERY_TARGET`, its interval's lower end above 0), ``"partly_recovered"``
+    (lower end above 0, estimate below the target) or ``"not_recovered"``. ``result`` is
+    :func:`row_statistics`' or :func:`pool_seeds`' output.
+
+    >>> verdict({"gap_points": 9.0, "gap_points_ci95": [6.0, 12.0], "recovered_fraction": 0.7,
+    ...          "recovered_fraction_ci95": [0.5, 0.9]})["kind"]
+    'recovered'
+    """
+    gap, gap_ci = result.get("gap_points"), result.get("gap_points_ci95")
+    if gap is None:
+        return {"kind": "not_recovered", "text": "no gap measured (the tracker_nominal or tracker_real row is missing)"}
+    if gap_ci is None or gap_ci[0] <= 0:
+        return {"kind": "no_gap", "text": f"the hidden robot costs the tracker no completion these episodes resolve "
+                                          f"(gap {gap:+.1f} {_ci(gap_ci)}): nothing to recover"}
+    rf, ci = result.get("recovered_fraction"), result.get("recovered_fraction_ci95")
+    oracle, oracle_ci = (result.get("recovered_fraction_modulator_oracle_real"),
+                         result.get("recovered_fraction_modulator_oracle_real_ci95"))
+    oracle_text = "" if oracle is None else f"{oracle:.2f}" + (f" [{oracle_ci[0]:.2f}, {oracle_ci[1]:.2f}]" if oracle_ci else "")
+    if oracle_ci is not None and oracle_ci[1] < RECOVERY_TARGET:
+        return {"kind": "beyond_reach",
+                "text": f"a modulator trained on the hidden robot itself takes back {oracle_text} of the "
+                        f"{gap:.1f}-point gap: the gap lies beyond what these channels' edits reach (a servo at "
+                        f"its torque limit, a load it cannot hold), so no identification recovers it"}
+    if rf is None or ci is None:
+        return {"kind": "not_recovered", "text": f"the {gap:.1f}-point gap's recovered fraction is not defined"}
+    digits = 3 if rf < RECOVERY_TARGET <= round(rf, 2) else 2          # 0.497 is not shown as the target
+    share = f"the identified modulator takes back {rf:.{digits}f} [{ci[0]:.2f}, {ci[1]:.2f}] of the {gap:.1f}-point gap"
+    if ci[0] > 0 and rf >= RECOVERY_TARGET:
+        return {"kind": "recovered", "text": share}
+    if ci[0] > 0:
+        return {"kind": "partly_recovered", "text": f"{share}, short of {RECOVERY_TARGET:.2f}"}
+    tail = ("" if oracle is None or oracle_ci is None or oracle_ci[0] <= 0 else
+            f"; trained on the hidden robot itself it takes back {oracle_text}: the channel can, the identified "
+            f"model or the training falls short")
+    return {"kind": "not_recovered", "text": share + tail}
 
 
 def pool_seeds(results: Sequence[dict], *, seed: int = 0) -> dict:
@@ -578,6 +628,7 @@ def pool_seeds(results: Sequence[dict], *, seed: int = 0) -> dict:
         if {a, b} <= set(names):
             d = paired_bootstrap(c[a], c[b], refs, seed_ids, seed=seed)
             out[key] = {"estimate": d["estimate"], "ci95": d["ci95"]}
+    out["verdict"] = verdict(out)
     return out
 
 
@@ -611,6 +662,8 @@ def format_table(result: dict) -> str:
             lines.append(f"recovered by {name}: " + (
                 "not defined (the hidden robot loses no completion)" if rf is None else
                 f"{rf:.2f}" + (f" [{ci[0]:.2f}, {ci[1]:.2f}]" if ci else "")))
+    if "verdict" in result:
+        lines.append(f"verdict: {result['verdict']['kind']} — {result['verdict']['text']}")
     return "\n".join(lines)
 
 

@@ -62,14 +62,16 @@ def test_ratio_bootstrap():
     assert abs(two["estimate"] - 0.5) < 1e-9 and two["seeds"] == 2 and two["ci95"][0] < 0.5 < two["ci95"][1]
 
 
-def _run(seed, real="assets/gaps/x.json", recovered=0.5, n_refs=20, repeats=2):
+def _run(seed, real="assets/gaps/x.json", recovered=0.5, n_refs=20, repeats=2, oracle=None, gap=0.10):
     """A sim2real.json result of one seed: every row's per-episode completion (fractions), the identified
-    modulator recovering ``recovered`` of a 10-point gap."""
+    modulator recovering ``recovered`` of a ``gap`` (10 points), the oracle ``oracle`` of it (None: no row)."""
     rng = np.random.default_rng(seed)
     refs = np.repeat(np.arange(n_refs), repeats)
     real_c = rng.uniform(0.5, 0.7, refs.size)
-    rows = {"tracker_nominal": real_c + 0.10, "tracker_real": real_c, "modulator_table3_real": real_c + 0.01,
-            "modulator_identified_real": real_c + 0.10 * recovered, "finetuned_identified_real": real_c + 0.03}
+    rows = {"tracker_nominal": real_c + gap, "tracker_real": real_c, "modulator_table3_real": real_c + 0.01,
+            "modulator_identified_real": real_c + gap * recovered, "finetuned_identified_real": real_c + 0.03}
+    if oracle is not None:
+        rows["modulator_oracle_real"] = real_c + gap * oracle + rng.normal(0, 0.01, refs.size)
     ep = lambda c: {"reference": refs.tolist(), "repeat": np.tile(np.arange(repeats), n_refs).tolist(),
                     "frames": [299] * refs.size, "completion": c.tolist(), "object_completion": (c / 2).tolist(),
                     "T_o": [0.05] * refs.size}
@@ -96,6 +98,32 @@ def test_pool_seeds_pools_paired_rows_over_seeds():
         pool_seeds([_run(0), _run(0)])
     with pytest.raises(Sim2RealError, match="at least 2"):
         pool_seeds([_run(0)])
+
+
+def test_verdict_tells_a_gap_beyond_reach_from_one_the_loop_recovers():
+    """The verdict is read off the pooled table: a gap the oracle cannot take back is beyond the channels'
+    reach whatever the identification; one the identified modulator takes back past the target is
+    recovered; a gap whose interval reaches 0 leaves nothing to recover."""
+    from adadex.train.sim2real import format_table, pool_seeds, row_statistics
+
+    def runs(**kw):
+        return [_run(s, **kw) for s in (0, 1, 2)]
+
+    assert pool_seeds(runs(recovered=0.8))["verdict"]["kind"] == "recovered"
+    assert pool_seeds(runs(recovered=0.3))["verdict"]["kind"] == "partly_recovered"
+    beyond = pool_seeds(runs(recovered=0.0, oracle=0.02))["verdict"]
+    assert beyond["kind"] == "beyond_reach" and "hidden robot itself" in beyond["text"]
+    short = pool_seeds(runs(recovered=0.0, oracle=0.9))["verdict"]
+    assert short["kind"] == "not_recovered" and "the channel can" in short["text"]
+    assert pool_seeds(runs(recovered=0.0, gap=0.0))["verdict"]["kind"] == "no_gap"
+    # one seed's table says it too, and prints it
+    one = _run(0, recovered=0.0, oracle=0.0)
+    stats = row_statistics({k: {"summary": {"completion_pct": 100 * float(np.mean(v["completion"])),
+                                            "object_completion_pct": 0.0, "T_o": 0.05, "success_mean_error_pct": 0.0,
+                                            "trajectories": len(v["completion"])}, "per_episode": v}
+                            for k, v in one["per_episode"].items()})
+    assert stats["verdict"]["kind"] == "beyond_reach"
+    assert "verdict: beyond_reach" in format_table(stats)
 
 
 def test_end_to_end_tiny_identifies_from_recordings_alone(tmp_path, tiny_dataset, monkeypatch, capsys):

@@ -64,7 +64,7 @@ def parse_row(text: str) -> dict:
     options = [p for p in parts[1:] if "=" in p]
     parts = [p for p in parts if "=" not in p]
     if not 1 <= len(parts) <= 3:
-        raise SystemExit(f"--rows: {text!r} is not CHANNELS[:inputs[:init_scale]][:option=value …]")
+        raise refuse(NAME, f"--rows: {text!r} is not CHANNELS[:inputs[:init_scale]][:option=value …]")
     row = {"channels": parts[0], "inputs": parts[1] if len(parts) > 1 else "view",
            "init_scale": float(parts[2]) if len(parts) > 2 and parts[2] != "default" else None, "modulator": {}}
     for option in options:
@@ -86,7 +86,7 @@ def parse_row(text: str) -> dict:
         elif key == "decide" and value.isdigit():
             row["modulator"]["decide_every"] = int(value)
         else:
-            raise SystemExit(f"--rows: unknown option {key!r} in {text!r} (prior=, hold=, hold_X=, focus_X=, "
+            raise refuse(NAME, f"--rows: unknown option {key!r} in {text!r} (prior=, hold=, hold_X=, focus_X=, "
                              "learner=ppo|paired, history=N, core=gru, decide=K)")
     row["name"] = text.replace("+", "").replace(":", "_").replace(".", "").replace("=", "")
     return row

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from _data import check_result, write_result
+from _data import check_result, refuse, write_result
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -68,7 +68,7 @@ def modulator_options(spec: str) -> tuple[str, dict]:
         elif key == "decide" and value.isdigit():
             out["decide_every"] = int(value)
         else:
-            raise SystemExit(f"--channels: unknown option {key!r} in {spec!r} (prior=, hold=, hold_X=, decide=K)")
+            raise refuse("modulator_usage", f"--channels: unknown option {key!r} in {spec!r} (prior=, hold=, hold_X=, decide=K)")
     return channels, out
 
 
@@ -148,7 +148,7 @@ def trained_vs_untrained(a) -> dict:
     root = a.run / f"seed_{a.seed}"
     stage = root / "modulators" / a.row / "stage.json"
     if not stage.is_file():
-        raise SystemExit(f"{stage}: no finished {a.row} modulator of seed {a.seed} in {a.run}")
+        raise refuse("modulator_usage", f"{stage}: no finished {a.row} modulator of seed {a.seed} in {a.run}")
     settings = json.loads(stage.read_text(encoding="utf-8"))["settings"]
     dataset = a.dataset or Path(settings["dataset"])
     pipe = Pipeline(PipelineConfig(out=str(a.run), dataset=str(dataset), progress=False))

@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from _data import RESULTS, check_result, write_result
+from _data import RESULTS, check_result, refuse, write_result
 
 #: the object counts as lifted by the reference once it is this far above its start (m)
 REF_LIFT = 0.01
@@ -281,7 +281,7 @@ def main(argv=None) -> dict:
     from adadex.sim.robot import JOINT_NAMES
 
     if not (a.dataset / "index.json").exists():
-        raise SystemExit(f"{a.dataset}: no dataset there (adadex data build --preset small --out {a.dataset})")
+        raise refuse("replay_grasp", f"{a.dataset}: no dataset there (adadex data build --preset small --out {a.dataset})")
     ds = ReferenceDataset(a.dataset)
     train_refs = episode_references(ds, ("unseen_trajectory", "train"))
     if a.all_groups:
@@ -290,7 +290,7 @@ def main(argv=None) -> dict:
     group = a.group if a.group is not None else min(g for g, n in counts.items() if n == max(counts.values()))
     refs = [i for i in train_refs if ds.entries[i]["group"] == group]
     if not refs:
-        raise SystemExit(f"group {group} has no training reference with an episode window in {a.dataset}")
+        raise refuse("replay_grasp", f"group {group} has no training reference with an episode window in {a.dataset}")
     obj_name = ds.entries[refs[0]]["object"]
     print(f"group {group}: {len(refs)} references ({ds.entries[refs[0]]['instruction']!r} on {obj_name}), "
           f"nominal physics")

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _data import RESULTS, check_result, write_result
+from _data import RESULTS, check_result, refuse, write_result
 
 #: the pipeline trackers' learner (``PPOConfig``'s defaults) in place of the preset's
 TRACKER_PPO = {"frames_per_batch": 4096, "gamma": 0.99, "lmbda": 0.95}
@@ -38,7 +38,7 @@ def main(argv=None) -> dict:
     check_result(a.out, name="sim2real_finetune_settings", force=a.force)
     f = a.run / "sim2real.json"
     if not f.is_file():
-        raise SystemExit(f"benchmarks/sim2real_finetune_settings.py: error: {f}: no such file "
+        raise refuse("sim2real_finetune_settings", f"{f}: no such file "
                          f"(a recipes/sim2real.py output)")
     from adadex.data.reference import ReferenceDataset
     from adadex.envs.randomization import Randomization
@@ -52,7 +52,7 @@ def main(argv=None) -> dict:
     from adadex.io import output_kind
 
     if output_kind(a.run) != s2r.SIM2REAL_RUN:             # it trains inside the run's folder: only a run's
-        raise SystemExit(f"benchmarks/sim2real_finetune_settings.py: error: {a.run}: not a recipes/sim2real.py output")
+        raise refuse("sim2real_finetune_settings", f"{a.run}: not a recipes/sim2real.py output")
     res = json.loads(f.read_text())
     seed = int(res["seed"])
     p_ = dataclasses.replace(s2r.preset(res["preset"]), **TRACKER_PPO)
@@ -69,7 +69,8 @@ def main(argv=None) -> dict:
                                                nthread=2, env_transform=policy.primer)
     base, nominal = res["per_episode"]["tracker_real"], res["per_episode"]["tracker_nominal"]
     if ev["per_episode"]["reference"] != base["reference"]:
-        raise SystemExit("benchmarks/sim2real_finetune_settings.py: error: the run's episodes were not reproduced")
+        raise refuse("sim2real_finetune_settings",
+                     f"{a.run}: the run's episodes were not reproduced (another dataset or code than the run's)")
     a_, b_ = (np.asarray(x["completion"]) * 100 for x in (ev["per_episode"], base))
     d = paired_bootstrap(a_, b_, np.asarray(base["reference"]), seed=seed)
     gap = float(np.mean(np.asarray(nominal["completion"]) * 100 - b_))

@@ -17,7 +17,7 @@ import json
 import sys
 from pathlib import Path
 
-from _data import RESULTS, check_result, write_result
+from _data import RESULTS, check_result, refuse, write_result
 
 
 def _ci(ci, fmt="+.1f") -> str:
@@ -37,12 +37,12 @@ def main(argv=None) -> dict:
     for run in a.runs:
         f = run / "sim2real.json"
         if not f.is_file():
-            raise SystemExit(f"benchmarks/sim2real_seeds.py: error: {f}: no such file (a recipes/sim2real.py output)")
+            raise refuse("sim2real_seeds", f"{f}: no such file (a recipes/sim2real.py output)")
         results.append(json.loads(f.read_text()))
     try:
         pooled = pool_seeds(results)
     except Sim2RealError as e:
-        raise SystemExit(f"benchmarks/sim2real_seeds.py: error: {e}")
+        raise refuse("sim2real_seeds", e) from None
     pooled["runs_from"] = [str(r) for r in a.runs]
     print(f"{pooled['real']}: seeds {pooled['seeds']}, {pooled['paired_episodes']} paired episodes")
     print(f"{'row':28s} {'completion %':>22s} {'vs tracker_real':>20s}")

@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _data import check_result, write_result  # noqa: E402
+from _data import check_result, refuse, write_result  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -90,7 +90,7 @@ def main(argv=None) -> dict:
     offsets = column(scales[0], "offset_m")
     for s in scales[1:]:
         if any(not np.array_equal(o, x) for o, x in zip(offsets, column(s, "offset_m"))):
-            raise SystemExit(f"{s}: its evaluation met other draws than {scales[0]}'s; cannot pair")
+            raise refuse("specialist_exploration", f"{s}: its evaluation met other draws than {scales[0]}'s; cannot pair")
     replay = [np.asarray(runs[(scales[0], k)]["replay"]["per_episode"]["completion"]) for k in seeds]
     out = {"frames": a.frames, "repeats": a.repeats, "seeds": seeds, "group": runs[(scales[0], seeds[0])]["group"],
            "episodes_per_seed": len(replay[0]), "rows": {}}

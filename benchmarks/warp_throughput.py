@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from _data import RESULTS, check_result, dataset_or_tiny, write_result
+from _data import RESULTS, check_result, dataset_or_tiny, refuse, write_result
 
 PARTS = ("physics", "sim", "env", "collect", "ppo", "specialist")
 
@@ -323,7 +323,7 @@ def main(argv=None) -> dict:
     parts = [s for s in a.parts.split(",") if s]
     bad = [s for s in parts if s not in PARTS]
     if bad:
-        raise SystemExit(f"benchmarks/warp_throughput.py: error: --parts: unknown {bad}; choose from {PARTS}")
+        raise refuse("warp_throughput", f"--parts: unknown {bad}; choose from {PARTS}")
     batches = [int(b) for b in a.batches.split(",")]
     ppo_batches = [int(b) for b in a.ppo_batches.split(",")]
     t_start = time.perf_counter()

@@ -26,6 +26,20 @@ def test_evaluate_recipe_ablation_and_table(tiny_dataset, tmp_path):
     assert t.returncode == 0, t.stderr[-2000:]
     assert "| none |" in t.stdout and "| T |" in t.stdout
     assert (out / "ablation.png").read_bytes()[:4] == b"\x89PNG"
+    again = _run(ROOT / "recipes/ablation_table.py", out, cwd=tmp_path)          # its own earlier output: replaced
+    assert again.returncode == 0, again.stderr[-2000:]
+    (out / "ablation.md").write_text("my notes on the ablation\n")               # the user's now: refused
+    refused = _run(ROOT / "recipes/ablation_table.py", out, cwd=tmp_path)
+    err = refused.stderr.strip()
+    assert refused.returncode == 2 and "\n" not in err and "ablation.md" in err and "--force" in err, err
+    assert (out / "ablation.md").read_text() == "my notes on the ablation\n"
+    forced = _run(ROOT / "recipes/ablation_table.py", out, "--force", cwd=tmp_path)
+    assert forced.returncode == 0 and "| T |" in (out / "ablation.md").read_text()
+    (out / "T" / "result.json").write_text('{"summary": {}}')                      # not an evaluation's result
+    bad = _run(ROOT / "recipes/ablation_table.py", out, cwd=tmp_path)
+    assert bad.returncode == 2 and "T/result.json" in bad.stderr and "config.channels" in bad.stderr, bad.stderr
+    empty = _run(ROOT / "recipes/ablation_table.py", tmp_path / "nothing_here", cwd=tmp_path)
+    assert empty.returncode == 2 and "no result.json below it" in empty.stderr.strip().splitlines()[-1]
 
 
 def test_evaluate_recipe_refuses_channels_without_a_modulator(tiny_dataset, tmp_path):

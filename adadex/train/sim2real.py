@@ -558,7 +558,8 @@ def verdict(result: dict) -> dict:
     rf, ci = result.get("recovered_fraction"), result.get("recovered_fraction_ci95")
     oracle, oracle_ci = (result.get("recovered_fraction_modulator_oracle_real"),
                          result.get("recovered_fraction_modulator_oracle_real_ci95"))
-    oracle_text = "" if oracle is None else f"{oracle:.2f}" + (f" [{oracle_ci[0]:.2f}, {oracle_ci[1]:.2f}]" if oracle_ci else "")
+    oracle_text = "" if oracle is None else (f"{oracle:.2f}"
+                                             + (f" [{oracle_ci[0]:.2f}, {oracle_ci[1]:.2f}]" if oracle_ci else ""))
     if oracle_ci is not None and oracle_ci[1] < RECOVERY_TARGET:
         return {"kind": "beyond_reach",
                 "text": f"a modulator trained on the hidden robot itself takes back {oracle_text} of the "

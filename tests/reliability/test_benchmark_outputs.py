@@ -168,6 +168,25 @@ def test_every_benchmark_has_force_and_writes_through_the_helper(script):
     assert "json.dump(" not in text and "atomic_write_text(a.out" not in text
 
 
+@pytest.mark.parametrize("script", sorted([*(f"benchmarks/{p.name}" for p in BENCHMARKS.glob("*.py")),
+                                            *(f"recipes/{p.name}" for p in (BENCHMARKS.parent / "recipes").glob("*.py"))]))
+def test_no_command_refuses_with_a_bare_message(script):
+    """``raise SystemExit("text")`` exits with code 1, the code of a bug: bad input goes through
+    ``refuse`` / ``report_error`` (one line, exit code 2) in every benchmark and recipe."""
+    text = (BENCHMARKS.parent / script).read_text(encoding="utf-8")
+    assert "raise SystemExit(f\"" not in text and "raise SystemExit(\"" not in text, script
+
+
+def test_sim2real_seeds_refuses_a_missing_run_in_one_line(bench, tmp_path, capsys):
+    seeds = bench("sim2real_seeds")
+    out = tmp_path / "pooled.json"
+    with pytest.raises(SystemExit) as e:
+        seeds.main([str(tmp_path / "no_run"), str(tmp_path / "no_run_either"), "--out", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert e.value.code == 2 and "\n" not in err and err.startswith("benchmarks/sim2real_seeds.py: error: "), err
+    assert "no_run" in err and "sim2real.json" in err and not out.exists()
+
+
 # ------------------------------------------------------------------------------------------ encoder train --out
 
 

@@ -709,6 +709,51 @@ def plot(result: dict, path) -> Path:
     return atomic_write_bytes(path, buf.getvalue())
 
 
+def plot_robots(pooled: dict[str, dict], path) -> Path:
+    """Several hidden robots side by side: for each (``{name: pool_seeds(…) result}``), every row's
+    completion with its interval, and above the group the identified modulator's share of the gap (or the
+    oracle's, where it is the only trained row) and the verdict. What the README's figure shows."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from adadex.io import atomic_write_bytes
+
+    shown = [n for n in ROWS if n != "modulator_untrained_real" and any(n in r["rows"] for r in pooled.values())]
+    colors = dict(zip(shown, ["0.55", "tab:red", "tab:orange", "tab:blue", "tab:purple", "tab:green"]))
+    fig, ax = plt.subplots(figsize=(max(6.0, 2.1 * len(pooled)), 4.8))
+    width = 0.8 / len(shown)
+    for i, (robot, res) in enumerate(pooled.items()):
+        for j, name in enumerate(shown):
+            row = res["rows"].get(name)
+            if row is None:
+                continue
+            c, (lo, hi) = row["completion_pct"], row["completion_pct_ci95"]
+            ax.bar(i - 0.4 + (j + 0.5) * width, c, width, yerr=[[c - lo], [hi - c]], color=colors[name],
+                   label=name if i == 0 or name not in ax.get_legend_handles_labels()[1] else None, capsize=2)
+        key = next((k for k in ("recovered_fraction", "recovered_fraction_modulator_oracle_real")
+                    if res.get(k) is not None), None)
+        note = res.get("verdict", verdict(res))["kind"].replace("_", " ")
+        if key is not None:
+            ci = res.get(f"{key}_ci95") or [float("nan")] * 2
+            who = "identified" if key == "recovered_fraction" else "oracle"
+            note = f"{who}: {res[key]:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]\n{note}"
+        ax.text(i, 101, note, ha="center", va="bottom", fontsize=7)
+    ax.set_xticks(range(len(pooled)), list(pooled), fontsize=8)
+    ax.set_ylim(0, 118)
+    ax.set_ylabel("completion (%), 95 % interval")
+    ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.1))
+    ax.set_title("the share of the gap taken back, on each hidden robot", fontsize=9)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    return atomic_write_bytes(path, buf.getvalue())
+
+
 # ----------------------------------------------------------------------------------------------
 # The loop
 

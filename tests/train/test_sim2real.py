@@ -126,6 +126,43 @@ def test_verdict_tells_a_gap_beyond_reach_from_one_the_loop_recovers():
     assert "verdict: beyond_reach" in format_table(stats)
 
 
+def test_robots_side_by_side_benchmark(tmp_path, monkeypatch, capsys):
+    """benchmarks/sim2real_robots.py: pooled results of two robots → one line each with its verdict, the
+    JSON and the figure; a file that is not a pooled result, or a figure of the user's, is refused in one
+    line with exit code 2 and nothing written."""
+    import importlib
+
+    from adadex.train.sim2real import pool_seeds
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    bench = importlib.import_module("sim2real_robots")
+    files = []
+    for name, kw in (("soft", dict(recovered=0.8)), ("weak", dict(recovered=0.0, oracle=0.0))):
+        f = tmp_path / f"{name}.json"
+        f.write_text(json.dumps(pool_seeds([_run(s, real=f"assets/gaps/{name}.json", **kw) for s in (0, 1, 2)])))
+        files.append(str(f))
+    out = tmp_path / "robots.json"
+    res = bench.main([*files, "--out", str(out)])
+    assert {n: r["verdict"]["kind"] for n, r in res["robots"].items()} == {"soft": "recovered", "weak": "beyond_reach"}
+    assert abs(res["robots"]["soft"]["identified"] - 0.8) < 1e-9 and abs(res["robots"]["weak"]["oracle"]) < 0.05
+    assert json.loads(out.read_text())["robots"].keys() == {"soft", "weak"}
+    assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
+    printed = capsys.readouterr().out
+    assert "beyond_reach" in printed and "recovered" in printed
+    bench.main([*files, "--out", str(out)])                          # its own outputs: replaced
+    capsys.readouterr()
+    (tmp_path / "notes.json").write_text('{"rows": {}}')
+    mine = tmp_path / "mine.png"
+    mine.write_bytes(b"my figure")
+    for args, says in (([files[0], str(tmp_path / "notes.json")], "not a pooled sim2real result"),
+                       ([*files, "--figure", str(mine)], "mine.png")):
+        with pytest.raises(SystemExit) as e:
+            bench.main([*args, "--out", str(tmp_path / "other.json")])
+        err = capsys.readouterr().err.strip()
+        assert e.value.code == 2 and "\n" not in err and says in err, err
+    assert mine.read_bytes() == b"my figure" and not (tmp_path / "other.json").exists()
+
+
 def test_end_to_end_tiny_identifies_from_recordings_alone(tmp_path, tiny_dataset, monkeypatch, capsys):
     """preset=tiny on a copy of a gap preset. Once the recording is made, the copy is deleted: the
     identification, training and evaluation run on without it (evaluation rollouts use the robot as

@@ -670,14 +670,12 @@ def format_table(result: dict) -> str:
 
 def plot(result: dict, path) -> Path:
     """Each row's completion (with its interval) and T_o, and the sysid error falling (held-out RMS)."""
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from adadex.io import atomic_write_bytes
+    from adadex.io import atomic_write
 
     names = [n for n in ROWS if n in result["rows"]]
     rows = [result["rows"][n] for n in names]
@@ -703,24 +701,22 @@ def plot(result: dict, path) -> Path:
     axes[2].set_title("sysid: the error falling", fontsize=9)
     fig.suptitle(f"sim-to-real on {result['real']}", fontsize=10)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    plt.close(fig)
-    return atomic_write_bytes(path, buf.getvalue())
+    try:
+        return atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    finally:
+        plt.close(fig)
 
 
 def plot_robots(pooled: dict[str, dict], path) -> Path:
     """Several hidden robots side by side: for each (``{name: pool_seeds(…) result}``), every row's
     completion with its interval, and above the group the identified modulator's share of the gap (or the
     oracle's, where it is the only trained row) and the verdict. What the README's figure shows."""
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from adadex.io import atomic_write_bytes
+    from adadex.io import atomic_write
 
     shown = [n for n in ROWS if n != "modulator_untrained_real" and any(n in r["rows"] for r in pooled.values())]
     colors = dict(zip(shown, ["0.55", "tab:red", "tab:orange", "tab:blue", "tab:purple", "tab:green"]))
@@ -748,10 +744,10 @@ def plot_robots(pooled: dict[str, dict], path) -> Path:
     ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.1))
     ax.set_title("the share of the gap taken back, on each hidden robot", fontsize=9)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    plt.close(fig)
-    return atomic_write_bytes(path, buf.getvalue())
+    try:
+        return atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=100))
+    finally:
+        plt.close(fig)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -534,6 +534,12 @@ def row_statistics(evaluations: dict[str, dict], *, seed: int = 0) -> dict:
     return out
 
 
+def _fraction(x: float, ci=None, digits: int = 2) -> str:
+    """``0.67 [0.50, 0.91]``; never ``-0.00``."""
+    f = lambda v: f"{round(v, digits) + 0.0:.{digits}f}"        # noqa: E731 - + 0.0 turns -0.0 into 0.0
+    return f(x) + (f" [{f(ci[0])}, {f(ci[1])}]" if ci else "")
+
+
 def verdict(result: dict) -> dict:
     """What the table says about the hidden robot, in one word and one line: ``{"kind", "text"}``.
 
@@ -558,17 +564,17 @@ def verdict(result: dict) -> dict:
     rf, ci = result.get("recovered_fraction"), result.get("recovered_fraction_ci95")
     oracle, oracle_ci = (result.get("recovered_fraction_modulator_oracle_real"),
                          result.get("recovered_fraction_modulator_oracle_real_ci95"))
-    oracle_text = "" if oracle is None else (f"{oracle:.2f}"
-                                             + (f" [{oracle_ci[0]:.2f}, {oracle_ci[1]:.2f}]" if oracle_ci else ""))
+    oracle_text = "" if oracle is None else _fraction(oracle, oracle_ci)
     if oracle_ci is not None and oracle_ci[1] < RECOVERY_TARGET:
         return {"kind": "beyond_reach",
                 "text": f"a modulator trained on the hidden robot itself takes back {oracle_text} of the "
-                        f"{gap:.1f}-point gap: the gap lies beyond what these channels' edits reach (a servo at "
-                        f"its torque limit, a load it cannot hold), so no identification recovers it"}
+                        f"{gap:.1f}-point gap: it lies beyond what these channels, trained this way, take back even on "
+                        f"the robot itself (a servo at its torque limit, a load it cannot hold), so no better "
+                        f"identification recovers it"}
     if rf is None or ci is None:
         return {"kind": "not_recovered", "text": f"the {gap:.1f}-point gap's recovered fraction is not defined"}
     digits = 3 if rf < RECOVERY_TARGET <= round(rf, 2) else 2          # 0.497 is not shown as the target
-    share = f"the identified modulator takes back {rf:.{digits}f} [{ci[0]:.2f}, {ci[1]:.2f}] of the {gap:.1f}-point gap"
+    share = f"the identified modulator takes back {_fraction(rf, ci, digits)} of the {gap:.1f}-point gap"
     if ci[0] > 0 and rf >= RECOVERY_TARGET:
         return {"kind": "recovered", "text": share}
     if ci[0] > 0:

@@ -28,8 +28,9 @@ KEYS = {"identified": "recovered_fraction", "table3": "recovered_fraction_modula
 def _share(res: dict, key: str) -> str:
     if res.get(key) is None:
         return "—"
+    f = lambda v: f"{round(v, 2) + 0.0:.2f}"            # noqa: E731 - + 0.0: never -0.00
     ci = res.get(f"{key}_ci95")
-    return f"{res[key]:.2f}" + (f" [{ci[0]:.2f}, {ci[1]:.2f}]" if ci else "")
+    return f(res[key]) + (f" [{f(ci[0])}, {f(ci[1])}]" if ci else "")
 
 
 def load(spec: str) -> tuple[str, dict]:

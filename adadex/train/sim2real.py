@@ -740,9 +740,8 @@ def plot_robots(pooled: dict[str, dict], path) -> Path:
                     if res.get(k) is not None), None)
         note = res.get("verdict", verdict(res))["kind"].replace("_", " ")
         if key is not None:
-            ci = res.get(f"{key}_ci95") or [float("nan")] * 2
             who = "identified" if key == "recovered_fraction" else "oracle"
-            note = f"{who}: {res[key]:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]\n{note}"
+            note = f"{who}: {_fraction(res[key], res.get(f'{key}_ci95'))}\n{note}"
         ax.text(i, 101, note, ha="center", va="bottom", fontsize=7)
     ax.set_xticks(range(len(pooled)), list(pooled), fontsize=8)
     ax.set_ylim(0, 118)

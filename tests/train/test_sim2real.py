@@ -214,6 +214,7 @@ def test_end_to_end_tiny_identifies_from_recordings_alone(tmp_path, tiny_dataset
     assert result["diagnosis"]["verdict"] == "explained"
     printed = capsys.readouterr().out
     assert "tracker_real" in printed and "modulator_identified_real" in printed
+    assert f"verdict: {result['verdict']['kind']}" in printed                # the table ends with what it says
     assert "coulomb_friction" not in printed.split("[2/4]")[0]       # the lab's log does not name the hidden effects
 
 

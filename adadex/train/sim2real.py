@@ -667,8 +667,7 @@ def format_table(result: dict) -> str:
         if key in result:
             rf, ci = result[key], result.get(f"{key}_ci95")
             lines.append(f"recovered by {name}: " + (
-                "not defined (the hidden robot loses no completion)" if rf is None else
-                f"{rf:.2f}" + (f" [{ci[0]:.2f}, {ci[1]:.2f}]" if ci else "")))
+                "not defined (the hidden robot loses no completion)" if rf is None else _fraction(rf, ci)))
     if "verdict" in result:
         lines.append(f"verdict: {result['verdict']['kind']} — {result['verdict']['text']}")
     return "\n".join(lines)
@@ -725,7 +724,9 @@ def plot_robots(pooled: dict[str, dict], path) -> Path:
     from adadex.io import atomic_write
 
     shown = [n for n in ROWS if n != "modulator_untrained_real" and any(n in r["rows"] for r in pooled.values())]
-    colors = dict(zip(shown, ["0.55", "tab:red", "tab:orange", "tab:blue", "tab:purple", "tab:green"]))
+    colors = {"tracker_nominal": "0.55", "tracker_real": "tab:red", "modulator_table3_real": "tab:orange",
+              "modulator_identified_real": "tab:blue", "finetuned_identified_real": "tab:purple",
+              "modulator_oracle_real": "tab:green"}
     fig, ax = plt.subplots(figsize=(max(6.0, 2.1 * len(pooled)), 4.8))
     width = 0.8 / len(shown)
     for i, (robot, res) in enumerate(pooled.items()):

@@ -26,11 +26,9 @@ KEYS = {"identified": "recovered_fraction", "table3": "recovered_fraction_modula
 
 
 def _share(res: dict, key: str) -> str:
-    if res.get(key) is None:
-        return "—"
-    f = lambda v: f"{round(v, 2) + 0.0:.2f}"            # noqa: E731 - + 0.0: never -0.00
-    ci = res.get(f"{key}_ci95")
-    return f(res[key]) + (f" [{f(ci[0])}, {f(ci[1])}]" if ci else "")
+    from adadex.train.sim2real import format_fraction
+
+    return "—" if res.get(key) is None else format_fraction(res[key], res.get(f"{key}_ci95"))
 
 
 def load(spec: str) -> tuple[str, dict]:
@@ -68,11 +66,12 @@ def main(argv=None) -> dict:
     robots = dict(load(spec) for spec in a.pooled)
     if len(robots) != len(a.pooled):
         raise refuse(NAME, "two results name the same robot; name them NAME=FILE")
+    robots = {n: {**r, "verdict": r.get("verdict") or verdict(r)} for n, r in robots.items()}   # older results lack it
     summary = {}
     print(f"{'robot':28s} {'gap (points)':>20s} {'identified':>18s} {'table3':>18s} {'finetuned':>18s} "
           f"{'oracle':>18s}  verdict")
     for name, res in robots.items():
-        v = res.get("verdict") or verdict(res)
+        v = res["verdict"]
         gap_ci = res.get("gap_points_ci95") or [float("nan")] * 2
         print(f"{name:28s} {res['gap_points']:+6.1f} [{gap_ci[0]:+.1f}, {gap_ci[1]:+.1f}] "
               + " ".join(f"{_share(res, k):>18s}" for k in KEYS.values()) + f"  {v['kind']}")
@@ -81,7 +80,7 @@ def main(argv=None) -> dict:
                          **{k: res.get(key) for k, key in KEYS.items()},
                          **{f"{k}_ci95": res.get(f"{key}_ci95") for k, key in KEYS.items()},
                          "completion_pct": {r: row["completion_pct"] for r, row in res["rows"].items()}}
-    plot_robots({n: {**r, "verdict": r.get("verdict") or verdict(r)} for n, r in robots.items()}, figure)
+    plot_robots(robots, figure)
     mark_file(figure, f"{NAME} figure")
     result = {"robots": summary, "sources": list(a.pooled), "figure": str(figure)}
     write_result(a.out, result, name=NAME, force=a.force)

@@ -534,8 +534,8 @@ def row_statistics(evaluations: dict[str, dict], *, seed: int = 0) -> dict:
     return out
 
 
-def _fraction(x: float, ci=None, digits: int = 2) -> str:
-    """``0.67 [0.50, 0.91]``; never ``-0.00``."""
+def format_fraction(x: float, ci=None, digits: int = 2) -> str:
+    """A share of the gap with its interval, ``0.67 [0.50, 0.91]``; never ``-0.00``."""
     f = lambda v: f"{round(v, digits) + 0.0:.{digits}f}"        # noqa: E731 - + 0.0 turns -0.0 into 0.0
     return f(x) + (f" [{f(ci[0])}, {f(ci[1])}]" if ci else "")
 
@@ -564,7 +564,7 @@ def verdict(result: dict) -> dict:
     rf, ci = result.get("recovered_fraction"), result.get("recovered_fraction_ci95")
     oracle, oracle_ci = (result.get("recovered_fraction_modulator_oracle_real"),
                          result.get("recovered_fraction_modulator_oracle_real_ci95"))
-    oracle_text = "" if oracle is None else _fraction(oracle, oracle_ci)
+    oracle_text = "" if oracle is None else format_fraction(oracle, oracle_ci)
     if oracle_ci is not None and oracle_ci[1] < RECOVERY_TARGET:
         return {"kind": "beyond_reach",
                 "text": f"a modulator trained on the hidden robot itself takes back {oracle_text} of the "
@@ -574,7 +574,7 @@ def verdict(result: dict) -> dict:
     if rf is None or ci is None:
         return {"kind": "not_recovered", "text": f"the {gap:.1f}-point gap's recovered fraction is not defined"}
     digits = 3 if rf < RECOVERY_TARGET <= round(rf, 2) else 2          # 0.497 is not shown as the target
-    share = f"the identified modulator takes back {_fraction(rf, ci, digits)} of the {gap:.1f}-point gap"
+    share = f"the identified modulator takes back {format_fraction(rf, ci, digits)} of the {gap:.1f}-point gap"
     if ci[0] > 0 and rf >= RECOVERY_TARGET:
         return {"kind": "recovered", "text": share}
     if ci[0] > 0:
@@ -667,7 +667,7 @@ def format_table(result: dict) -> str:
         if key in result:
             rf, ci = result[key], result.get(f"{key}_ci95")
             lines.append(f"recovered by {name}: " + (
-                "not defined (the hidden robot loses no completion)" if rf is None else _fraction(rf, ci)))
+                "not defined (the hidden robot loses no completion)" if rf is None else format_fraction(rf, ci)))
     if "verdict" in result:
         lines.append(f"verdict: {result['verdict']['kind']} — {result['verdict']['text']}")
     return "\n".join(lines)
@@ -742,7 +742,7 @@ def plot_robots(pooled: dict[str, dict], path) -> Path:
         note = res.get("verdict", verdict(res))["kind"].replace("_", " ")
         if key is not None:
             who = "identified" if key == "recovered_fraction" else "oracle"
-            note = f"{who}: {_fraction(res[key], res.get(f'{key}_ci95'))}\n{note}"
+            note = f"{who}: {format_fraction(res[key], res.get(f'{key}_ci95'))}\n{note}"
         ax.text(i, 101, note, ha="center", va="bottom", fontsize=7)
     ax.set_xticks(range(len(pooled)), list(pooled), fontsize=8)
     ax.set_ylim(0, 118)

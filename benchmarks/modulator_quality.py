@@ -52,8 +52,9 @@ PAIRED = {"completion": "completion_pct", "object_completion": "object_completio
 
 
 def parse_row(text: str) -> dict:
-    """``CHANNELS[:inputs[:init_scale]][:option=value …]``; options: ``prior=anchor``, ``hold=K`` (steps
-    the exploration noise is held), ``hold_X=scale`` (channel X's held-noise scale) and
+    """``CHANNELS[:inputs[:init_scale]][:option=value …]``; options: ``prior=anchor`` (with
+    ``prior_reach=M``: objects displaced M m or farther left where they lie; its lookahead is
+    ``--modulation reach_lookahead``), ``hold=K`` (steps the exploration noise is held), ``hold_X=scale`` (channel X's held-noise scale) and
     ``focus_X=part+part`` (channel X's head reads only those view parts), the
     :class:`~adadex.modules.modulator.Modulator` settings ``prior``, ``hold_steps``, ``hold_scale``, ``focus``;
     ``learner=paired`` (fit latched channels to paired rollouts, :mod:`adadex.train.paired_choice`,
@@ -65,31 +66,41 @@ def parse_row(text: str) -> dict:
     parts = [p for p in parts if "=" not in p]
     if not 1 <= len(parts) <= 3:
         raise refuse(NAME, f"--rows: {text!r} is not CHANNELS[:inputs[:init_scale]][:option=value …]")
-    row = {"channels": parts[0], "inputs": parts[1] if len(parts) > 1 else "view",
-           "init_scale": float(parts[2]) if len(parts) > 2 and parts[2] != "default" else None, "modulator": {}}
-    for option in options:
-        key, value = option.split("=", 1)
-        if key == "prior":
-            row["modulator"]["prior"] = value
-        elif key == "hold":
-            row["modulator"]["hold_steps"] = int(value)
-        elif key.startswith("hold_"):
-            row["modulator"].setdefault("hold_scale", {})[key[5:]] = float(value)
-        elif key.startswith("focus_"):
-            row["modulator"].setdefault("focus", {})[key[6:]] = value.split("+")
-        elif key == "learner" and value in ("ppo", "paired"):
-            row["learner"] = value
-        elif key == "history" and value.isdigit():
-            row["history"] = int(value)
-        elif key == "core":
-            row["modulator"]["core"] = value
-        elif key == "decide" and value.isdigit():
-            row["modulator"]["decide_every"] = int(value)
-        else:
-            raise refuse(NAME, f"--rows: unknown option {key!r} in {text!r} (prior=, hold=, hold_X=, focus_X=, "
-                             "learner=ppo|paired, history=N, core=gru, decide=K)")
+    try:
+        row = {"channels": parts[0], "inputs": parts[1] if len(parts) > 1 else "view",
+               "init_scale": float(parts[2]) if len(parts) > 2 and parts[2] != "default" else None, "modulator": {}}
+        for option in options:
+            _row_option(row, option, text)
+    except ValueError:
+        raise refuse(NAME, f"--rows: {text!r} has a setting that needs a number") from None
     row["name"] = text.replace("+", "").replace(":", "_").replace(".", "").replace("=", "")
     return row
+
+
+def _row_option(row: dict, option: str, text: str) -> None:
+    """One ``key=value`` of a ``--rows`` entry into ``row`` (see :func:`parse_row`)."""
+    key, value = option.split("=", 1)
+    if key == "prior":
+        row["modulator"]["prior"] = value
+    elif key == "prior_reach":
+        row["modulator"]["prior_reach"] = float(value)
+    elif key == "hold":
+        row["modulator"]["hold_steps"] = int(value)
+    elif key.startswith("hold_"):
+        row["modulator"].setdefault("hold_scale", {})[key[5:]] = float(value)
+    elif key.startswith("focus_"):
+        row["modulator"].setdefault("focus", {})[key[6:]] = value.split("+")
+    elif key == "learner" and value in ("ppo", "paired"):
+        row["learner"] = value
+    elif key == "history" and value.isdigit():
+        row["history"] = int(value)
+    elif key == "core":
+        row["modulator"]["core"] = value
+    elif key == "decide" and value.isdigit():
+        row["modulator"]["decide_every"] = int(value)
+    else:
+        raise refuse(NAME, f"--rows: unknown option {key!r} in {text!r} (prior=, prior_reach=, hold=, hold_X=, "
+                           "focus_X=, learner=ppo|paired, history=N, core=gru, decide=K)")
 
 
 #: the object's horizontal start offset |Δ| (m): bins of the latched-choice report (channels A, L and K)

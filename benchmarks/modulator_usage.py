@@ -53,22 +53,31 @@ def _paired(row: dict, base: dict, metric: str) -> dict:
 
 
 def modulator_options(spec: str) -> tuple[str, dict]:
-    """``CHANNELS[:option=value …]`` → (channels, Modulator settings): ``prior=anchor``, ``hold=K``
-    (``hold_steps``), ``hold_X=scale`` (channel X's ``hold_scale``), ``decide=K`` (``decide_every``)."""
+    """``CHANNELS[:option=value …]`` → (channels, Modulator settings): ``prior=anchor`` (with
+    ``prior_reach=M`` and ``prior_lookahead=N``), ``hold=K`` (``hold_steps``), ``hold_X=scale``
+    (channel X's ``hold_scale``), ``decide=K`` (``decide_every``)."""
     channels, *options = spec.split(":")
     out = {}
     for option in options:
-        key, value = option.split("=", 1)
-        if key == "prior":
-            out["prior"] = value
-        elif key == "hold":
-            out["hold_steps"] = int(value)
-        elif key.startswith("hold_"):
-            out.setdefault("hold_scale", {})[key[5:]] = float(value)
-        elif key == "decide" and value.isdigit():
-            out["decide_every"] = int(value)
-        else:
-            raise refuse("modulator_usage", f"--channels: unknown option {key!r} in {spec!r} (prior=, hold=, hold_X=, decide=K)")
+        key, _, value = option.partition("=")
+        try:
+            if key == "prior":
+                out["prior"] = value
+            elif key == "prior_reach":
+                out["prior_reach"] = float(value)
+            elif key == "prior_lookahead":
+                out["prior_lookahead"] = int(value)
+            elif key == "hold":
+                out["hold_steps"] = int(value)
+            elif key.startswith("hold_"):
+                out.setdefault("hold_scale", {})[key[5:]] = float(value)
+            elif key == "decide":
+                out["decide_every"] = int(value)
+            else:
+                raise refuse("modulator_usage", f"--channels: unknown option {key!r} in {spec!r} "
+                                                "(prior=, prior_reach=, prior_lookahead=, hold=, hold_X=, decide=K)")
+        except ValueError:
+            raise refuse("modulator_usage", f"--channels: {option!r} in {spec!r} needs a number") from None
     return channels, out
 
 
@@ -83,6 +92,7 @@ def init_check(a) -> dict:
     from adadex.modules.tracker import Tracker
     from adadex.transforms.policy import make_policy
 
+    specs = [(spec, *modulator_options(spec)) for spec in a.channels.split(",")]     # bad input: before any work
     ds = ReferenceDataset(a.dataset)
     config = TrackingConfig()
     refs = episode_references(ds, ("unseen_trajectory", "test"), config.window)
@@ -110,8 +120,7 @@ def init_check(a) -> dict:
     print(f"tracker alone ({result['tracker']}): completion {base['summary']['completion_pct']:.1f} %, "
           f"object completion {base['summary']['object_completion_pct']:.1f} % ({len(episodes)} episodes)",
           flush=True)
-    for spec in a.channels.split(","):
-        channels, options = modulator_options(spec)
+    for spec, channels, options in specs:
         layout = ModulationLayout(channels)
         for scale in a.scales.split(","):
             init = None if scale == "default" else float(scale)

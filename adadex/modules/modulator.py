@@ -27,7 +27,8 @@ Two settings shift the action around a point other than zero (both off by defaul
   untrained modulator (heads at zero) *is* the anchored feed-forward around the tracker it modulates;
   training learns corrections, including not reaching; ``prior_lookahead`` times its hold and
   release by the reference object at t+1 (default), t+2, t+4 or t+12, as ``Tracker(anchor_lookahead=…)``
-  does. It reads the view's ``start_offset`` and ``original_future`` and the reference object's
+  does, and ``prior_reach`` (m, > 0) leaves objects displaced that far or farther where they lie, as
+  ``Tracker(anchor_reach=…)`` does (past ~10 cm the paper's thresholds fail a hand that holds the object). It reads the view's ``start_offset`` and ``original_future`` and the reference object's
   start, ``("object", "reference_start")`` — the entry the view's start offset and the anchored
   tracker read; nothing the simulator hides.
 * ``hold_steps=k`` with ``hold_scale`` — temporally correlated exploration: while the policy samples
@@ -128,15 +129,17 @@ class ActionShift(nn.Module):
         hold_scale: (D,) held-noise scale per flat action entry (0 where none).
         lookahead: the reference frame ahead (one of :data:`~adadex.modules.anchor.LOOKAHEADS`) whose
             object travel times the prior's hold and release, as the env's ``ModulationConfig.reach_lookahead``.
+        reach: m; > 0: the prior leaves objects displaced this far or farther unanchored; 0: no limit.
     """
 
     def __init__(self, layout: ViewLayout, prior: str | None = None, lambda_palm: float = _DEFAULT_LAMBDA_PALM,
-                 hold_steps: int = 0, hold_scale: torch.Tensor | None = None, lookahead: int = 1):
+                 hold_steps: int = 0, hold_scale: torch.Tensor | None = None, lookahead: int = 1, reach: float = 0.0):
         super().__init__()
         self.prior, self.lambda_palm, self.hold_steps = prior, float(lambda_palm), int(hold_steps)
         part = layout.slices()
         future = part["original_future"]
-        self._anchor = ObjectAnchor(**PRIOR_ANCHOR, lookahead=lookahead) if prior == "anchor" else None
+        self._anchor = ObjectAnchor(**{**PRIOR_ANCHOR, "reach": reach}, lookahead=lookahead) \
+            if prior == "anchor" else None
         # original_future holds the joints at t+1, t+2, t+4, t+12, then the object poses at the same frames
         obj = future.start + (len(REF_OFFSETS) - 1) * NUM_JOINTS + 7 * LOOKAHEADS.index(self._anchor.lookahead) \
             if self._anchor is not None else 0
@@ -234,6 +237,8 @@ class Modulator(ActorCritic):
             (the prior is expressed in C's units).
         prior_lookahead: the reference frame ahead (1, 2, 4 or 12) whose object travel times the
             prior's hold and release, as the env's ``ModulationConfig.reach_lookahead`` (default 1).
+        prior_reach: m; > 0: the prior leaves objects displaced this far or farther from the
+            reference's start where they lie (``Tracker(anchor_reach=…)``); 0 (default): no limit.
         hold_steps: > 0 holds exploration noise for this many steps on the ``hold_scale`` channels
             (see the module docstring; needs the view); 0: off.
         hold_scale: the held noise's scale in action units: a number for every channel, or
@@ -266,7 +271,8 @@ class Modulator(ActorCritic):
     def __init__(self, channels="R+O+T", hidden: Sequence[int] = (512, 256, 128), init_scale=None,
                  loc_bound: float = 0.0, inputs: str = "view", history: int = 3, prior: str | None = None,
                  lambda_palm: float = _DEFAULT_LAMBDA_PALM, hold_steps: int = 0, hold_scale=None,
-                 prior_lookahead: int = 1, reach_latched: bool = True, lead_latched: bool = True, gain_latched: bool = True,
+                 prior_lookahead: int = 1, prior_reach: float = 0.0, reach_latched: bool = True,
+                 lead_latched: bool = True, gain_latched: bool = True,
                  context_free: Sequence[str] = (), context_free_rate: float = 30.0,
                  focus: Mapping[str, Sequence[str]] | None = None, core: str | None = None, core_size: int = 128,
                  decide_every: int = 1):
@@ -283,7 +289,7 @@ class Modulator(ActorCritic):
             raise ConfigError(f"Modulator(decide_every={decide_every}) reads when it decides from the view: inputs='view'")
         self.view = ViewLayout(self.layout.channels, history, decide_every) if inputs == "view" else None
         self.obs_key, obs_dim = (VIEW, self.view.dim) if self.view is not None else (OBSERVATION, OBS_DIM)
-        shift, held = self._shift(prior, lambda_palm, hold_steps, hold_scale, prior_lookahead)
+        shift, held = self._shift(prior, lambda_palm, hold_steps, hold_scale, prior_lookahead, prior_reach)
         self.config = {"channels": self.layout.name, "hidden": list(hidden), "init_scale": scales,
                        "loc_bound": float(loc_bound), "inputs": inputs, "history": int(history)}
         if shift is not None:         # only then: checkpoints without these settings keep their config
@@ -291,6 +297,8 @@ class Modulator(ActorCritic):
                                hold_scale=held)
         if prior is not None and prior_lookahead != 1:      # the same: saved priors read t+1
             self.config["prior_lookahead"] = int(prior_lookahead)
+        if prior_reach > 0:                                  # the same: saved priors reach everywhere
+            self.config["prior_reach"] = float(prior_reach)
         switches = {"reach_latched": reach_latched, "lead_latched": lead_latched, "gain_latched": gain_latched}
         fixed = []                       # entries the env ignores after the episode's first step
         for record in self.layout.records:
@@ -337,7 +345,7 @@ class Modulator(ActorCritic):
                                 core_dim=int(core_size) if core is not None else 0)
         self.critic = make_critic(self.obs_key, obs_dim, hidden)
 
-    def _shift(self, prior, lambda_palm, hold_steps, hold_scale, lookahead=1):
+    def _shift(self, prior, lambda_palm, hold_steps, hold_scale, lookahead=1, reach=0.0):
         """The :class:`ActionShift` bounds module and the held scales per channel, or (None, {})."""
         if prior not in PRIORS:
             raise ConfigError(f"Modulator.prior must be one of {PRIORS}, got {prior!r}")
@@ -346,6 +354,9 @@ class Modulator(ActorCritic):
                               f"{LOOKAHEADS}, got {lookahead!r}")
         check_number("Modulator.lambda_palm", lambda_palm, strict_low=True)
         check_number("Modulator.hold_steps", hold_steps, integer=True)
+        check_number("Modulator.prior_reach", reach)
+        if reach > 0 and prior != "anchor":
+            raise ConfigError(f"Modulator(prior_reach={reach}) limits the anchor prior, which is off (prior={prior!r})")
         if prior == "anchor" and "C" not in self.layout:
             raise ConfigError(f"Modulator(prior='anchor') shifts channel C's palm, which {self.layout.name} lacks")
         if hold_scale is None:
@@ -372,7 +383,7 @@ class Modulator(ActorCritic):
         for key, sl, _ in self.layout.segments:         # an entry's own scale before its channel's
             scale[sl] = held.get(key[-1], held.get(entries[key[-1]], 0.0))
         keys = [VIEW] + ([REF_OBJECT_START] if prior == "anchor" else [])
-        module = ActionShift(self.view, prior, lambda_palm, hold_steps, scale if hold_steps else None, lookahead)
+        module = ActionShift(self.view, prior, lambda_palm, hold_steps, scale if hold_steps else None, lookahead, reach)
         return TensorDictModule(module, in_keys=keys, out_keys=[("modulator", "low"), ("modulator", "high")]), held
 
     @property

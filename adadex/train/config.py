@@ -303,6 +303,8 @@ class ModulatorSettings:
         prior: ``"anchor"``: channel C's palm action is an offset around the object anchor's palm
             shift (the untrained modulator *is* the anchored feed-forward); ``None`` (default): around
             zero. See :class:`~adadex.modules.modulator.Modulator` and docs/modulation.md.
+        prior_reach: m; > 0: the prior leaves objects displaced this far or farther where they lie
+            (``Tracker(anchor_reach=…)``); 0 (default): it reaches for every object. Needs ``prior``.
         hold_steps: > 0: while sampling, the ``hold_scale`` entries are shifted by noise redrawn every
             ``hold_steps`` steps and held in between (exploration that lasts long enough to reach;
             PPO's ratios stay exact); 0 (default): no held noise.
@@ -338,6 +340,7 @@ class ModulatorSettings:
     inputs: str = "view"
     history: int = 3
     prior: str | None = None
+    prior_reach: float = 0.0
     hold_steps: int = 0
     hold_scale: Any = None                 # float | dict | None
     context_free: tuple[str, ...] = ()
@@ -353,6 +356,10 @@ class ModulatorSettings:
 
         if self.prior not in (None, "anchor"):
             raise ConfigError(f"ModulatorSettings.prior (modulator.prior) must be 'anchor' or null, got {self.prior!r}")
+        check_number("ModulatorSettings.prior_reach (modulator.prior_reach)", self.prior_reach)
+        if self.prior_reach > 0 and self.prior is None:
+            raise ConfigError(f"ModulatorSettings.prior_reach={self.prior_reach} (modulator.prior_reach) limits the "
+                              f"anchor prior, which is off; set modulator.prior=anchor or drop prior_reach")
         check_number("ModulatorSettings.hold_steps", self.hold_steps, low=0, integer=True)
         if isinstance(self.hold_scale, Mapping):
             self.hold_scale = {str(k): v for k, v in self.hold_scale.items()}

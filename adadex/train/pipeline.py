@@ -82,8 +82,8 @@ EVAL_SPLITS = ("unseen_trajectory", "unseen_object")
 #: tracker, the channels and ``modulation`` are the pipeline's; ``learner``/``paired`` are not among them:
 #: the paired learner fits only channels chosen once per episode, and every row of :data:`MODULATOR_ROWS`
 #: acts every step)
-MODULATOR_SETTINGS = ("hidden", "init_scale", "loc_bound", "inputs", "history", "prior", "hold_steps", "hold_scale",
-                      "context_free", "focus", "core", "core_size", "decide_every")
+MODULATOR_SETTINGS = ("hidden", "init_scale", "loc_bound", "inputs", "history", "prior", "prior_reach", "hold_steps",
+                      "hold_scale", "context_free", "focus", "core", "core_size", "decide_every")
 
 
 def _pipeline_ppo(total_frames: int) -> PPOConfig:
@@ -220,7 +220,9 @@ class ModulatorStage:
             (:attr:`ModulatorSettings.inputs`).
         history: previous frames in the view (:attr:`ModulatorSettings.history`).
         prior: ``"anchor"`` or ``None``: what channel C's palm action is an offset around
-            (:attr:`ModulatorSettings.prior`).
+            (:attr:`ModulatorSettings.prior`), in the rows with C (``reference_channel="C"``).
+        prior_reach: m; > 0: the prior leaves objects displaced this far or farther where they lie
+            (:attr:`ModulatorSettings.prior_reach`).
         hold_steps: > 0: held exploration noise, redrawn every this many steps
             (:attr:`ModulatorSettings.hold_steps`).
         hold_scale: the held noise's scale per channel or entry (:attr:`ModulatorSettings.hold_scale`).
@@ -247,6 +249,7 @@ class ModulatorStage:
     inputs: str = _modulator_default("inputs")
     history: int = _modulator_default("history")
     prior: str | None = _modulator_default("prior")
+    prior_reach: float = _modulator_default("prior_reach")
     hold_steps: int = _modulator_default("hold_steps")
     hold_scale: Any = _modulator_default("hold_scale")
     context_free: tuple[str, ...] = _modulator_default("context_free")
@@ -298,6 +301,8 @@ class ModulatorStage:
         """The :data:`MODULATOR_SETTINGS` fields for ``row``, as :class:`ModulatorSettings` takes them
         (``context_free``: those of the row's channels)."""
         out = {k: getattr(self, k) for k in MODULATOR_SETTINGS}
+        if "C" not in self.row_channels(row).split("+"):      # C's prior: nothing to shift in the O row
+            out.update(prior=None, prior_reach=0.0)
         out["context_free"] = tuple(c for c in self.context_free if c in self.row_channels(row).split("+"))
         out["focus"] = {c: parts for c, parts in self.focus.items() if c in self.row_channels(row).split("+")}
         return out
@@ -592,6 +597,8 @@ class Pipeline:
                 settings["modulator"].pop(k, None)
         if settings.get("modulator") and settings["modulator"].get("decide_every") == 1:
             del settings["modulator"]["decide_every"]    # the same: a decision every step, as every stage before it
+        if settings.get("modulator") and settings["modulator"].get("prior_reach") == 0.0:
+            del settings["modulator"]["prior_reach"]     # the same: a prior that reaches everywhere, or none
         if teacher is not None:
             settings["teacher"] = teacher[0]
 

@@ -222,6 +222,7 @@ class PPOTrainer:
                                     hold_scale=m.hold_scale, context_free=m.context_free, focus=m.focus,
                                     lambda_palm=env_channels.lambda_palm,
                                     prior_lookahead=env_channels.reach_lookahead if m.prior is not None else 1,
+                                    prior_reach=m.prior_reach,
                                     core=m.core, core_size=m.core_size, decide_every=m.decide_every,
                                     **{c.latch: getattr(env_channels, c.latch) for c in CHANNELS.values() if c.latch})
         #: the state a recurrent policy (TorchRL's GRUModule / LSTMModule in its actor or critic) carries in

@@ -75,6 +75,30 @@ def test_anchor_prior_reads_the_reference_as_far_ahead_as_told(tiny_dataset, tmp
         Modulator("C", hidden=(16,), prior="anchor", prior_lookahead=3)
 
 
+def test_anchor_prior_with_a_reach_leaves_far_objects_where_they_lie(tiny_dataset, tmp_path):
+    """prior_reach=M: the untrained prior around replay is ``Tracker(anchor_reach=M)``'s feed-forward —
+    worlds whose object lies M or farther off keep replay's palm, the others reach as without the limit."""
+    reach = 0.06
+    limited = Tracker(hidden=(16,), residual=0.25, anchor=0.05, anchor_reach=reach).zero_mean()
+    mod = Modulator("C", hidden=(16, 16), prior="anchor", prior_reach=reach).zero_mean()
+    policy = make_policy(Tracker.replay(), mod)
+    a = _rollout(tiny_dataset, limited.actor, steps=8)
+    b = _rollout(tiny_dataset, policy, policy.primer(), steps=8)
+    torch.testing.assert_close(b["action"], a["action"], atol=1e-5, rtol=0)
+    full = make_policy(Tracker.replay(), Modulator("C", hidden=(16, 16), prior="anchor").zero_mean())
+    c = _rollout(tiny_dataset, full, full.primer(), steps=8)
+    offset = (b["object", "start_pose"][:, 0, :2] - b["object", "reference_start"][:, 0, :2]).norm(dim=-1)
+    far, palm = offset >= reach, b["modulation", "sample"][..., :3].abs().amax(dim=(-2, -1))
+    assert far.any() and (~far).any()                                  # both kinds among the worlds
+    assert (palm[far] == 0).all() and (palm[~far] > 0).all()
+    moved = (c["action"] - b["action"]).abs().amax(dim=(-2, -1))
+    assert (moved[far] > 1e-3).all() and (moved[~far] < 1e-5).all()   # only the far worlds differ
+    assert Modulator.load(mod.save(tmp_path / "m.pt")).config["prior_reach"] == reach
+    assert "prior_reach" not in Modulator("C", hidden=(16,), prior="anchor").config
+    with pytest.raises(ConfigError, match=r"prior_reach=0.1\) limits the anchor prior, which is off"):
+        Modulator("C", hidden=(16,), prior_reach=0.1)
+
+
 def test_anchor_prior_follows_objects_past_lambda_palm_and_its_own_lambda(tiny_dataset):
     """The prior is in C's units: with λ_palm halved the palm action doubles (past 1: C's palm entry
     takes ±2) and the joints stay the anchored feed-forward's."""

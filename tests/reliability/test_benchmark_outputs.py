@@ -187,6 +187,24 @@ def test_sim2real_seeds_refuses_a_missing_run_in_one_line(bench, tmp_path, capsy
     assert "no_run" in err and "sim2real.json" in err and not out.exists()
 
 
+def test_modulator_benchmarks_refuse_a_malformed_row_before_any_work(bench, tmp_path, monkeypatch, capsys):
+    """A row or channel setting whose value is not a number (``prior_reach=abc``), or an unknown option,
+    is named in one line with exit code 2 before the dataset is even read."""
+    _trap(monkeypatch, "adadex.data.reference.ReferenceDataset")     # their first work
+    out = tmp_path / "result.json"
+    cases = (("modulator_quality", ["--rows", "C+T:prior=anchor:prior_reach=abc"], "needs a number"),
+             ("modulator_quality", ["--rows", "C+T:reach=0.1"], "unknown option 'reach'"),
+             ("modulator_usage", ["--init-check", "--channels", "C+T:prior=anchor:prior_reach=abc"], "needs a number"),
+             ("modulator_usage", ["--init-check", "--channels", "C+T:reach=0.1"], "unknown option 'reach'"))
+    for name, args, says in cases:
+        with pytest.raises(SystemExit) as e:
+            bench(name).main(["--dataset", str(tmp_path), "--out", str(out), *args])
+        err = capsys.readouterr().err.strip()
+        assert e.value.code == 2 and "\n" not in err and err.startswith(f"benchmarks/{name}.py: error: "), err
+        assert says in err, (args, err)
+    assert not out.exists()
+
+
 # ------------------------------------------------------------------------------------------ encoder train --out
 
 

@@ -390,6 +390,33 @@ def test_the_anchor_lookahead_keys_a_stage_only_when_set(tiny_dataset, tmp_path,
         assert tc.policy.tracker().config.get("anchor_lookahead") == stamped
 
 
+def test_the_modulators_anchor_prior_reaches_the_rows_with_c_and_keys_a_stage_only_when_limited(
+        tiny_dataset, tmp_path, monkeypatch):
+    """``modulator.prior=anchor`` with ``reference_channel=C``: the rows with C get the prior and its
+    reach, the O row neither (it has no palm to shift); ``prior_reach`` names a stage's settings only
+    when set, so stages of runs from before the setting existed are still theirs."""
+    from adadex.train import pipeline as pipeline_module
+    from adadex.train.config import ModulatorSettings
+
+    stage = pipeline_module.ModulatorStage(reference_channel="C", prior="anchor", prior_reach=0.1)
+    assert stage.settings("ROT")["prior"] == "anchor" and stage.settings("ROT")["prior_reach"] == 0.1
+    assert stage.settings("O")["prior"] is None and stage.settings("O")["prior_reach"] == 0.0
+    tracker = str(Tracker(hidden=(16,)).save(tmp_path / "tracker.pt"))
+    with pytest.raises(ConfigError, match=r"prior_reach=0.1 \(modulator.prior_reach\) limits the anchor prior"):
+        ModulatorSettings(tracker=tracker, channels="C+T", prior_reach=0.1)
+    cfg = PipelineConfig(out=str(tmp_path / "out"))
+    pipe = pipeline_module.Pipeline(cfg)
+    pipe.ds = ReferenceDataset(tiny_dataset)
+    seen = []
+    monkeypatch.setattr(pipe, "_stage", lambda folder, settings, fn, label: seen.append(settings) or {})
+    for reach in (0.0, 0.1):
+        m = ModulatorSettings(tracker=tracker, channels="C+T", prior="anchor", prior_reach=reach)
+        tc = dataclasses.replace(pipe._train_config(tmp_path / "run", 0, cfg.modulator.ppo, cfg.specialist.policy),
+                                 modulator=m)
+        pipe._ppo(tc, "modulator")
+    assert "prior_reach" not in seen[0]["modulator"] and seen[1]["modulator"]["prior_reach"] == 0.1
+
+
 def test_sim_backend_reaches_every_training_run_and_keys_the_stages(tiny_dataset, tmp_path):
     """``sim.backend=warp``: every training run's config carries it, and a stage run on one backend is
     not reused on the other (the default backend's stages keep their settings as before)."""

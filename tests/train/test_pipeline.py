@@ -84,7 +84,8 @@ def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000, name
     usage = json.loads((out / "figures" / "channel_usage.json").read_text())
     assert set(usage) == {"R", "RT", "ROT", "O"} and set(usage["O"]) == {"latent"}
-    assert set(usage["ROT"]) == {"ref_hand", "ref_object", "latent", "action"}
+    assert set(usage["ROT"]) == {"palm", "grip", "latent", "action"}      # the R rows edit through C by default
+    assert "+R+O+T = C+O+T" in md and "object anchor's shift for objects within 10 cm" in md
     # each training stage logged to CSV and wandb (offline), and left a loadable policy
     seed0 = out / "seed_0"
     for stage in ("specialists/spec_0", "specialists/spec_1", "generalist", "baselines/ppo", "baselines/il_rl",
@@ -129,7 +130,7 @@ def test_a_second_run_skips_every_stage_and_a_killed_one_resumes(tiny_run, tiny_
     r = _pipeline(tmp, out, tiny_dataset, "seed_workers=1")     # the first run had the seeds side by side
     assert r.returncode == 0, r.stderr[-3000:]
     ran = [line for line in r.stdout.splitlines() if line.startswith("[run ]")]
-    assert ran == ["[run ] seed 1 modulator R+T"], ran
+    assert ran == ["[run ] seed 1 modulator C+T"], ran
     assert r.stdout.count("[skip]") > 40
     assert load_checkpoint(stage)["frames"] == frames        # continued from the checkpoint, not retrained
     assert json.loads((out / "table1.json").read_text()) == before
@@ -269,7 +270,12 @@ def test_the_recipe_lists_only_changes_and_its_node_is_the_dataclass(tmp_path):
     settings = {f.name for f in dataclasses.fields(ModulatorSettings)} - {"tracker", "channels", "learner", "paired"}
     assert settings <= set(node["modulator"])
     own = defaults_of(ModulatorSettings)
-    assert all(node["modulator"][k] == own[k] for k in settings - {"modulation"})    # ModulatorSettings' defaults
+    # ModulatorSettings' defaults but for Table 1's modulator: C's palm starting at the anchor within 10 cm
+    # (the R rows' channel is C), read 4 frames ahead, every channel exploring at 0.03
+    chosen = {"init_scale": 0.03, "prior": "anchor", "prior_reach": 0.10}
+    assert all(node["modulator"][k] == own[k] for k in settings - {"modulation"} - set(chosen))
+    assert {k: node["modulator"][k] for k in chosen} == chosen and node["modulator"]["reference_channel"] == "C"
+    assert node["modulator"]["modulation"]["reach_lookahead"] == 4 and node["modulator"]["ppo"]["desired_kl"] == 0.016
 
 
 def test_a_nested_override_reaches_the_stage_it_names(tiny_dataset, tmp_path):

@@ -359,7 +359,7 @@ class ModulatorSettings:
         check_number("ModulatorSettings.prior_reach (modulator.prior_reach)", self.prior_reach)
         if self.prior_reach > 0 and self.prior is None:
             raise ConfigError(f"ModulatorSettings.prior_reach={self.prior_reach} (modulator.prior_reach) limits the "
-                              f"anchor prior, which is off; set modulator.prior=anchor or drop prior_reach")
+                              f"anchor prior, which is off; set modulator.prior=anchor or modulator.prior_reach=0")
         check_number("ModulatorSettings.hold_steps", self.hold_steps, low=0, integer=True)
         if isinstance(self.hold_scale, Mapping):
             self.hold_scale = {str(k): v for k, v in self.hold_scale.items()}

@@ -95,10 +95,10 @@ def _pipeline_ppo(total_frames: int) -> PPOConfig:
 
 def _modulator_ppo() -> PPOConfig:
     """The modulators' learner: the pipeline's, with the KL-adaptive rate (``desired_kl=0.016``). At the
-    constant 3e-4 the modulators' updates ran at a median clip fraction of 0.8 and approximate KL ~1: most
-    samples clipped in every update; with the adaptive rate the reach-prior modulators gained +2.3 [+0.7, +4.0]
-    completion points against themselves untrained, at the constant rate +0.7 [−1.3, +2.7]
-    (docs/modulation.md, 2026-12-07). ``modulator.ppo.desired_kl=0`` restores the constant rate."""
+    constant 3e-4 the modulators' updates run far past PPO's trust region (median clip fraction ~0.8): most
+    samples are clipped in every update, and the reach-prior modulators learned nothing resolved against
+    themselves untrained, where with the adaptive rate they gain a couple of completion points
+    (docs/modulation.md). ``modulator.ppo.desired_kl=0`` restores the constant rate."""
     return dataclasses.replace(_pipeline_ppo(250_000), desired_kl=0.016)
 
 
@@ -217,17 +217,16 @@ class ModulatorStage:
         reference_channel: the reference channel of the R rows (R, RT, ROT): ``"C"`` (default) — the
             compact edit, a palm offset through the arm Jacobian and a closure per finger (7 numbers,
             :class:`adadex.transforms.modulation.CompactModulation`), whose palm starts at the object
-            anchor's shift (``prior``); ``"R"`` — the full per-frame residuals (112 numbers; Table 1 before
-            2026-12-07).
+            anchor's shift (``prior``); ``"R"`` — the full per-frame residuals (112 numbers).
         modulation: :class:`~adadex.modules.channels.ModulationConfig` fields to change (λ's, bounds,
             persistence), for training and evaluating every modulator; kept as the changes from
             its defaults (default ``{"reach_lookahead": 4}``: the prior reads the reference object four
             frames ahead, ahead of the servos' lag).
         hidden: widths of the modulator's hidden layers (:attr:`ModulatorSettings.hidden`).
         init_scale: initial exploration scale: a number (default 0.03 for every channel: sampling the
-            untrained reach-prior modulator then costs its deterministic self about 1.6 completion points
-            around a pipeline generalist, the channels' own scales about 6), ``None`` (each channel's own)
-            or ``{channel: scale}`` (:attr:`ModulatorSettings.init_scale`).
+            untrained +R+O+T row around a generalist then costs a couple of completion points, about three
+            times that at the channels' own scales; docs/modulation.md), ``None`` (each channel's own) or
+            ``{channel: scale}`` (:attr:`ModulatorSettings.init_scale`).
         loc_bound: bound of the pre-tanh mean (:attr:`ModulatorSettings.loc_bound`).
         inputs: what the modulator reads, ``"view"`` or ``"observation"``
             (:attr:`ModulatorSettings.inputs`).

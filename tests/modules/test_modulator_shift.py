@@ -56,17 +56,25 @@ def test_untrained_anchor_prior_around_replay_is_the_anchored_feed_forward(tiny_
     torch.testing.assert_close(c["action"], a["action"][:, :5], atol=1e-2, rtol=0)
 
 
+def _prior_as_feed_forward(dataset, steps, **anchor):
+    """The untrained C prior with the anchor setting ``anchor`` (``anchor_lookahead`` / ``anchor_reach``, as
+    ``prior_lookahead`` / ``prior_reach``) around replay, checked equal to ``Tracker(anchor=0.05, **anchor)``'s
+    feed-forward; returns (the modulator, its rollout, the rollout of the prior without the setting)."""
+    tracker = Tracker(hidden=(16,), residual=0.25, anchor=0.05, **anchor).zero_mean()
+    mod = Modulator("C", hidden=(16, 16), prior="anchor",
+                    **{k.replace("anchor_", "prior_"): v for k, v in anchor.items()}).zero_mean()
+    policy = make_policy(Tracker.replay(), mod)
+    a = _rollout(dataset, tracker.actor, steps=steps)
+    b = _rollout(dataset, policy, policy.primer(), steps=steps)
+    torch.testing.assert_close(b["action"], a["action"], atol=1e-5, rtol=0)
+    plain = make_policy(Tracker.replay(), Modulator("C", hidden=(16, 16), prior="anchor").zero_mean())
+    return mod, b, _rollout(dataset, plain, plain.primer(), steps=steps)
+
+
 def test_anchor_prior_reads_the_reference_as_far_ahead_as_told(tiny_dataset, tmp_path):
     """prior_lookahead=4: the untrained prior around replay is the anchored feed-forward reading t+4
     (``Tracker(anchor_lookahead=4)``), which starts bringing the object back earlier than at t+1."""
-    ahead = Tracker(hidden=(16,), residual=0.25, anchor=0.05, anchor_lookahead=4).zero_mean()
-    mod = Modulator("C", hidden=(16, 16), prior="anchor", prior_lookahead=4).zero_mean()
-    policy = make_policy(Tracker.replay(), mod)
-    a = _rollout(tiny_dataset, ahead.actor, steps=120)
-    b = _rollout(tiny_dataset, policy, policy.primer(), steps=120)
-    torch.testing.assert_close(b["action"], a["action"], atol=1e-5, rtol=0)
-    t1 = make_policy(Tracker.replay(), Modulator("C", hidden=(16, 16), prior="anchor").zero_mean())
-    c = _rollout(tiny_dataset, t1, t1.primer(), steps=120)
+    mod, b, c = _prior_as_feed_forward(tiny_dataset, 120, anchor_lookahead=4)
     assert (c["action"] - b["action"]).abs().max() > 1e-3                  # the timing changed the hand
     loaded = Modulator.load(mod.save(tmp_path / "m.pt"))
     assert loaded.config["prior_lookahead"] == 4
@@ -79,14 +87,7 @@ def test_anchor_prior_with_a_reach_leaves_far_objects_where_they_lie(tiny_datase
     """prior_reach=M: the untrained prior around replay is ``Tracker(anchor_reach=M)``'s feed-forward —
     worlds whose object lies M or farther off keep replay's palm, the others reach as without the limit."""
     reach = 0.06
-    limited = Tracker(hidden=(16,), residual=0.25, anchor=0.05, anchor_reach=reach).zero_mean()
-    mod = Modulator("C", hidden=(16, 16), prior="anchor", prior_reach=reach).zero_mean()
-    policy = make_policy(Tracker.replay(), mod)
-    a = _rollout(tiny_dataset, limited.actor, steps=8)
-    b = _rollout(tiny_dataset, policy, policy.primer(), steps=8)
-    torch.testing.assert_close(b["action"], a["action"], atol=1e-5, rtol=0)
-    full = make_policy(Tracker.replay(), Modulator("C", hidden=(16, 16), prior="anchor").zero_mean())
-    c = _rollout(tiny_dataset, full, full.primer(), steps=8)
+    mod, b, c = _prior_as_feed_forward(tiny_dataset, 8, anchor_reach=reach)
     offset = (b["object", "start_pose"][:, 0, :2] - b["object", "reference_start"][:, 0, :2]).norm(dim=-1)
     far, palm = offset >= reach, b["modulation", "sample"][..., :3].abs().amax(dim=(-2, -1))
     assert far.any() and (~far).any()                                  # both kinds among the worlds

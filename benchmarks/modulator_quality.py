@@ -54,7 +54,8 @@ PAIRED = {"completion": "completion_pct", "object_completion": "object_completio
 def parse_row(text: str) -> dict:
     """``CHANNELS[:inputs[:init_scale]][:option=value …]``; options: ``prior=anchor`` (with
     ``prior_reach=M``: objects displaced M m or farther left where they lie; its lookahead is
-    ``--modulation reach_lookahead``), ``hold=K`` (steps the exploration noise is held), ``hold_X=scale`` (channel X's held-noise scale) and
+    ``--modulation reach_lookahead``), ``hold=K`` (steps the exploration noise is held), ``hold_X=scale``
+    (channel X's held-noise scale) and
     ``focus_X=part+part`` (channel X's head reads only those view parts), the
     :class:`~adadex.modules.modulator.Modulator` settings ``prior``, ``hold_steps``, ``hold_scale``, ``focus``;
     ``learner=paired`` (fit latched channels to paired rollouts, :mod:`adadex.train.paired_choice`,

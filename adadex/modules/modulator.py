@@ -28,7 +28,8 @@ Two settings shift the action around a point other than zero (both off by defaul
   training learns corrections, including not reaching; ``prior_lookahead`` times its hold and
   release by the reference object at t+1 (default), t+2, t+4 or t+12, as ``Tracker(anchor_lookahead=…)``
   does, and ``prior_reach`` (m, > 0) leaves objects displaced that far or farther where they lie, as
-  ``Tracker(anchor_reach=…)`` does (past ~10 cm the paper's thresholds fail a hand that holds the object). It reads the view's ``start_offset`` and ``original_future`` and the reference object's
+  ``Tracker(anchor_reach=…)`` does (past ~10 cm the paper's thresholds fail a hand that holds the
+  object). It reads the view's ``start_offset`` and ``original_future`` and the reference object's
   start, ``("object", "reference_start")`` — the entry the view's start offset and the anchored
   tracker read; nothing the simulator hides.
 * ``hold_steps=k`` with ``hold_scale`` — temporally correlated exploration: while the policy samples

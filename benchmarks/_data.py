@@ -96,8 +96,8 @@ def refuse(name: str, message) -> SystemExit:
 
 def settings(text: str, defaults, flag: str, name: str) -> dict:
     """``"k=v,k=v"`` → ``{k: v}``, each value of its default's type in ``defaults`` (a config instance;
-    ``true``/``false`` for switches); a key it lacks, or a value not of its type, ends the benchmark
-    ``name`` (:func:`refuse`) naming ``flag``."""
+    ``true``/``false`` for switches, ``lo:hi`` for a range); a key it lacks, or a value not of its type,
+    ends the benchmark ``name`` (:func:`refuse`) naming ``flag``."""
     out = {}
     for kv in filter(None, text.split(",")):
         k, eq, v = kv.partition("=")
@@ -109,6 +109,17 @@ def settings(text: str, defaults, flag: str, name: str) -> dict:
                 raise refuse(name, f"{flag}: {k} is a switch, true or false, got {v!r}")
             out[k] = v == "true"
             continue
+        if isinstance(default, tuple) and default and all(isinstance(x, float) for x in default):   # lo:hi
+            try:
+                parts = tuple(float(x) for x in v.split(":"))
+            except ValueError:
+                parts = ()
+            if len(parts) != len(default):
+                raise refuse(name, f"{flag}: {k} is a range lo:hi of numbers, got {v!r}")
+            out[k] = parts
+            continue
+        if not isinstance(default, (int, float, str)):
+            raise refuse(name, f"{flag}: {k} is not a number, switch or range and cannot be set here")
         try:
             out[k] = type(default)(v)
         except (TypeError, ValueError):

@@ -9,16 +9,22 @@ success rates (mean-error and completion), and the object-centric ones beside th
     python benchmarks/replay_floor.py --randomize --repeats 4 --seed 20000 \
         --feed-forward anchor=0.05,anchor_reach=0.10,anchor_lookahead=4        # the anchored feed-forward
     python benchmarks/replay_floor.py --randomize --repeats 4 --seed 20000 --randomization object_xy_std=0,object_yaw_std=0
+    python benchmarks/replay_floor.py --randomize --repeats 4 --seed 20000 \
+        --tracker runs/table1/seed_0/generalist/tracker.pt \
+        --from-off --randomization action_noise_correlated=0.02,action_noise_uncorrelated=0.05   # one factor
 
-``--action-noise-scale`` multiplies Table 3's action-noise standard deviations (the env adds them in
-units of the action bound, 0.1 rad; 10 gives the radian reading used before 2026-11-25).
-``--randomization k=v,…`` changes Table 3's fields (:class:`adadex.envs.randomization.Randomization`),
-e.g. the object's displacement off: how much of a floor the displacement costs. ``--feed-forward
-k=v,…`` evaluates, instead of replay, the untrained residual tracker with those feed-forward settings
-(:class:`adadex.modules.tracker.Tracker`'s ``anchor``, ``anchor_reach``, ``anchor_iterations``,
-``anchor_lookahead``: the object-anchored feed-forward) and also replay on the same draws, and prints
-the paired differences with 95 % bootstrap intervals over references. ``--repeats`` lists every
-reference that many times (one Table 3 draw each), ``--seed`` is the env seed (the evaluation's draws).
+``--action-noise-scale`` multiplies Table 3's action-noise standard deviations (the env adds them in units
+of the action bound, 0.1 rad; 10 gives the radian reading used before 2026-11-25). ``--randomization
+k=v,…`` changes Table 3's fields (:class:`adadex.envs.randomization.Randomization`), e.g. the object's
+displacement off: how much of a floor the displacement costs (a range is ``lo:hi``, ``robot_mass=1:1``);
+with ``--from-off`` they change everything-off instead of Table 3, so the run draws only the factors
+named. ``--feed-forward k=v,…`` evaluates, instead of replay, the untrained residual tracker with those
+feed-forward settings (:class:`adadex.modules.tracker.Tracker`'s ``anchor``, ``anchor_reach``,
+``anchor_iterations``, ``anchor_lookahead``: the object-anchored feed-forward) and also replay on the same
+draws, and prints the paired differences with 95 % bootstrap intervals over references; ``--tracker PATH``
+does the same for a saved tracker (e.g. a pipeline's distilled generalist) — which of Table 3's factors
+costs it what it costs replay. ``--repeats`` lists every reference that many times (one Table 3 draw
+each), ``--seed`` is the env seed (the evaluation's draws).
 
 Without ``--dataset`` the ``small`` preset is built into ``data/small`` first (a few minutes).
 """
@@ -50,6 +56,9 @@ def main(argv=None) -> dict:
     p.add_argument("--repeats", type=int, default=1, help="episodes per reference, one draw each (default 1)")
     p.add_argument("--seed", type=int, default=None, help="the env seed (default: the env's)")
     p.add_argument("--randomization", default="", help="with --randomize: Table 3 fields k=v,… to change")
+    p.add_argument("--from-off", action="store_true",
+                   help="with --randomize: --randomization changes everything-off, not Table 3 (the factors named)")
+    p.add_argument("--tracker", type=Path, default=None, help="a saved tracker to evaluate beside replay, paired")
     p.add_argument("--feed-forward", default="", help="Tracker feed-forward settings k=v,… (anchor, anchor_reach, "
                                                       "anchor_iterations, anchor_lookahead) to evaluate beside replay")
     p.add_argument("--out", type=Path, default=RESULTS / "replay_floor.json")
@@ -59,14 +68,16 @@ def main(argv=None) -> dict:
     check_result(a.out, name=NAME, force=a.force)      # before any work: refuse a file not ours
     if a.repeats < 1:
         raise refuse(NAME, f"--repeats must be ≥ 1, got {a.repeats}")
-    if a.randomization and not a.randomize:
-        raise refuse(NAME, "--randomization changes Table 3: give --randomize too")
+    if (a.randomization or a.from_off) and not a.randomize:
+        raise refuse(NAME, "--randomization/--from-off change Table 3: give --randomize too")
+    if a.tracker is not None and a.feed_forward:
+        raise refuse(NAME, "--tracker and --feed-forward each give the policy beside replay: give one")
 
     from adadex.data.build import build_dataset
     from adadex.envs.randomization import Randomization
     from adadex.envs.replay import replay_policy
     from adadex.envs.tracking import TrackingConfig, episode_references
-    from adadex.errors import ConfigError
+    from adadex.errors import AdadexError, ConfigError
     from adadex.eval.evaluate import evaluate, format_summary
     from adadex.eval.paired import paired_bootstrap
     from adadex.modules.tracker import Tracker
@@ -75,10 +86,19 @@ def main(argv=None) -> dict:
     feed_forward = settings(a.feed_forward, _FeedForward(), "--feed-forward", NAME)
     changes = settings(a.randomization, Randomization(), "--randomization", NAME)
     try:
-        table3 = dataclasses.replace(Randomization(), **changes)
+        table3 = dataclasses.replace(Randomization.off() if a.from_off else Randomization(), **changes)
         anchored = Tracker(hidden=(16,), residual=0.25, **feed_forward).zero_mean().freeze() if feed_forward else None
     except ConfigError as e:
         raise refuse(NAME, f"--randomization/--feed-forward: {e}") from None
+    if a.tracker is not None:
+        try:
+            beside = Tracker.load(a.tracker).freeze()
+        except (AdadexError, OSError) as e:
+            raise refuse(NAME, f"--tracker: {e}") from None
+    elif anchored is not None:
+        beside = anchored
+    else:
+        beside = None
 
     dataset = a.dataset
     if dataset is None:
@@ -101,7 +121,7 @@ def main(argv=None) -> dict:
     summary = res["summary"]
     result = {"dataset": str(dataset), "split": [a.split, a.part], "references": res["references"],
               "randomize": a.randomize, "action_noise_scale": a.action_noise_scale if a.randomize else None,
-              "randomization": changes,
+              "randomization": changes, "from_off": a.from_off,
               "repeats": a.repeats, "seed": a.seed,
               "steps": res["steps"], "wall_s": res["wall_s"], **summary,
               "per_reference": res["per_reference"]}
@@ -110,17 +130,22 @@ def main(argv=None) -> dict:
     print(f"kinematic replay on {res['references']} episodes of {a.split}/{a.part}"
           f"{' with randomization' if a.randomize else ''}{changed}{noise} ({res['wall_s']:.0f} s):")
     print(format_summary(summary))
-    if anchored is not None:
-        ff = evaluate(make_policy(anchored, None, channels="none"), dataset, **kw)
+    if beside is not None:
+        ff = evaluate(make_policy(beside, None, channels="none"), dataset, **kw)
         refs = ff["per_episode"]["reference"]
         diffs = {}
         for field in ("completion", "object_completion", "carried"):
             d = paired_bootstrap(100 * np.asarray(ff["per_episode"][field], float),
                                  100 * np.asarray(res["per_episode"][field], float), np.asarray(refs))
             diffs[f"{field}_pct"] = {"diff": d["estimate"], "ci95": d["ci95"]}
-        result["feed_forward"] = {"settings": feed_forward, **ff["summary"], "vs_replay": diffs,
-                                  "per_reference": ff["per_reference"]}
-        print(f"the untrained residual tracker with {a.feed_forward} ({ff['wall_s']:.0f} s):")
+        key, what = (("tracker", f"the tracker {a.tracker}") if a.tracker is not None else
+                     ("feed_forward", f"the untrained residual tracker with {a.feed_forward}"))
+        result[key] = {"settings": str(a.tracker) if a.tracker is not None else feed_forward, **ff["summary"],
+                       "vs_replay": diffs, "per_reference": ff["per_reference"]}
+        result["per_episode"] = {"reference": refs, **{f"{row}_{f}": p["per_episode"][f]
+                                                       for row, p in (("replay", res), (key, ff))
+                                                       for f in ("completion", "object_completion")}}
+        print(f"{what} ({ff['wall_s']:.0f} s):")
         print(format_summary(ff["summary"]))
         print("  against replay on the same episodes: " + ", ".join(
             f"{k.removesuffix('_pct').replace('_', ' ')} {v['diff']:+.1f} [{v['ci95'][0]:+.1f}, {v['ci95'][1]:+.1f}]"

@@ -122,6 +122,16 @@ def test_settings_read_k_v_of_a_config_and_refuse_the_rest_in_one_line(bench, ca
         err = capsys.readouterr().err.strip()
         assert e.value.code == 2 and "\n" not in err and err.startswith("benchmarks/demo.py: error: --modulation: "), err
         assert says in err, err
+    from adadex.envs.randomization import Randomization
+
+    assert data.settings("robot_mass=1:1,object_xy_std=0", Randomization(), "--randomization", "demo") == {
+        "robot_mass": (1.0, 1.0), "object_xy_std": 0.0}
+    for text, says in (("robot_mass=1", "robot_mass is a range lo:hi of numbers, got '1'"),
+                       ("robot_mass=a:b", "is a range lo:hi"), ("effects=x", "effects is not a number, switch or range")):
+        with pytest.raises(SystemExit) as e:
+            data.settings(text, Randomization(), "--randomization", "demo")
+        err = capsys.readouterr().err.strip()
+        assert e.value.code == 2 and "\n" not in err and says in err, err
 
 
 def test_replay_floor_refuses_bad_feed_forward_and_randomization_before_any_work(bench, tmp_path, monkeypatch, capsys):
@@ -132,7 +142,11 @@ def test_replay_floor_refuses_bad_feed_forward_and_randomization_before_any_work
                        (["--feed-forward", "anchor=0.05,anchor_lookahead=3"], "lookahead must be one of the observation's reference frames ahead (1, 2, 4, 12)"),
                        (["--randomization", "object_xy_std=0"], "give --randomize too"),
                        (["--randomize", "--randomization", "object_xy_sd=0"], "not k=v with k a Randomization setting"),
-                       (["--repeats", "0"], "--repeats must be ≥ 1")):
+                       (["--repeats", "0"], "--repeats must be ≥ 1"),
+                       (["--from-off"], "give --randomize too"),
+                       (["--randomize", "--from-off", "--randomization", "robot_mass=1.2:1.1"], "robot_mass"),
+                       (["--tracker", str(tmp_path / "t.pt"), "--feed-forward", "anchor=0.05"], "give one"),
+                       (["--randomize", "--tracker", str(tmp_path / "absent.pt")], str(tmp_path / "absent.pt"))):
         with pytest.raises(SystemExit) as e:
             floor.main(["--dataset", str(tmp_path), "--out", str(out), *args])
         err = capsys.readouterr().err.strip()

@@ -161,10 +161,17 @@ def _ordered(rows: Mapping) -> list[str]:
     return [r for r in ROWS if r in rows] + [r for r in rows if r not in ROWS]
 
 
+#: written under each nominal block's heading: what one undrawn episode a reference can and cannot tell
+NOMINAL_NOTE = ("Nominal: one episode a reference and nothing drawn, so each row is one sample of outcomes that "
+                "any perturbation changes (Table 3's action noise alone moves a row by several points); read a "
+                "difference here against the randomized block's.")
+
+
 def table_markdown(table: dict, *, title: str = "Table 1") -> str:
     """The table as Markdown: one block per split and condition, rows in :data:`ROWS` order, each
     cell the mean over seeds ± the half-width of its 95 % interval; below each block the rows'
-    differences to the tracker with their 95 % intervals ([lo, hi]).
+    differences to the tracker with their 95 % intervals ([lo, hi]); under each nominal heading
+    :data:`NOMINAL_NOTE`.
 
     Args:
         table: the :func:`aggregate` structure (table1.json).
@@ -182,8 +189,10 @@ def table_markdown(table: dict, *, title: str = "Table 1") -> str:
             rows = table.get(split, {}).get(condition)
             if not rows:
                 continue
-            lines += [f"## {split.replace('_', ' ')}, {condition}", "",
-                      "| method | seeds | episodes | success mean-error % | success completion % | object completion % "
+            lines += [f"## {split.replace('_', ' ')}, {condition}", ""]
+            if condition == "nominal":
+                lines += [NOMINAL_NOTE, ""]
+            lines += ["| method | seeds | episodes | success mean-error % | success completion % | object completion % "
                       "| carried % | T_o | R_o | T_h | R_h | E_finger |",
                       "|---|---|---|---|---|---|---|---|---|---|---|---|"]
             for row in _ordered(rows):

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from adadex.eval.table1 import EPISODE_FIELDS, METRICS, aggregate, table_markdown
+from adadex.eval.table1 import EPISODE_FIELDS, METRICS, NOMINAL_NOTE, aggregate, table_markdown
 
 KEY = ("unseen_trajectory", "randomized")
 
@@ -77,6 +77,9 @@ def test_per_episode_inputs_give_bootstrap_intervals_and_paired_differences():
     assert "Difference to the tracker" in md and "object completion %" in md and "carried %" in md
     line = next(ln for ln in md.splitlines() if ln.startswith("| +R+O+T") and "[" in ln)
     assert f"{d:+.1f} [{lo:+.1f}, {hi:+.1f}]" in line
+    assert NOMINAL_NOTE not in md                                     # only a nominal block carries it
+    nominal = table_markdown({KEY[0]: {"nominal": table[KEY[0]][KEY[1]]}})
+    assert nominal.index("nominal") < nominal.index(NOMINAL_NOTE) < nominal.index("| method")
 
 
 def test_old_style_summaries_without_per_episode_results_still_load():

@@ -58,7 +58,8 @@ from adadex.transforms.policy import SAMPLE
 PATHS = ("original", "modulated", "executed")
 
 _METRIC_LABELS = {"completion_pct": "completion success %", "mean_error_pct": "mean-error success %",
-                  "success_mean_error_pct": "mean-error success %"}
+                  "success_mean_error_pct": "mean-error success %",
+                  "object_completion_pct": "object completion % (T_o ≤ 5 cm)"}
 _ROW_COLOURS = {"replay": "#9e9e9e", "ppo": "#bdbdbd", "il_rl": "#757575", "tracker": "#1f77b4",
                 "R": "#ff7f0e", "RT": "#d62728", "ROT": "#2ca02c", "O": "#9467bd"}
 

@@ -1,7 +1,7 @@
 """The Table 1 pipeline's figures (``out/figures/``), made from its table and the first seed's policies:
-the ablation bars, Fig. 4 (original, modulated and executed object path), Fig. 5 (the modulated
-latent decoded against the object), Fig. 6 (data scaling), Fig. 12 (latent smoothness ρ) and how much
-each modulator uses each of its channels."""
+the ablation bars (completion, and object completion where the evaluations stored it), Fig. 4 (original,
+modulated and executed object path), Fig. 5 (the modulated latent decoded against the object), Fig. 6
+(data scaling), Fig. 12 (latent smoothness ρ) and how much each modulator uses each of its channels."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import torch
 
 from adadex.envs.latent import SHIPPED_ENCODER, encoder_latent
 from adadex.envs.tracking import episode_references
+from adadex.errors import ConfigError
 from adadex.eval import figures as fig
 from adadex.eval.latent_smoothness import latent_smoothness, plot_latent_smoothness
 from adadex.eval.table1 import ROW_LABELS, ci95
@@ -28,6 +29,10 @@ def pipeline_figures(p, table: dict, scaling: dict, paths: dict, seed: int, modu
     whose channel use is plotted); returns ``{figure: file}``."""
     folder = p.out / "figures"
     out = {"ablation": fig.plot_ablation(table, folder / "ablation.png")}
+    try:                    # the object-centric metric beside it; evaluations stored before it existed lack it
+        out["ablation_object"] = fig.plot_ablation(table, folder / "ablation_object.png", metric="object_completion_pct")
+    except ConfigError:
+        pass
     # Fig. 4 and 5: the R+O+T policy of the first seed on the unseen-trajectory test references
     refs = episode_references(p.ds, ("unseen_trajectory", "test"), p.env_config.window)[: p.cfg.collector.worlds]
     res = p.evaluate(p.policy("ROT", paths), "unseen_trajectory", "nominal", 20_000 + seed,

@@ -30,8 +30,8 @@ from adadex.train.stages import STAGE, run_stage
 from adadex.train.table_so_far import table_so_far
 
 ROOT = Path(__file__).resolve().parents[2]
-FIGURES = ("ablation.png", "fig4_object_path.png", "fig5_latent.png", "fig6_scaling.png", "fig12_smoothness.png",
-           "channel_usage.png")
+FIGURES = ("ablation.png", "ablation_object.png", "fig4_object_path.png", "fig5_latent.png", "fig6_scaling.png",
+           "fig12_smoothness.png", "channel_usage.png")
 
 
 def _pipeline(tmp_path, out, tiny_dataset, *extra):

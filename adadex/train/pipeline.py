@@ -15,6 +15,7 @@ Per training seed (``seed_<s>/`` under ``out``):
 ``eval/<split>/<cond>/``   one ``<row>/stage.json`` per row: the evaluation summary, per-reference and
                            per-episode results, and the return–completion rank correlation
 ``eval/teachers/spec_<k>`` the generalist against specialist k on k's own training references, paired
+                           (``eval/teachers_vs_replay/spec_<k>``: specialist k against replay there)
 =========================  ==========================================================================
 
 then, over all seeds, ``table1.json`` (``{split: {condition: {row: {metric: mean, metric_ci95:
@@ -24,8 +25,8 @@ of a seed meets the same draws; :mod:`adadex.eval.table1`), ``table1.md`` and ``
 ablation bars, Fig. 4 (original, modulated and executed object path), Fig. 5 (the modulated latent
 decoded against the object), Fig. 6 (data scaling), Fig. 12 (latent smoothness ρ), and how much each
 modulator uses each of its channels (``channel_usage.png`` / ``.json``: mean |action| per entry), and
-``generalist_vs_teachers.json``: per seed, how much of each specialist's completion the distilled
-generalist kept on that specialist's references.
+``generalist_vs_teachers.json``: per seed, what each specialist gained over kinematic replay on its own
+references and how much of its completion the distilled generalist kept there.
 
 **Settings.** :class:`PipelineConfig`: the dataset, the seeds, what every stage shares (``env``,
 ``reward``, ``randomization``, ``sim``, ``collector``) and one group per stage — ``specialist``,
@@ -768,7 +769,8 @@ class Pipeline:
         (randomized, the same draws for both, so their episodes pair up): one stage per specialist,
         ``{"teacher", "references", "teacher_completion_pct", "generalist_completion_pct",
         "generalist_minus_teacher", "generalist_minus_teacher_ci95"}`` each — how much distillation
-        kept of what each specialist learned."""
+        kept of what each specialist learned — with :meth:`teacher_floor`'s fields (the teacher against
+        replay on the same draws)."""
         from adadex.eval.paired import paired_bootstrap
 
         out = []
@@ -786,10 +788,37 @@ class Pipeline:
                         "generalist_completion_pct": r["tracker"]["summary"]["completion_pct"],
                         "generalist_minus_teacher": d["estimate"], "generalist_minus_teacher_ci95": d["ci95"]}
 
-            out.append(self._stage(folder, {"teacher": path, "tracker": tracker, "repeats": self.cfg.evaluation.check_repeats,
-                                            "seed": seed}, run,
-                                   label=f"seed {seed} generalist against teacher {k + 1} on its references"))
+            check = self._stage(folder, {"teacher": path, "tracker": tracker, "repeats": self.cfg.evaluation.check_repeats,
+                                         "seed": seed}, run,
+                                label=f"seed {seed} generalist against teacher {k + 1} on its references")
+            out.append({**check, **self.teacher_floor(seed, root, k, path, refs)})
         return out
+
+    def teacher_floor(self, seed: int, root: Path, k: int, path: str, refs: list[int]) -> dict:
+        """Specialist ``k`` against kinematic replay on its own training references, on the teacher
+        check's draws (paired): ``{"replay_completion_pct", "teacher_minus_replay",
+        "teacher_minus_replay_ci95"}`` and the same for object completion (``replay_object_completion_pct``,
+        ``teacher_minus_replay_object``, ``…_ci95``) — what PPO gained over the floor where it trained,
+        which bounds what distillation can carry to unseen references. Its own stage
+        (``eval/teachers_vs_replay/spec_<k>``), so runs stored before it existed resume."""
+        from adadex.eval.paired import paired_bootstrap
+
+        def run():
+            r = {row: self.evaluate(self.policy(row, {row: p}), "unseen_trajectory", "randomized", 30_000 + seed,
+                                    references=list(refs), repeats=self.cfg.evaluation.check_repeats)
+                 for row, p in (("teacher", path), ("replay", None))}
+            ids = np.asarray(r["teacher"]["per_episode"]["reference"])
+            out = {}
+            for metric, suffix in (("completion", ""), ("object_completion", "_object")):
+                a, b = (np.asarray(r[row]["per_episode"][metric]) * 100 for row in ("teacher", "replay"))
+                d = paired_bootstrap(a, b, ids, seed=seed)
+                out |= {f"replay_{metric}_pct": r["replay"]["summary"][f"{metric}_pct"],
+                        f"teacher_minus_replay{suffix}": d["estimate"], f"teacher_minus_replay{suffix}_ci95": d["ci95"]}
+            return out
+
+        return self._stage(root / "eval" / "teachers_vs_replay" / f"spec_{k}",
+                           {"teacher": path, "repeats": self.cfg.evaluation.check_repeats, "seed": seed}, run,
+                           label=f"seed {seed} teacher {k + 1} against replay on its references")
 
     def scaling(self, seed: int, root: Path, rollouts: str, tracker: str) -> dict:
         """Fig. 6: generalists distilled from fractions of the references, on the unseen-trajectory
@@ -842,8 +871,9 @@ class Pipeline:
                           table_markdown(table) + "\n" + self.cfg.modulator.rows_note() + "\n")
         atomic_write_text(self.out / "generalist_vs_teachers.json", json.dumps(distilled, indent=1))
         for seed, checks in distilled.items():
-            self.log(f"seed {seed}: generalist − teacher on each teacher's references (completion points): "
-                     + ", ".join(f"{c['generalist_minus_teacher']:+.1f}" for c in checks))
+            self.log(f"seed {seed}: on each teacher's references (completion points), teacher − replay: "
+                     + ", ".join(f"{c['teacher_minus_replay']:+.1f}" for c in checks)
+                     + "; generalist − teacher: " + ", ".join(f"{c['generalist_minus_teacher']:+.1f}" for c in checks))
         figures = self.figures(table, scaling, paths_by_seed[self.cfg.seeds[0]], self.cfg.seeds[0])
         note = self.o_channel(table)
         atomic_write_text(self.out / "table1.md", table_markdown(table) + "\n" + self.cfg.modulator.rows_note()

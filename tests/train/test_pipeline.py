@@ -115,7 +115,14 @@ def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
         assert 0 <= c["teacher_completion_pct"] <= 100 and 0 <= c["generalist_completion_pct"] <= 100
         lo, hi = c["generalist_minus_teacher_ci95"]
         assert lo <= c["generalist_minus_teacher"] <= hi
-    assert "generalist − teacher" in r.stdout
+        # and against replay on the same draws: its own stage meets the teacher check's episodes again
+        assert c["replay_completion_pct"] + c["teacher_minus_replay"] == pytest.approx(c["teacher_completion_pct"])
+        for key in ("teacher_minus_replay", "teacher_minus_replay_object"):
+            lo, hi = c[f"{key}_ci95"]
+            assert lo <= c[key] <= hi
+        assert 0 <= c["replay_object_completion_pct"] <= 100
+    assert (seed0 / "eval" / "teachers_vs_replay" / "spec_1" / "stage.json").is_file()
+    assert "generalist − teacher" in r.stdout and "teacher − replay" in r.stdout
     # seeds differ: the two generalists are not the same network
     a, b = (Tracker.load(out / f"seed_{s}" / "generalist" / "tracker.pt") for s in (0, 1))
     assert any(not torch.equal(p, q) for p, q in zip(a.parameters(), b.parameters()))

@@ -675,12 +675,16 @@ def update_health(rows: Sequence[dict]) -> dict:
     """How far a run's updates moved the policy: the medians over its metrics rows of ``kl_approx`` and
     ``clip_fraction`` (the loss's, per iteration) and how many iterations had them; ``{}`` when none did.
 
+    Rows read back from ``metrics.csv`` (a resumed run) hold ``""`` where a row had no value, e.g. the
+    evaluation row a finished run ends with; they count as missing.
+
     >>> update_health([{"kl_approx": 0.5, "clip_fraction": 0.7}, {"kl_approx": 0.1, "clip_fraction": 0.3},
-    ...                {"eval_completion_pct": 80.0}])
+    ...                {"eval_completion_pct": 80.0}, {"kl_approx": "", "clip_fraction": ""}])
     {'iterations': 2, 'kl_median': 0.3, 'clip_fraction_median': 0.5}
     """
-    kl = [float(r["kl_approx"]) for r in rows if r.get("kl_approx") is not None and "clip_fraction" in r]
-    clip = [float(r["clip_fraction"]) for r in rows if r.get("kl_approx") is not None and "clip_fraction" in r]
+    had = [r for r in rows if r.get("kl_approx") not in (None, "") and r.get("clip_fraction") not in (None, "")]
+    kl = [float(r["kl_approx"]) for r in had]
+    clip = [float(r["clip_fraction"]) for r in had]
     if not kl:
         return {}
     return {"iterations": len(kl), "kl_median": float(np.median(kl)), "clip_fraction_median": float(np.median(clip))}

@@ -250,3 +250,17 @@ def test_updates_past_the_trust_region_are_reported(tiny_dataset, tmp_path, caps
     gentle = dataclasses.replace(cfg, out=str(tmp_path / "gentle"), ppo=dataclasses.replace(cfg.ppo, lr=1e-6))
     assert train(gentle, policy=TanhCriticPolicy())["updates"]["clip_fraction_median"] < 0.6
     assert "trust region" not in capsys.readouterr().err
+
+
+def test_a_finished_run_continues_to_more_frames(tiny_dataset, tmp_path):
+    """A run that finished (its last metrics row an evaluation, with no update statistics) continues to
+    a larger ``ppo.total_frames`` from its checkpoint, and its result's update medians cover every
+    iteration that updated, the first run's included."""
+    first = dataclasses.replace(_config(tiny_dataset, tmp_path / "run"), eval_max_references=2)
+    train(first)
+    assert any(r["kl_approx"] == "" for r in _rows(first.out))          # the evaluation row
+    more = dataclasses.replace(first, resume=True, ppo=dataclasses.replace(first.ppo, total_frames=1024))
+    result = train(more)
+    assert result["frames"] == 1024
+    updated = [r for r in _rows(first.out) if r["kl_approx"] != ""]
+    assert result["updates"]["iterations"] == len(updated) == 4

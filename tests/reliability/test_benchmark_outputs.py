@@ -154,6 +154,33 @@ def test_replay_floor_refuses_bad_feed_forward_and_randomization_before_any_work
     assert not out.exists()
 
 
+def test_specialist_floor_refuses_bad_rows_and_settings_before_any_work(bench, tiny_dataset, tmp_path, monkeypatch,
+                                                                       capsys):
+    floor = bench("specialist_floor")
+    _trap(monkeypatch, "specialist_floor.train_row")                  # its first work
+    out = tmp_path / "floor.json"
+    for args, says in ((["--rows", "ppo.lr"], "'lr' is not k=v with k a PPOConfig setting"),
+                       (["--rows", "optim.lr=1"], "section.field=value with section one of"),
+                       (["--rows", "ppo.learning_rate=1e-4"], "not k=v with k a PPOConfig setting"),
+                       (["--rows", "reward.w_success=lots"], "w_success must be a number"),
+                       (["--rows", "default", "default"], "listed twice"),
+                       (["--repeats", "0"], "--repeats must be ≥ 1"),
+                       (["--seeds", "0,one"], "--seeds"),
+                       (["--randomization", "object_xy_sd=0"], "not k=v with k a Randomization setting"),
+                       (["--dataset", str(tmp_path / "absent")], str(tmp_path / "absent"))):
+        argv = ["--dataset", str(tiny_dataset), "--out", str(out), "--runs", str(tmp_path / "runs"), *args]
+        with pytest.raises(SystemExit) as e:
+            floor.main(argv)
+        err = capsys.readouterr().err.strip()
+        assert e.value.code == 2 and "\n" not in err and says in err, (args, err)
+    with pytest.raises(_Reached):                                     # good settings: the training starts
+        floor.main(["--dataset", str(tiny_dataset), "--out", str(out), "--runs", str(tmp_path / "runs"),
+                    "--rows", "default", "collector.group_size=8,ppo.advantage=group,reward.w_success=2"])
+    assert not out.exists() and not (tmp_path / "runs").exists()
+    assert floor.parse_row("collector.group_size=8,ppo.advantage=group")["collector"] == {"group_size": 8}
+    assert floor.tag("policy.anchor=0.05,policy.anchor_reach=0.1") == "policy.anchor-0.05_policy.anchor_reach-0.1"
+
+
 # ------------------------------------------------------------------------------------------ a real benchmark
 
 

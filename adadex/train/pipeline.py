@@ -798,7 +798,8 @@ class Pipeline:
         """Specialist ``k`` against kinematic replay on its own training references, on the teacher
         check's draws (paired): ``{"replay_completion_pct", "teacher_minus_replay",
         "teacher_minus_replay_ci95"}`` and the same for object completion (``replay_object_completion_pct``,
-        ``teacher_minus_replay_object``, ``…_ci95``) — what PPO gained over the floor where it trained,
+        ``teacher_minus_replay_object``, ``…_ci95``), and the episodes' values (``per_episode``, in points)
+        for pooling over specialists (:func:`teachers_note`) — what PPO gained over the floor where it trained,
         which bounds what distillation can carry to unseen references. Its own stage
         (``eval/teachers_vs_replay/spec_<k>``), so runs stored before it existed resume."""
         from adadex.eval.paired import paired_bootstrap
@@ -808,12 +809,13 @@ class Pipeline:
                                     references=list(refs), repeats=self.cfg.evaluation.check_repeats)
                  for row, p in (("teacher", path), ("replay", None))}
             ids = np.asarray(r["teacher"]["per_episode"]["reference"])
-            out = {}
+            out = {"per_episode": {"reference": ids.tolist()}}
             for metric, suffix in (("completion", ""), ("object_completion", "_object")):
                 a, b = (np.asarray(r[row]["per_episode"][metric]) * 100 for row in ("teacher", "replay"))
                 d = paired_bootstrap(a, b, ids, seed=seed)
                 out |= {f"replay_{metric}_pct": r["replay"]["summary"][f"{metric}_pct"],
                         f"teacher_minus_replay{suffix}": d["estimate"], f"teacher_minus_replay{suffix}_ci95": d["ci95"]}
+                out["per_episode"] |= {f"teacher_{metric}": a.tolist(), f"replay_{metric}": b.tolist()}
             return out
 
         return self._stage(root / "eval" / "teachers_vs_replay" / f"spec_{k}",
@@ -869,6 +871,7 @@ class Pipeline:
         atomic_write_text(self.out / "table1.json", json.dumps(table, indent=1))
         atomic_write_text(self.out / "table1.md",
                           table_markdown(table) + "\n" + self.cfg.modulator.rows_note() + "\n")
+        floors = {seed: [c.pop("per_episode", None) for c in checks] for seed, checks in distilled.items()}
         atomic_write_text(self.out / "generalist_vs_teachers.json", json.dumps(distilled, indent=1))
         for seed, checks in distilled.items():
             self.log(f"seed {seed}: on each teacher's references (completion points), teacher − replay: "
@@ -876,9 +879,11 @@ class Pipeline:
                      + "; generalist − teacher: " + ", ".join(f"{c['generalist_minus_teacher']:+.1f}" for c in checks))
         figures = self.figures(table, scaling, paths_by_seed[self.cfg.seeds[0]], self.cfg.seeds[0])
         note = self.o_channel(table)
+        teachers = teachers_note(floors)
         atomic_write_text(self.out / "table1.md", table_markdown(table) + "\n" + self.cfg.modulator.rows_note()
-                          + "\n\n" + note["text"] + "\n")
+                          + "\n\n" + note["text"] + "\n\n" + teachers + "\n")
         self.log(note["text"])
+        self.log(teachers)
         wall = time.perf_counter() - t0
         self.log(f"table1: {self.out / 'table1.md'} ({wall:.0f} s)")
         return {"table": table, "figures": figures, "wall_s": wall}
@@ -898,6 +903,34 @@ class Pipeline:
         from adadex.train.pipeline_figures import pipeline_figures
 
         return pipeline_figures(self, table, scaling, paths, seed, MODULATOR_ROWS)
+
+
+def teachers_note(floors: Mapping[str, list]) -> str:
+    """The specialists against kinematic replay on their own references, pooled over every specialist
+    of every seed (paired episodes, bootstrap over references within seeds), as the line written below
+    Table 1: what PPO gained where it trained bounds what the distilled tracker row can gain.
+
+    Args:
+        floors: per seed, each specialist's :meth:`Pipeline.teacher_floor` ``per_episode`` record
+            (None for a stage stored before it kept them: then the line says so).
+    """
+    from adadex.eval.paired import paired_bootstrap
+
+    kept = [(seed, f) for seed, fs in floors.items() for f in fs if f]
+    if not kept or len(kept) < sum(len(fs) for fs in floors.values()):
+        return ("**The specialists against replay** on their own references: not pooled here (stages stored "
+                "before their episodes were kept); per specialist in `generalist_vs_teachers.json`.")
+    ids = np.concatenate([[f"{seed}:{r}" for r in f["reference"]] for seed, f in kept])
+    seeds = np.concatenate([[seed] * len(f["reference"]) for seed, f in kept])
+    parts = []
+    for metric, name in (("completion", "completion"), ("object_completion", "object completion")):
+        d = paired_bootstrap(np.concatenate([f[f"teacher_{metric}"] for _, f in kept]),
+                             np.concatenate([f[f"replay_{metric}"] for _, f in kept]), ids, seeds)
+        parts.append(f"{name} {d['estimate']:+.1f} [{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}]")
+    return (f"**The specialists against replay** on their own training references, paired ({len(kept)} specialists, "
+            f"{len(ids)} episodes, Table 3): " + "; ".join(parts) + " points. What PPO gained where it trained "
+            "bounds what the distilled tracker can gain on unseen references (per specialist, and the generalist "
+            "against each, in `generalist_vs_teachers.json`).")
 
 
 def _seed_chain(args) -> tuple[dict, dict, dict, list]:

@@ -123,6 +123,10 @@ def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
         assert 0 <= c["replay_object_completion_pct"] <= 100
     assert (seed0 / "eval" / "teachers_vs_replay" / "spec_1" / "stage.json").is_file()
     assert "generalist − teacher" in r.stdout and "teacher − replay" in r.stdout
+    assert not any("per_episode" in c for c in checks["0"])              # kept in the stages, pooled below the table
+    floor = json.loads((seed0 / "eval" / "teachers_vs_replay" / "spec_0" / "stage.json").read_text())["result"]
+    assert len(floor["per_episode"]["teacher_completion"]) == len(floor["per_episode"]["reference"]) > 0
+    assert "**The specialists against replay** on their own training references, paired (4 specialists" in md
     # seeds differ: the two generalists are not the same network
     a, b = (Tracker.load(out / f"seed_{s}" / "generalist" / "tracker.pt") for s in (0, 1))
     assert any(not torch.equal(p, q) for p, q in zip(a.parameters(), b.parameters()))

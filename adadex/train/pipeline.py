@@ -928,7 +928,7 @@ def teachers_note(floors: Mapping[str, list]) -> str:
                              np.concatenate([f[f"replay_{metric}"] for _, f in kept]), ids, seeds)
         parts.append(f"{name} {d['estimate']:+.1f} [{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}]")
     return (f"**The specialists against replay** on their own training references, paired ({len(kept)} specialists, "
-            f"{len(ids)} episodes, Table 3): " + "; ".join(parts) + " points. What PPO gained where it trained "
+            f"{len(ids):,} episodes, Table 3): " + "; ".join(parts) + " points. What PPO gained where it trained "
             "bounds what the distilled tracker can gain on unseen references (per specialist, and the generalist "
             "against each, in `generalist_vs_teachers.json`).")
 

@@ -16,6 +16,8 @@ Per training seed (``seed_<s>/`` under ``out``):
                            per-episode results, and the return–completion rank correlation
 ``eval/teachers/spec_<k>`` the generalist against specialist k on k's own training references, paired
                            (``eval/teachers_vs_replay/spec_<k>``: specialist k against replay there)
+``eval/channel_usage``     the first seed's: each modulator's mean |action| per channel (``<row>/``;
+                           ``figures/channel_usage.png``)
 =========================  ==========================================================================
 
 then, over all seeds, ``table1.json`` (``{split: {condition: {row: {metric: mean, metric_ci95:

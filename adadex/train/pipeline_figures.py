@@ -65,10 +65,15 @@ def pipeline_figures(p, table: dict, scaling: dict, paths: dict, seed: int, modu
     rho = {row: latent_smoothness(actor, obs[pick], seed=seed) for row, actor in actors.items()}
     plot_latent_smoothness({ROW_LABELS[k]: v for k, v in rho.items()}, folder / "fig12_smoothness.png")
     out["fig12_smoothness"] = folder / "fig12_smoothness.png"
-    # which channels each modulator uses, on the randomized unseen-trajectory episodes
-    usage = {row: fig.channel_usage(p.evaluate(p.policy(row, paths), "unseen_trajectory", "randomized",
-                                                  20_000 + seed, keep_rollouts=True)["rollouts"],
-                                  p.cfg.row_channels(row))
+    # which channels each modulator uses, on the randomized unseen-trajectory episodes: the figures' one
+    # costly evaluation (every modulator row's randomized episodes again), so a stage a rerun skips
+    def use(row):
+        return fig.channel_usage(p.evaluate(p.policy(row, paths), "unseen_trajectory", "randomized", 20_000 + seed,
+                                            keep_rollouts=True)["rollouts"], p.cfg.row_channels(row))
+
+    usage = {row: p._stage(p.out / f"seed_{seed}" / "eval" / "channel_usage" / row,
+                           {"policy": paths[row], "tracker": paths["tracker"], "repeats": p.cfg.evaluation.repeats,
+                            "seed": seed}, lambda row=row: use(row), label=f"seed {seed} channel use of {row}")
              for row in modulator_rows}
     out["channel_usage"] = fig.plot_channel_usage(usage, folder / "channel_usage.png")
     atomic_write_text(folder / "channel_usage.json", json.dumps(usage, indent=1))

@@ -85,6 +85,8 @@ def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
     usage = json.loads((out / "figures" / "channel_usage.json").read_text())
     assert set(usage) == {"R", "RT", "ROT", "O"} and set(usage["O"]) == {"latent"}
     assert set(usage["ROT"]) == {"palm", "grip", "latent", "action"}      # the R rows edit through C by default
+    stored = json.loads((out / "seed_0" / "eval" / "channel_usage" / "ROT" / "stage.json").read_text())["result"]
+    assert stored == usage["ROT"]                 # a stage: a rerun skips it (below, only the killed stage runs)
     assert "+R+O+T = C+O+T" in md and "object anchor's shift for objects within 10 cm" in md
     # each training stage logged to CSV and wandb (offline), and left a loadable policy
     seed0 = out / "seed_0"

@@ -30,6 +30,14 @@ def _trap(monkeypatch, target: str) -> None:
     monkeypatch.setattr(target, work)
 
 
+def _assert_refused(main, argv: list, says: str, capsys) -> None:
+    """``main(argv)`` ends with exit code 2 and one line on stderr containing ``says``."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err.strip()
+    assert e.value.code == 2 and "\n" not in err and says in err, (argv, err)
+
+
 def _tree(folder: Path) -> dict:
     return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(folder.rglob("*")) if p.is_file()}
@@ -147,10 +155,7 @@ def test_replay_floor_refuses_bad_feed_forward_and_randomization_before_any_work
                        (["--randomize", "--from-off", "--randomization", "robot_mass=1.2:1.1"], "robot_mass"),
                        (["--tracker", str(tmp_path / "t.pt"), "--feed-forward", "anchor=0.05"], "give one"),
                        (["--randomize", "--tracker", str(tmp_path / "absent.pt")], str(tmp_path / "absent.pt"))):
-        with pytest.raises(SystemExit) as e:
-            floor.main(["--dataset", str(tmp_path), "--out", str(out), *args])
-        err = capsys.readouterr().err.strip()
-        assert e.value.code == 2 and "\n" not in err and says in err, (args, err)
+        _assert_refused(floor.main, ["--dataset", str(tmp_path), "--out", str(out), *args], says, capsys)
     assert not out.exists()
 
 
@@ -159,20 +164,18 @@ def test_specialist_floor_refuses_bad_rows_and_settings_before_any_work(bench, t
     floor = bench("specialist_floor")
     _trap(monkeypatch, "specialist_floor.train_row")                  # its first work
     out = tmp_path / "floor.json"
-    for args, says in ((["--rows", "ppo.lr"], "'lr' is not k=v with k a PPOConfig setting"),
-                       (["--rows", "optim.lr=1"], "section.field=value with section one of"),
-                       (["--rows", "ppo.learning_rate=1e-4"], "not k=v with k a PPOConfig setting"),
-                       (["--rows", "reward.w_success=lots"], "w_success must be a number"),
-                       (["--rows", "default", "default"], "listed twice"),
-                       (["--repeats", "0"], "--repeats must be ≥ 1"),
-                       (["--seeds", "0,one"], "--seeds"),
-                       (["--randomization", "object_xy_sd=0"], "not k=v with k a Randomization setting"),
-                       (["--dataset", str(tmp_path / "absent")], str(tmp_path / "absent"))):
-        argv = ["--dataset", str(tiny_dataset), "--out", str(out), "--runs", str(tmp_path / "runs"), *args]
-        with pytest.raises(SystemExit) as e:
-            floor.main(argv)
-        err = capsys.readouterr().err.strip()
-        assert e.value.code == 2 and "\n" not in err and says in err, (args, err)
+    base = ["--dataset", str(tiny_dataset), "--out", str(out), "--runs", str(tmp_path / "runs")]
+    cases = {"--rows ppo.lr": "'lr' is not k=v with k a PPOConfig setting",
+             "--rows optim.lr=1": "section.field=value with section one of",
+             "--rows ppo.learning_rate=1e-4": "not k=v with k a PPOConfig setting",
+             "--rows reward.w_success=lots": "w_success must be a number",
+             "--rows default default": "listed twice",
+             "--repeats 0": "--repeats must be ≥ 1",
+             "--seeds 0,one": "--seeds",
+             "--randomization object_xy_sd=0": "not k=v with k a Randomization setting",
+             f"--dataset {tmp_path / 'absent'}": str(tmp_path / "absent")}
+    for args, says in cases.items():
+        _assert_refused(floor.main, [*base, *args.split()], says, capsys)
     with pytest.raises(_Reached):                                     # good settings: the training starts
         floor.main(["--dataset", str(tiny_dataset), "--out", str(out), "--runs", str(tmp_path / "runs"),
                     "--rows", "default", "collector.group_size=8,ppo.advantage=group,reward.w_success=2"])

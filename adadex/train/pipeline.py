@@ -802,7 +802,7 @@ class Pipeline:
         "teacher_minus_replay_ci95"}`` and the same for object completion (``replay_object_completion_pct``,
         ``teacher_minus_replay_object``, ``…_ci95``), and the episodes' values (``per_episode``, in points)
         for pooling over specialists (:func:`teachers_note`) — what PPO gained over the floor where it trained,
-        which bounds what distillation can carry to unseen references. Its own stage
+        which is what distillation has to carry to unseen references. Its own stage
         (``eval/teachers_vs_replay/spec_<k>``), so runs stored before it existed resume."""
         from adadex.eval.paired import paired_bootstrap
 
@@ -910,7 +910,7 @@ class Pipeline:
 def teachers_note(floors: Mapping[str, list]) -> str:
     """The specialists against kinematic replay on their own references, pooled over every specialist
     of every seed (paired episodes, bootstrap over references within seeds), as the line written below
-    Table 1: what PPO gained where it trained bounds what the distilled tracker row can gain.
+    Table 1: what PPO gained where it trained is what distillation has to carry to the tracker row.
 
     Args:
         floors: per seed, each specialist's :meth:`Pipeline.teacher_floor` ``per_episode`` record
@@ -931,7 +931,7 @@ def teachers_note(floors: Mapping[str, list]) -> str:
         parts.append(f"{name} {d['estimate']:+.1f} [{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}]")
     return (f"**The specialists against replay** on their own training references, paired ({len(kept)} specialists, "
             f"{len(ids):,} episodes, Table 3): " + "; ".join(parts) + " points. What PPO gained where it trained "
-            "bounds what the distilled tracker can gain on unseen references (per specialist, and the generalist "
+            "is what distillation has to carry to unseen references (per specialist, and the generalist "
             "against each, in `generalist_vs_teachers.json`).")
 
 

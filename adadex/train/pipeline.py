@@ -929,7 +929,7 @@ def teachers_note(floors: Mapping[str, list]) -> str:
         d = paired_bootstrap(np.concatenate([f[f"teacher_{metric}"] for _, f in kept]),
                              np.concatenate([f[f"replay_{metric}"] for _, f in kept]), ids, seeds)
         parts.append(f"{name} {d['estimate']:+.1f} [{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}]")
-    return (f"**The specialists against replay** on their own training references, paired ({len(kept)} specialists, "
+    return (f"**The specialists against replay** on their own training references, paired ({len(kept)} specialist{'s' * (len(kept) != 1)}, "
             f"{len(ids):,} episodes, Table 3): " + "; ".join(parts) + " points. What PPO gained where it trained "
             "is what distillation has to carry to unseen references (per specialist, and the generalist "
             "against each, in `generalist_vs_teachers.json`).")

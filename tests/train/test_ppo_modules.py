@@ -252,15 +252,20 @@ def test_updates_past_the_trust_region_are_reported(tiny_dataset, tmp_path, caps
     assert "trust region" not in capsys.readouterr().err
 
 
-def test_a_finished_run_continues_to_more_frames(tiny_dataset, tmp_path):
-    """A run that finished (its last metrics row an evaluation, with no update statistics) continues to
-    a larger ``ppo.total_frames`` from its checkpoint, and its result's update medians cover every
-    iteration that updated, the first run's included."""
-    first = dataclasses.replace(_config(tiny_dataset, tmp_path / "run"), eval_max_references=2)
-    train(first)
-    assert any(r["kl_approx"] == "" for r in _rows(first.out))          # the evaluation row
-    more = dataclasses.replace(first, resume=True, ppo=dataclasses.replace(first.ppo, total_frames=1024))
-    result = train(more)
-    assert result["frames"] == 1024
-    updated = [r for r in _rows(first.out) if r["kl_approx"] != ""]
-    assert result["updates"]["iterations"] == len(updated) == 4
+
+def test_a_finished_runs_metrics_read_back_give_the_update_medians(tmp_path):
+    """A finished run continued to more frames reads its ``metrics.csv`` back: the evaluation row it
+    ended with has no update statistics (blank cells), which count as missing, not as numbers."""
+    from adadex.train.logs import RunLog
+    from adadex.train.ppo import update_health
+
+    log = RunLog(tmp_path, name="run", config={}, wandb=False)
+    log.log(1, {"kl_approx": 0.02, "clip_fraction": 0.2, "frames": 256})
+    log.log(2, {"kl_approx": 0.04, "clip_fraction": 0.4, "frames": 512})
+    log.log(2, {"eval_completion_pct": 80.0, "frames": 512})
+    log.close()
+    resumed = RunLog(tmp_path, name="run", config={}, wandb=False, keep_until=2)
+    assert any(r["kl_approx"] == "" for r in resumed.rows)
+    resumed.log(3, {"kl_approx": 0.06, "clip_fraction": 0.6, "frames": 768})
+    assert update_health(resumed.rows) == {"iterations": 3, "kl_median": 0.04, "clip_fraction_median": 0.4}
+    resumed.close()

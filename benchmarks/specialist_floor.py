@@ -65,14 +65,15 @@ def tag(row: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "-", row.replace("=", "-").replace(",", "_"))
 
 
-def train_row(dataset: str, runs: Path, row: str, changes: dict, block: int, seed: int) -> tuple[str, list[int], float]:
-    """The pipeline's specialist for ``block`` and training ``seed`` with ``changes``: (tracker path, its
-    references, wall seconds of this call)."""
+def train_row(dataset: str, runs: Path, row: str, changes: dict, block: int, seed: int,
+              specialists: int = 4) -> tuple[str, list[int], float]:
+    """The pipeline's specialist for ``block`` (of ``specialists``, the pipeline's ``specialist.count``) and
+    training ``seed`` with ``changes``: (tracker path, its references, wall seconds of this call)."""
     from adadex.train.pipeline import Pipeline, PipelineConfig, specialist_blocks
 
     t0 = time.perf_counter()
     cfg = PipelineConfig(out=str(runs / "_pipeline"), dataset=dataset, reward=changes["reward"], wandb=False,
-                         progress=False)
+                         progress=False, specialist={"count": specialists})
     p = Pipeline(cfg)
     p.ds = p.dataset()
     blocks = specialist_blocks(p.ds, cfg.specialist.count, p.env_config.window)
@@ -93,6 +94,7 @@ def main(argv=None) -> dict:
     p.add_argument("--dataset", type=Path, default=Path("data/small_pg"))
     p.add_argument("--rows", nargs="+", default=["default"], help="specialist settings, each `default` or k=v,…")
     p.add_argument("--block", type=int, default=0, help="which of the pipeline's specialist blocks (default 0)")
+    p.add_argument("--specialists", type=int, default=4, help="the pipeline's specialist.count (default 4)")
     p.add_argument("--seeds", default="0", help="training seeds, comma-separated (default 0)")
     p.add_argument("--repeats", type=int, default=8, help="Table 3 draws per reference (default 8)")
     p.add_argument("--eval-seed", type=int, default=30_000, help="evaluation env seed, plus the training seed")
@@ -116,6 +118,7 @@ def main(argv=None) -> dict:
     rows = {row: parse_row(row) for row in a.rows}
 
     from adadex.envs.randomization import Randomization
+    from adadex.errors import AdadexError
     from adadex.eval.paired import paired_bootstrap
     from adadex.train.pipeline import Pipeline, PipelineConfig
 
@@ -128,7 +131,10 @@ def main(argv=None) -> dict:
     for seed in seeds:
         per_row = {}
         for row, changes in rows.items():
-            path, refs, wall = train_row(str(a.dataset), a.runs, row, changes, a.block, seed)
+            try:      # a folder that is not this benchmark's run, or a run made with other settings: one line
+                path, refs, wall = train_row(str(a.dataset), a.runs, row, changes, a.block, seed, a.specialists)
+            except AdadexError as e:
+                raise refuse(NAME, e) from None
             per_row[row] = path
             trained[row].append(wall / 60)
         for row in ("replay", *rows):

@@ -184,6 +184,17 @@ def test_specialist_floor_refuses_bad_rows_and_settings_before_any_work(bench, t
     assert floor.tag("policy.anchor=0.05,policy.anchor_reach=0.1") == "policy.anchor-0.05_policy.anchor_reach-0.1"
 
 
+def test_specialist_floor_refuses_a_users_run_folder_in_one_line(bench, tiny_dataset, tmp_path, capsys):
+    """A row's run folder holding the user's files is refused (exit 2, one line), the files untouched."""
+    floor = bench("specialist_floor")
+    mine = tmp_path / "runs" / "default_s0"
+    mine.mkdir(parents=True)
+    (mine / "notes.txt").write_text("mine")
+    _assert_refused(floor.main, ["--dataset", str(tiny_dataset), "--out", str(tmp_path / "floor.json"),
+                                 "--runs", str(tmp_path / "runs"), "--specialists", "2"], "not an adadex output", capsys)
+    assert (mine / "notes.txt").read_text() == "mine" and not (tmp_path / "floor.json").exists()
+
+
 # ------------------------------------------------------------------------------------------ a real benchmark
 
 

@@ -9,6 +9,7 @@ success rates (mean-error and completion), and the object-centric ones beside th
     python benchmarks/replay_floor.py --randomize --repeats 4 --seed 20000 \
         --feed-forward anchor=0.05,anchor_reach=0.10,anchor_lookahead=4        # the anchored feed-forward
     python benchmarks/replay_floor.py --randomize --repeats 4 --seed 20000 --randomization object_xy_std=0,object_yaw_std=0
+    python benchmarks/replay_floor.py --randomize --repeats 4 --seed 777 --part train --channel-c 0,0,0,1,1,1,1
     python benchmarks/replay_floor.py --randomize --repeats 4 --seed 20000 \
         --tracker runs/table1/seed_0/generalist/tracker.pt \
         --from-off --randomization action_noise_correlated=0.02,action_noise_uncorrelated=0.05   # one factor
@@ -23,7 +24,14 @@ feed-forward settings (:class:`adadex.modules.tracker.Tracker`'s ``anchor``, ``a
 ``anchor_iterations``, ``anchor_lookahead``: the object-anchored feed-forward) and also replay on the same
 draws, and prints the paired differences with 95 % bootstrap intervals over references; ``--tracker PATH``
 does the same for a saved tracker (e.g. a pipeline's distilled generalist) — which of Table 3's factors
-costs it what it costs replay. ``--repeats`` lists every reference that many times (one Table 3 draw
+costs it what it costs replay. ``--channel-c a,…`` does the same for replay under a constant edit of channel C
+(:class:`adadex.transforms.modulation.CompactModulation`; 7 numbers: the palm's offset x, y, z in units of
+``lambda_palm``, within ±2, then the index, middle, ring and thumb flexion in units of ``lambda_grip``, within ±1),
+e.g. ``0,0,0,1,1,1,1``: every finger closed 0.3 rad past the reference — a firmer grip. Beside replay, the
+paired completion difference is also printed by how far the reference object travels from its start within
+the episode window (``travel_m`` per episode in the JSON), with the policy taken only where it travels at
+least 15, 17 or 20 cm and replay elsewhere — the rule "reach only for objects the reference carries past
+what the paper's test tolerates" (docs/modulation.md). ``--repeats`` lists every reference that many times (one Table 3 draw
 each), ``--seed`` is the env seed (the evaluation's draws).
 
 Without ``--dataset`` the ``small`` preset is built into ``data/small`` first (a few minutes).
@@ -61,6 +69,9 @@ def main(argv=None) -> dict:
     p.add_argument("--tracker", type=Path, default=None, help="a saved tracker to evaluate beside replay, paired")
     p.add_argument("--feed-forward", default="", help="Tracker feed-forward settings k=v,… (anchor, anchor_reach, "
                                                       "anchor_iterations, anchor_lookahead) to evaluate beside replay")
+    p.add_argument("--channel-c", default="", help="7 numbers: replay under this constant channel-C edit (palm "
+                                                   "x, y, z within ±2; index, middle, ring, thumb grip within ±1) "
+                                                   "beside replay")
     p.add_argument("--out", type=Path, default=RESULTS / "replay_floor.json")
     p.add_argument("--force", action="store_true",
                    help="replace --out even if it is not an earlier result of this benchmark")
@@ -70,8 +81,9 @@ def main(argv=None) -> dict:
         raise refuse(NAME, f"--repeats must be ≥ 1, got {a.repeats}")
     if (a.randomization or a.from_off) and not a.randomize:
         raise refuse(NAME, "--randomization/--from-off change Table 3: give --randomize too")
-    if a.tracker is not None and a.feed_forward:
-        raise refuse(NAME, "--tracker and --feed-forward each give the policy beside replay: give one")
+    if sum(map(bool, (a.tracker is not None, a.feed_forward, a.channel_c))) > 1:
+        raise refuse(NAME, "--tracker, --feed-forward and --channel-c each give the policy beside replay: give one")
+    edit = _channel_c(a.channel_c) if a.channel_c else None
 
     from adadex.data.build import build_dataset
     from adadex.envs.randomization import Randomization
@@ -97,6 +109,8 @@ def main(argv=None) -> dict:
             raise refuse(NAME, f"--tracker: {e}") from None
     elif anchored is not None:
         beside = anchored
+    elif edit is not None:
+        beside = edit
     else:
         beside = None
 
@@ -131,28 +145,105 @@ def main(argv=None) -> dict:
           f"{' with randomization' if a.randomize else ''}{changed}{noise} ({res['wall_s']:.0f} s):")
     print(format_summary(summary))
     if beside is not None:
-        ff = evaluate(make_policy(beside, None, channels="none"), dataset, **kw)
+        policy = make_policy(*beside) if isinstance(beside, tuple) else make_policy(beside, None, channels="none")
+        ff = evaluate(policy, dataset, **({"env_transform": policy.primer} if isinstance(beside, tuple) else {}), **kw)
         refs = ff["per_episode"]["reference"]
         diffs = {}
         for field in ("completion", "object_completion", "carried"):
             d = paired_bootstrap(100 * np.asarray(ff["per_episode"][field], float),
                                  100 * np.asarray(res["per_episode"][field], float), np.asarray(refs))
             diffs[f"{field}_pct"] = {"diff": d["estimate"], "ci95": d["ci95"]}
-        key, what = (("tracker", f"the tracker {a.tracker}") if a.tracker is not None else
-                     ("feed_forward", f"the untrained residual tracker with {a.feed_forward}"))
-        result[key] = {"settings": str(a.tracker) if a.tracker is not None else feed_forward, **ff["summary"],
-                       "vs_replay": diffs, "per_reference": ff["per_reference"]}
-        result["per_episode"] = {"reference": refs, **{f"{row}_{f}": p["per_episode"][f]
-                                                       for row, p in (("replay", res), (key, ff))
-                                                       for f in ("completion", "object_completion")}}
+        key, what, given = (("tracker", f"the tracker {a.tracker}", str(a.tracker)) if a.tracker is not None else
+                            ("feed_forward", f"the untrained residual tracker with {a.feed_forward}", feed_forward)
+                            if edit is None else
+                            ("channel_c", f"replay with channel C held at {a.channel_c}", a.channel_c))
+        travel = reference_travel(dataset, refs, TrackingConfig().window)
+        result[key] = {"settings": given, **ff["summary"], "vs_replay": diffs, "per_reference": ff["per_reference"],
+                       "by_travel": by_travel(100 * np.asarray(ff["per_episode"]["completion"], float),
+                                              100 * np.asarray(res["per_episode"]["completion"], float),
+                                              np.asarray(refs), travel)}
+        result["per_episode"] = {"reference": refs, "travel_m": travel.tolist(),
+                                 **{f"{row}_{f}": p["per_episode"][f] for row, p in (("replay", res), (key, ff))
+                                    for f in ("completion", "object_completion")}}
         print(f"{what} ({ff['wall_s']:.0f} s):")
         print(format_summary(ff["summary"]))
         print("  against replay on the same episodes: " + ", ".join(
             f"{k.removesuffix('_pct').replace('_', ' ')} {v['diff']:+.1f} [{v['ci95'][0]:+.1f}, {v['ci95'][1]:+.1f}]"
             for k, v in diffs.items()))
+        table = result[key]["by_travel"]
+        print("  completion against replay by the reference object's travel: " + ", ".join(
+            f"{_span(b['travel_cm'])} cm {b['diff']:+.1f} ({b['episodes']})" for b in table["bins"] if b["episodes"]))
+        print("  the policy only where the reference object travels at least X, replay elsewhere: " + ", ".join(
+            f"X = {r['travel_cm']:.0f} cm ({r['fraction']:.0%} of the episodes) {r['diff']:+.1f} "
+            f"[{r['ci95'][0]:+.1f}, {r['ci95'][1]:+.1f}]" for r in table["rules"]))
     write_result(a.out, result, name=NAME, force=a.force, indent=1)
     print(f"wrote {a.out}")
     return result
+
+
+#: bins (m) of the reference object's travel within the episode window, and the rules' thresholds (m)
+TRAVEL_BINS = (0.0, 0.10, 0.15, 0.20, float("inf"))
+TRAVEL_RULES = (0.15, 0.17, 0.20)
+
+
+def reference_travel(dataset, references, window: int) -> np.ndarray:
+    """(N,) the farthest the reference object gets from where it starts within each episode's window, m
+    (the episode's frames ``window_start`` … ``window_start + window − 1`` of reference ``references[i]``)."""
+    from adadex.data.reference import ReferenceDataset
+
+    ds = dataset if isinstance(dataset, ReferenceDataset) else ReferenceDataset(dataset)
+    out = {}
+    for r in set(references):
+        start = ds.entries[r]["window_start"]
+        p = np.asarray(ds[r].object_pose[start:start + window, :3], float)
+        out[r] = float(np.linalg.norm(p - p[0], axis=1).max())
+    return np.array([out[r] for r in references])
+
+
+def by_travel(policy: np.ndarray, replay: np.ndarray, references: np.ndarray, travel: np.ndarray) -> dict:
+    """The paired difference policy − replay (per-episode %, same episodes) per bin of the reference object's
+    travel (:data:`TRAVEL_BINS`), and for each rule of :data:`TRAVEL_RULES` (the policy where the travel
+    reaches the threshold, replay elsewhere) with its bootstrap interval over references."""
+    from adadex.eval.paired import paired_bootstrap
+
+    bins = []
+    for lo, hi in zip(TRAVEL_BINS[:-1], TRAVEL_BINS[1:]):
+        m = (travel >= lo) & (travel < hi)
+        bins.append({"travel_cm": [100 * lo, None if hi == float("inf") else 100 * hi], "episodes": int(m.sum()),
+                     "diff": float((policy[m] - replay[m]).mean()) if m.any() else None})
+    rules = []
+    for x in TRAVEL_RULES:
+        chosen = np.where(travel >= x, policy, replay)
+        d = paired_bootstrap(chosen, replay, references)
+        rules.append({"travel_cm": 100 * x, "fraction": float((travel >= x).mean()), "diff": d["estimate"],
+                      "ci95": d["ci95"]})
+    return {"bins": bins, "rules": rules}
+
+
+def _span(cm: list) -> str:
+    lo, hi = cm
+    return f"{lo:.0f}–" + ("" if hi is None else f"{hi:.0f}")
+
+
+def _channel_c(text: str):
+    """``--channel-c``'s 7 numbers → (replay as a frozen tracker, a channel-C modulator forced to that action)."""
+    import torch
+
+    from adadex.modules.modulator import Modulator
+    from adadex.modules.tracker import Tracker
+    from adadex.train.paired_choice import forced
+
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise refuse(NAME, f"--channel-c: {text!r} is not 7 numbers separated by commas") from None
+    if len(values) != 7:
+        raise refuse(NAME, f"--channel-c: 7 numbers (palm x, y, z; index, middle, ring, thumb grip), got {len(values)}")
+    bad = [i for i, v in enumerate(values) if not np.isfinite(v) or abs(v) > (2.0 if i < 3 else 1.0)]
+    if bad:
+        raise refuse(NAME, f"--channel-c: entry {bad[0]} = {values[bad[0]]:g} is outside "
+                           f"{'±2 (palm)' if bad[0] < 3 else '±1 (grip)'}")
+    return Tracker.replay().freeze(), forced(Modulator("C", hidden=(8,)), torch.tensor(values, dtype=torch.float32))
 
 
 class _FeedForward:

@@ -20,7 +20,7 @@ _EXPORTS = {
     "adadex.envs.reward": ("RewardConfig", "tracking_reward"),
     "adadex.envs.replay": ("replay_policy",),
     "adadex.envs.chunked": ("chunked_rollouts", "RolloutChunk", "chunk_seed"),
-    "adadex.envs.frame_errors": ("Thresholds", "frame_success", "object_success"),
+    "adadex.envs.frame_errors": ("Thresholds", "frame_success", "frame_tests", "object_success"),
     "adadex.envs.observation": ("OBS_DIM", "LATENT_DIM", "flat_observation",
                                 "flat_from_tensordict"),
     "adadex.envs.latent": ("EncoderLatents", "encoder_latent", "fixed_object_latent"),
@@ -35,7 +35,7 @@ if TYPE_CHECKING:      # the same names, for type checkers and IDEs
     from adadex.envs.reward import RewardConfig, tracking_reward
     from adadex.envs.replay import replay_policy
     from adadex.envs.chunked import chunked_rollouts, RolloutChunk, chunk_seed
-    from adadex.envs.frame_errors import Thresholds, frame_success, object_success
+    from adadex.envs.frame_errors import Thresholds, frame_success, frame_tests, object_success
     from adadex.envs.observation import OBS_DIM, LATENT_DIM, flat_observation, flat_from_tensordict
     from adadex.envs.latent import EncoderLatents, encoder_latent, fixed_object_latent
     from adadex.envs.gym import TrackingGymEnv

@@ -124,9 +124,30 @@ def frame_success(errors: dict, thresholds: Thresholds = Thresholds()):
         >>> frame_success(e)
         array([ True, False])
     """
+    position, rotation, finger = frame_tests(errors, thresholds)
+    return position & rotation & finger
+
+
+def frame_tests(errors: dict, thresholds: Thresholds = Thresholds()) -> tuple:
+    """The three tests :func:`frame_success` joins, each on its own (bool, the errors' shape; torch or
+    numpy): ``(position, rotation, finger)`` — 0.5·T_o + 0.5·T_h ≤ position, 0.5·R_o + 0.5·R_h ≤
+    rotation, E_finger ≤ finger. Which one a failing frame fails is where a tracker loses it
+    (:func:`adadex.eval.metrics.trajectory_metrics`' ``lost_*``).
+
+    Args:
+        errors: per-frame errors, as for :func:`frame_success`.
+        thresholds: the bounds (default :class:`Thresholds`, the paper's).
+
+    Examples:
+        >>> import numpy as np
+        >>> e = {"T_o": np.array([0.02, 0.02]), "T_h": np.array([0.02, 0.02]),
+        ...      "R_o": np.array([0.0, 3.0]), "R_h": np.zeros(2), "E_finger": np.zeros(2)}
+        >>> [t.tolist() for t in frame_tests(e)]
+        [[True, True], [True, False], [True, True]]
+    """
     th = thresholds
-    return ((0.5 * errors["T_o"] + 0.5 * errors["T_h"] <= th.position)
-            & (0.5 * errors["R_o"] + 0.5 * errors["R_h"] <= th.rotation) & (errors["E_finger"] <= th.finger))
+    return (0.5 * errors["T_o"] + 0.5 * errors["T_h"] <= th.position,
+            0.5 * errors["R_o"] + 0.5 * errors["R_h"] <= th.rotation, errors["E_finger"] <= th.finger)
 
 
 def object_success(errors: dict, thresholds: Thresholds = Thresholds()):

@@ -153,7 +153,9 @@ def reference_motion(dataset: ReferenceDataset, references, steps: int) -> torch
 
 
 def format_summary(summary: dict) -> str:
-    """Three lines for a terminal: success both ways, the object-centric measures and the mean errors.
+    """Three lines for a terminal: success both ways, the object-centric measures and the mean errors;
+    a fourth, where the summary has them, with where the frames that did not pass were lost
+    (:data:`adadex.eval.metrics.LOST`).
 
     Args:
         summary: a :func:`~adadex.eval.metrics.summarize` result (positions in cm, rotations in rad,
@@ -171,4 +173,8 @@ def format_summary(summary: dict) -> str:
             f"\nobject-centric: object completion {summary.get('object_completion_pct', float('nan')):.1f} %, "
             f"carried {summary.get('carried_pct', float('nan')):.1f} %"
             f"\nT_o {summary['T_o']:.1f} cm, R_o {summary['R_o']:.2f} rad, T_h {summary['T_h']:.1f} cm, "
-            f"R_h {summary['R_h']:.2f} rad, E_finger {summary['E_finger']:.3f} rad")
+            f"R_h {summary['R_h']:.2f} rad, E_finger {summary['E_finger']:.3f} rad"
+            + ("" if "lost_position_pct" not in summary else
+               f"\nframes lost: position test {summary['lost_position_pct']:.1f} %, rotation "
+               f"{summary['lost_rotation_pct']:.1f} %, fingers {summary['lost_finger_pct']:.1f} %, after the "
+               f"episode ended {summary['lost_after_end_pct']:.1f} %"))

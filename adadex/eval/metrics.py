@@ -52,11 +52,15 @@ import math
 
 import torch
 
-from adadex.envs.frame_errors import ERROR_NAMES, Thresholds, frame_errors, frame_success, object_success
+from adadex.envs.frame_errors import ERROR_NAMES, Thresholds, frame_errors, frame_success, frame_tests, object_success
 from adadex.errors import ArrayError, UnknownKeyError
 
-__all__ = ["ERROR_NAMES", "Thresholds", "frame_errors", "frame_success", "from_rollout", "object_success",
-           "reference_motion_from_rollout", "summarize", "trajectory_metrics"]
+__all__ = ["ERROR_NAMES", "LOST", "Thresholds", "frame_errors", "frame_success", "frame_tests", "from_rollout",
+           "object_success", "reference_motion_from_rollout", "summarize", "trajectory_metrics"]
+
+#: where a trajectory's failing frames go (:func:`trajectory_metrics`), in the order a frame is charged: the
+#: position test, else the rotation test, else the finger test, else never tracked (after an early end)
+LOST = ("lost_position", "lost_rotation", "lost_finger", "lost_after_end")
 
 
 def _check(errors: dict) -> tuple[int, int]:
@@ -87,8 +91,12 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
 
     Returns (B,) tensors: the mean of each error (NaN for an empty trajectory), ``frames``,
     ``ended_early``, ``success_mean_error`` (bool), ``completion`` (fraction), ``empty`` (bool),
-    ``object_completion`` (fraction) and, with ``reference_motion``, ``carried`` (bool) and
-    ``moving_frames`` (how many frames the carry test looked at; 0: it used object completion).
+    ``object_completion`` (fraction), where the other frames were lost (:data:`LOST`, fractions of the
+    frames it should have tracked, summing with ``completion`` to 1: ``lost_position`` — tracked, failing
+    the position test; ``lost_rotation`` — passing it, failing the rotation test; ``lost_finger`` —
+    failing only the finger test; ``lost_after_end`` — never tracked, the episode having ended) and,
+    with ``reference_motion``, ``carried`` (bool) and ``moving_frames`` (how many frames the carry test
+    looked at; 0: it used object completion).
     """
     B, T = _check(errors)
     valid = torch.ones(B, T, dtype=torch.bool) if valid is None else valid.to(torch.bool)
@@ -106,6 +114,10 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
     out["ended_early"] = n < target
     out["success_mean_error"] = (~out["empty"]) & (~out["ended_early"]) & frame_success(out, thresholds)
     out["completion"] = torch.where(target > 0, good.sum(1) / target.clamp(min=1), 0.0).to(torch.float64)
+    position, rotation, finger = frame_tests(errors, thresholds)
+    charged = (valid & ~position, valid & position & ~rotation, valid & position & rotation & ~finger)
+    for name, frames in zip(LOST, (*(c.sum(1) for c in charged), target - n)):
+        out[name] = torch.where(target > 0, frames.to(torch.float64) / target.clamp(min=1), 0.0)
     held = object_success(errors, thresholds) & valid
     out["object_completion"] = torch.where(target > 0, held.sum(1).to(torch.float64) / target.clamp(min=1), 0.0)
     if reference_motion is not None:
@@ -156,8 +168,9 @@ def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
     Returns:
         ``{"trajectories", "empty"}`` (counts), the mean of each error (``T_o``, ``T_h`` in cm;
         ``R_o``, ``R_h``, ``E_finger`` in rad) and ``success_mean_error_pct``, ``completion_pct``,
-        ``object_completion_pct``, ``carried_pct`` (NaN without ``carried``); every mean is NaN
-        when no trajectory is non-empty.
+        ``object_completion_pct``, ``carried_pct`` (NaN without ``carried``) and, where the result
+        has them, the lost frames (:data:`LOST`) as ``lost_position_pct`` …; every mean is NaN when no
+        trajectory is non-empty.
     """
     keep = ~per_traj["empty"]
     n = int(keep.sum())
@@ -172,6 +185,7 @@ def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
     out["object_completion_pct"] = 100.0 * float(per_traj["object_completion"][keep].mean())
     out["carried_pct"] = (100.0 * float(per_traj["carried"][keep].double().mean()) if "carried" in per_traj
                           else math.nan)
+    out.update({f"{k}_pct": 100.0 * float(per_traj[k][keep].mean()) for k in LOST if k in per_traj})
     return out
 
 

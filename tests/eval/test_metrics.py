@@ -18,6 +18,7 @@ from adadex.eval.metrics import (
     summarize,
     trajectory_metrics,
 )
+from adadex.eval.evaluate import format_summary
 from adadex.quat import quat_angle, quat_diff, quat_mul
 
 IDENTITY = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
@@ -126,6 +127,32 @@ def test_truncated_and_empty_trajectories():
     assert s["trajectories"] == 2 and s["empty"] == 1
     assert s["completion_pct"] == pytest.approx(70.0)
     assert summarize(trajectory_metrics(e, valid=torch.zeros(3, 5, dtype=torch.bool)))["trajectories"] == 0
+
+
+def test_lost_frames_are_charged_to_the_first_test_they_fail_and_sum_with_completion_to_one():
+    # 6 frames a trajectory should track; trajectory 1 ends after 4. Each failing frame is charged once:
+    # to position if it fails that test (whatever else it fails), else rotation, else fingers.
+    e = errors_from({}, B=2, T=6)
+    e["T_o"][0, 0] = 0.5                                  # position (and rotation below): position
+    e["R_o"][0, 0] = 3.0
+    e["R_o"][0, 1] = 3.0                                  # rotation alone
+    e["E_finger"][0, 2] = 1.0                             # fingers alone
+    e["R_o"][0, 3] = 3.0                                  # rotation and fingers: rotation
+    e["E_finger"][0, 3] = 1.0
+    e["T_h"][1, 1] = 0.5                                  # position
+    valid = torch.ones(2, 6, dtype=torch.bool)
+    valid[1, 4:] = False
+    m = trajectory_metrics(e, valid=valid, lengths=torch.tensor([6, 6]))
+    assert m["lost_position"].tolist() == pytest.approx([1 / 6, 1 / 6])
+    assert m["lost_rotation"].tolist() == pytest.approx([2 / 6, 0.0])
+    assert m["lost_finger"].tolist() == pytest.approx([1 / 6, 0.0])
+    assert m["lost_after_end"].tolist() == pytest.approx([0.0, 2 / 6])
+    total = m["completion"] + m["lost_position"] + m["lost_rotation"] + m["lost_finger"] + m["lost_after_end"]
+    assert total.tolist() == pytest.approx([1.0, 1.0])
+    s = summarize(m)
+    assert s["lost_rotation_pct"] == pytest.approx(100 / 6) and s["lost_after_end_pct"] == pytest.approx(100 / 6)
+    assert format_summary(s).splitlines()[3] == ("frames lost: position test 16.7 %, rotation 16.7 %, fingers 8.3 %, "
+                                                 "after the episode ended 16.7 %")
 
 
 def test_from_rollout_stops_at_first_done():

@@ -13,6 +13,7 @@ import importlib
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from adadex.cli import main
@@ -154,9 +155,28 @@ def test_replay_floor_refuses_bad_feed_forward_and_randomization_before_any_work
                        (["--from-off"], "give --randomize too"),
                        (["--randomize", "--from-off", "--randomization", "robot_mass=1.2:1.1"], "robot_mass"),
                        (["--tracker", str(tmp_path / "t.pt"), "--feed-forward", "anchor=0.05"], "give one"),
-                       (["--randomize", "--tracker", str(tmp_path / "absent.pt")], str(tmp_path / "absent.pt"))):
+                       (["--randomize", "--tracker", str(tmp_path / "absent.pt")], str(tmp_path / "absent.pt")),
+                       (["--channel-c", "0,0,0"], "7 numbers (palm x, y, z; index, middle, ring, thumb grip), got 3"),
+                       (["--channel-c", "0,0,0,grip,0,0,0"], "is not 7 numbers"),
+                       (["--channel-c", "0,0,3,0,0,0,0"], "entry 2 = 3 is outside ±2 (palm)"),
+                       (["--channel-c", "0,0,0,0,0,0,1.5"], "entry 6 = 1.5 is outside ±1 (grip)"),
+                       (["--channel-c", "0,0,0,1,1,1,1", "--feed-forward", "anchor=0.05"], "give one")):
         _assert_refused(floor.main, ["--dataset", str(tmp_path), "--out", str(out), *args], says, capsys)
     assert not out.exists()
+
+
+def test_replay_floor_splits_the_paired_difference_by_the_reference_objects_travel(bench):
+    floor = bench("replay_floor")
+    travel = np.array([0.05, 0.12, 0.16, 0.18, 0.25, 0.30])
+    replay = np.full(6, 70.0)
+    policy = replay + np.array([-6.0, 0.0, 0.0, 3.0, 9.0, 9.0])      # loses where the object barely moves
+    out = floor.by_travel(policy, replay, np.arange(6), travel)
+    assert [b["episodes"] for b in out["bins"]] == [1, 1, 2, 2]
+    assert [b["diff"] for b in out["bins"]] == pytest.approx([-6.0, 0.0, 1.5, 9.0])
+    rules = {r["travel_cm"]: r for r in out["rules"]}
+    assert rules[17.0]["fraction"] == pytest.approx(0.5)                     # 0.18, 0.25, 0.30
+    assert rules[17.0]["diff"] == pytest.approx(21.0 / 6)                    # the loss at 5 cm left out
+    assert rules[15.0]["diff"] == pytest.approx(21.0 / 6) and rules[20.0]["diff"] == pytest.approx(3.0)
 
 
 def test_specialist_floor_refuses_bad_rows_and_settings_before_any_work(bench, tiny_dataset, tmp_path, monkeypatch,

@@ -31,7 +31,8 @@ e.g. ``0,0,0,1,1,1,1``: every finger closed 0.3 rad past the reference — a fir
 paired completion difference is also printed by how far the reference object travels from its start within
 the episode window (``travel_m`` per episode in the JSON), with the policy taken only where it travels at
 least 15, 17 or 20 cm and replay elsewhere — the rule "reach only for objects the reference carries past
-what the paper's test tolerates" (docs/modulation.md). ``--repeats`` lists every reference that many times (one Table 3 draw
+what the paper's test tolerates" (docs/modulation.md). For replay and the policy beside it, how often
+episodes end early per reference verb (``ended_by_verb``). ``--repeats`` lists every reference that many times (one Table 3 draw
 each), ``--seed`` is the env seed (the evaluation's draws).
 
 Without ``--dataset`` the ``small`` preset is built into ``data/small`` first (a few minutes).
@@ -144,6 +145,9 @@ def main(argv=None) -> dict:
     print(f"kinematic replay on {res['references']} episodes of {a.split}/{a.part}"
           f"{' with randomization' if a.randomize else ''}{changed}{noise} ({res['wall_s']:.0f} s):")
     print(format_summary(summary))
+    verbs = reference_verbs(dataset, res["per_episode"]["reference"])
+    result["ended_by_verb"] = ended_by_verb(res["per_episode"]["ended_early"], verbs)
+    print("  episodes ended, by the reference's verb: " + _ended_line(result["ended_by_verb"]))
     if beside is not None:
         policy = make_policy(*beside) if isinstance(beside, tuple) else make_policy(beside, None, channels="none")
         ff = evaluate(policy, dataset, **({"env_transform": policy.primer} if isinstance(beside, tuple) else {}), **kw)
@@ -165,8 +169,10 @@ def main(argv=None) -> dict:
         result["per_episode"] = {"reference": refs, "travel_m": travel.tolist(),
                                  **{f"{row}_{f}": p["per_episode"][f] for row, p in (("replay", res), (key, ff))
                                     for f in ("completion", "object_completion")}}
+        result[key]["ended_by_verb"] = ended_by_verb(ff["per_episode"]["ended_early"], verbs)
         print(f"{what} ({ff['wall_s']:.0f} s):")
         print(format_summary(ff["summary"]))
+        print("  episodes ended, by the reference's verb: " + _ended_line(result[key]["ended_by_verb"]))
         print("  against replay on the same episodes: " + ", ".join(
             f"{k.removesuffix('_pct').replace('_', ' ')} {v['diff']:+.1f} [{v['ci95'][0]:+.1f}, {v['ci95'][1]:+.1f}]"
             for k, v in diffs.items()))
@@ -218,6 +224,26 @@ def by_travel(policy: np.ndarray, replay: np.ndarray, references: np.ndarray, tr
         rules.append({"travel_cm": 100 * x, "fraction": float((travel >= x).mean()), "diff": d["estimate"],
                       "ci95": d["ci95"]})
     return {"bins": bins, "rules": rules}
+
+
+def reference_verbs(dataset, references) -> list:
+    """The verb each reference was synthesized from (its ``meta["verb"]``; ``"?"`` where it has none)."""
+    from adadex.data.reference import ReferenceDataset
+
+    ds = dataset if isinstance(dataset, ReferenceDataset) else ReferenceDataset(dataset)
+    return [str((ds.entries[r].get("meta") or {}).get("verb", "?")) for r in references]
+
+
+def ended_by_verb(ended, verbs) -> dict:
+    """``{verb: {"episodes": n, "ended_pct": %}}``: how often episodes ended early, per reference verb."""
+    out = {}
+    for e, v in zip(ended, verbs):
+        out.setdefault(v, []).append(bool(e))
+    return {v: {"episodes": len(x), "ended_pct": 100.0 * sum(x) / len(x)} for v, x in sorted(out.items())}
+
+
+def _ended_line(table: dict) -> str:
+    return ", ".join(f"{v} {t['ended_pct']:.0f} % ({t['episodes']})" for v, t in table.items())
 
 
 def _span(cm: list) -> str:

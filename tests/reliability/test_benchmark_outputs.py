@@ -315,3 +315,11 @@ def test_encoder_train_out_refuses_a_users_folder(tmp_path, monkeypatch, capsys)
     assert check_output_dir(earlier, TRAINING_KIND, recognize=is_training_output) == earlier
     with pytest.raises(_Reached):
         main(["encoder", "train", "--steps", "1", "--out", str(earlier), "--quiet"])
+
+
+def test_replay_floor_counts_ended_episodes_per_verb(bench):
+    floor = bench("replay_floor")
+    table = floor.ended_by_verb([True, False, True, True, False], ["shake", "shake", "lift", "shake", "lift"])
+    assert list(table) == ["lift", "shake"]
+    assert table["lift"] == {"episodes": 2, "ended_pct": 50.0}
+    assert table["shake"]["episodes"] == 3 and table["shake"]["ended_pct"] == pytest.approx(200 / 3)

@@ -105,11 +105,11 @@ def main(argv=None) -> dict:
         raise refuse(NAME, f"--randomization/--feed-forward: {e}") from None
     if a.tracker is not None:
         try:
-            beside = Tracker.load(a.tracker).freeze()
+            beside = make_policy(Tracker.load(a.tracker).freeze(), None, channels="none")
         except (AdadexError, OSError) as e:
             raise refuse(NAME, f"--tracker: {e}") from None
     elif anchored is not None:
-        beside = anchored
+        beside = make_policy(anchored, None, channels="none")
     elif edit is not None:
         beside = edit
     else:
@@ -149,8 +149,7 @@ def main(argv=None) -> dict:
     result["ended_by_verb"] = ended_by_verb(res["per_episode"]["ended_early"], verbs)
     print("  episodes ended, by the reference's verb: " + _ended_line(result["ended_by_verb"]))
     if beside is not None:
-        policy = make_policy(*beside) if isinstance(beside, tuple) else make_policy(beside, None, channels="none")
-        ff = evaluate(policy, dataset, **({"env_transform": policy.primer} if isinstance(beside, tuple) else {}), **kw)
+        ff = evaluate(beside, dataset, env_transform=beside.primer, **kw)
         refs = ff["per_episode"]["reference"]
         diffs = {}
         for field in ("completion", "object_completion", "carried"):
@@ -252,12 +251,13 @@ def _span(cm: list) -> str:
 
 
 def _channel_c(text: str):
-    """``--channel-c``'s 7 numbers → (replay as a frozen tracker, a channel-C modulator forced to that action)."""
+    """``--channel-c``'s 7 numbers → replay under a channel-C modulator forced to that action (one policy)."""
     import torch
 
     from adadex.modules.modulator import Modulator
     from adadex.modules.tracker import Tracker
     from adadex.train.paired_choice import forced
+    from adadex.transforms.policy import make_policy
 
     try:
         values = [float(v) for v in text.split(",")]
@@ -269,7 +269,8 @@ def _channel_c(text: str):
     if bad:
         raise refuse(NAME, f"--channel-c: entry {bad[0]} = {values[bad[0]]:g} is outside "
                            f"{'±2 (palm)' if bad[0] < 3 else '±1 (grip)'}")
-    return Tracker.replay().freeze(), forced(Modulator("C", hidden=(8,)), torch.tensor(values, dtype=torch.float32))
+    return make_policy(Tracker.replay().freeze(),
+                       forced(Modulator("C", hidden=(8,)), torch.tensor(values, dtype=torch.float32)))
 
 
 class _FeedForward:

@@ -73,7 +73,10 @@ class Thresholds:
       (:func:`adadex.eval.metrics.trajectory_metrics`): over the frames where the *reference* object
       is more than ``carry_motion`` from its start position, T_o ≤ ``object_position`` on at least
       ``carry_fraction`` of them (frames never reached count as failures); a trajectory whose
-      reference object never moves that far is carried iff its object completion ≥ ``carry_fraction``.
+      reference object never moves that far is carried iff its object completion ≥ ``carry_fraction``;
+    * ``lift`` (3 cm), the trajectory test ``lifted``: where the reference raises its object at least
+      ``lift`` above its start, whether the object rose min(``lift``, half the reference's highest
+      rise) on a frame the episode tracked — a hand that closed on it and raised it, whatever came after.
 
     Attributes:
         position: bound of 0.5·T_o + 0.5·T_h, m (default 0.10).
@@ -84,6 +87,8 @@ class Thresholds:
             in ``carried``, m (default 0.03).
         carry_fraction: the fraction of those frames that must hold T_o ≤ ``object_position``,
             in (0, 1] (default 0.8).
+        lift: how far the reference must raise its object for ``lifted`` to apply, and the most the
+            object must rise to count as lifted, m (default 0.03).
 
     Every field must be positive (:class:`~adadex.errors.ConfigError` otherwise).
 
@@ -98,9 +103,10 @@ class Thresholds:
     object_position: float = 0.05
     carry_motion: float = 0.03
     carry_fraction: float = 0.8
+    lift: float = 0.03
 
     def __post_init__(self):
-        for k in ("position", "rotation", "finger", "object_position", "carry_motion", "carry_fraction"):
+        for k in ("position", "rotation", "finger", "object_position", "carry_motion", "carry_fraction", "lift"):
             v = getattr(self, k)
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"Thresholds.{k} must be a positive number, got {v}")

@@ -16,7 +16,9 @@ up (:mod:`adadex.eval.paired`).
 
 Besides the summary, the result keeps every episode (``per_episode``: the reference's dataset index
 and name, its repeat — how many times the reference appeared before it in the list —, completion,
-mean-error success, object completion, carried, the mean errors, the return) and, when the rollouts
+mean-error success, object completion, carried, whether it ended early and with the palm beyond its
+termination error, whether the reference lifts its object and the object rose, the mean errors, the
+return: :func:`~adadex.eval.metrics.trajectory_metrics`) and, when the rollouts
 hold rewards, ``return_completion_spearman``: the per-episode rank correlation of the return with
 completion and object completion (:mod:`adadex.eval.reward_check`). ``carried`` is measured against
 the reference object's motion as the dataset gives it (:func:`reference_motion`; a modulated
@@ -49,7 +51,7 @@ from adadex.eval.reward_check import episode_returns, spearman_by_episode
 
 #: per-episode values kept in ``per_episode`` (besides reference, name, repeat and return)
 EPISODE_FIELDS = ("completion", "success_mean_error", "object_completion", "carried", "frames", "ended_early",
-                  *ERROR_NAMES)
+                  "ended_palm", "reference_lifts", "lifted", *ERROR_NAMES)
 
 
 def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajectory", "test"), *,
@@ -100,6 +102,7 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
     steps = config.window - 1
     per_chunks, names, rollouts, returns = [], [], [], []
     seed = env_kwargs.pop("seed", 0)
+    palm_limit = config.terminate_palm_error if config.terminate_palm_error > 0 else None
     t0 = time.perf_counter()
     for chunk in chunked_rollouts(policy, ds, refs, max_worlds=max_worlds, seed=seed, config=config,
                                   env_transform=env_transform,
@@ -107,8 +110,10 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
                                   progress=progress, desc="evaluate", **env_kwargs):
         td, chunk_refs = chunk.rollout, chunk.references
         names += [ds.entries[i]["name"] for i in chunk_refs]
+        offset = reference_offset(ds, chunk_refs, steps)
         per_chunks.append(from_rollout(td, lengths=torch.full((len(chunk_refs),), steps), thresholds=thresholds,
-                                       reference_motion=reference_motion(ds, chunk_refs, steps)))
+                                       reference_motion=torch.linalg.vector_norm(offset, dim=-1),
+                                       reference_rise=offset[..., 2], palm_limit=palm_limit))
         returns.append(episode_returns(td))
         if keep_rollouts:
             rollouts.append(td)
@@ -126,7 +131,7 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
         repeat.append(seen.get(r, 0))
         seen[r] = repeat[-1] + 1
     episodes = {"reference": list(refs), "name": names, "repeat": repeat}
-    for k in EPISODE_FIELDS:
+    for k in (k for k in EPISODE_FIELDS if k in per):
         v = per[k]
         episodes[k] = [bool(x) for x in v.tolist()] if v.dtype == torch.bool else \
             [int(x) for x in v.tolist()] if not v.is_floating_point() else [float(x) for x in v.tolist()]
@@ -141,21 +146,29 @@ def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajector
     return out
 
 
-def reference_motion(dataset: ReferenceDataset, references, steps: int) -> torch.Tensor:
-    """(len(references), steps) float64: the reference object's distance from its start position (m)
+def reference_offset(dataset: ReferenceDataset, references, steps: int) -> torch.Tensor:
+    """(len(references), steps, 3) float64: the reference object's position minus its start position (m)
     at each frame an episode of ``steps`` steps records — step k (k = 1 … steps) tracks frame k of
     the episode window, frame 0 being its start — as the dataset gives it (the unedited reference)."""
     pose = dataset.frames["object_pose"]
     base = torch.as_tensor([dataset.entries[r]["offset"] + dataset.entries[r]["window_start"] for r in references])
     frames = base[:, None] + torch.arange(steps + 1)[None]
     pos = torch.as_tensor(pose[frames.reshape(-1)])[..., :3].to(torch.float64).reshape(len(references), steps + 1, 3)
-    return torch.linalg.vector_norm(pos[:, 1:] - pos[:, :1], dim=-1)
+    return pos[:, 1:] - pos[:, :1]
+
+
+def reference_motion(dataset: ReferenceDataset, references, steps: int) -> torch.Tensor:
+    """(len(references), steps) float64: the reference object's distance from its start position (m)
+    at each frame (:func:`reference_offset`'s length): what ``carried`` is measured against."""
+    return torch.linalg.vector_norm(reference_offset(dataset, references, steps), dim=-1)
 
 
 def format_summary(summary: dict) -> str:
     """Three lines for a terminal: success both ways, the object-centric measures and the mean errors;
     a fourth, where the summary has them, with where the frames that did not pass were lost
-    (:data:`adadex.eval.metrics.LOST`).
+    (:data:`adadex.eval.metrics.LOST`), and a fifth, where it has them, with how many episodes ended
+    early, how many of all with the palm beyond its termination error, and how many of those whose
+    reference lifts its object raised it (:func:`~adadex.eval.metrics.summarize`).
 
     Args:
         summary: a :func:`~adadex.eval.metrics.summarize` result (positions in cm, rotations in rad,
@@ -177,4 +190,10 @@ def format_summary(summary: dict) -> str:
             + ("" if "lost_position_pct" not in summary else
                f"\nframes lost: position test {summary['lost_position_pct']:.1f} %, rotation "
                f"{summary['lost_rotation_pct']:.1f} %, fingers {summary['lost_finger_pct']:.1f} %, after the "
-               f"episode ended {summary['lost_after_end_pct']:.1f} %"))
+               f"episode ended {summary['lost_after_end_pct']:.1f} %")
+            + ("" if "ended_pct" not in summary else
+               f"\nepisodes ended early {summary['ended_pct']:.1f} %"
+               + ("" if "ended_palm_pct" not in summary else
+                  f" (the palm beyond its termination error: {summary['ended_palm_pct']:.1f} %)")
+               + ("" if "lifted_pct" not in summary else
+                  f"; objects the reference lifts, lifted {summary['lifted_pct']:.1f} %")))

@@ -27,6 +27,15 @@ palm on its reference and the object up to ~19 cm off):
               completion ≥ ``carry_fraction``. It needs the reference object's distance from its
               start at each frame (``reference_motion``); without it ``carried`` is left out.
 
+Why episodes end, where the inputs allow (not the paper's either): ``ended_palm`` — the episode ended
+with the palm beyond the env's termination error (``palm_limit``): the arm did not follow the
+reference, whatever the object did; ``lifted`` — of the trajectories whose reference raises the
+object at least ``Thresholds.lift`` (``reference_lifts``), whether the object rose min(``lift``,
+half that rise) above its start on a tracked frame: a hand that closed on the object and raised it
+(it needs the object's and the reference's heights above their starts, ``object_rise`` and
+``reference_rise``). Together with ``ended_early`` they say whether a failed episode never held its
+object, held it and lost it, or lost the reference's arm path.
+
 :func:`from_rollout` reads the per-frame errors a tracking environment writes into each step's
 output (``("next", "privileged", "errors", name)``) from a TorchRL rollout of batch shape ``[B, T]``, so
 evaluation never recomputes physics. Each row is one trajectory, up to and including its first
@@ -56,7 +65,8 @@ from adadex.envs.frame_errors import ERROR_NAMES, Thresholds, frame_errors, fram
 from adadex.errors import ArrayError, UnknownKeyError
 
 __all__ = ["ERROR_NAMES", "LOST", "Thresholds", "frame_errors", "frame_success", "frame_tests", "from_rollout",
-           "object_success", "reference_motion_from_rollout", "summarize", "trajectory_metrics"]
+           "object_rise_from_rollout", "object_success", "reference_motion_from_rollout", "summarize",
+           "trajectory_metrics"]
 
 #: where a trajectory's failing frames go (:func:`trajectory_metrics`), in the order a frame is charged: the
 #: position test, else the rotation test, else the finger test, else never tracked (after an early end)
@@ -76,7 +86,9 @@ def _check(errors: dict) -> tuple[int, int]:
 def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | None = None,
                        lengths: torch.Tensor | None = None,
                        thresholds: Thresholds = Thresholds(),
-                       reference_motion: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                       reference_motion: torch.Tensor | None = None, palm_limit: float | None = None,
+                       object_rise: torch.Tensor | None = None,
+                       reference_rise: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Per-trajectory means and both success measures from (B, T) per-frame errors.
 
     Args:
@@ -88,6 +100,11 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
         reference_motion: (B, T) the reference object's distance from its start position at each
             frame, in m (valid or not: it is the reference's); needed for ``carried``.
         thresholds: the success thresholds (default :class:`~adadex.envs.frame_errors.Thresholds`).
+        palm_limit: the env's palm termination error (m, ``TrackingConfig.terminate_palm_error``);
+            with it ``ended_palm``: ended early with T_h beyond it at the last tracked frame.
+        object_rise, reference_rise: (B, T) the object's and the reference object's heights above
+            their start positions at each frame, m (both or neither); with them ``reference_lifts``
+            and ``lifted`` (the module docstring).
 
     Returns (B,) tensors: the mean of each error (NaN for an empty trajectory), ``frames``,
     ``ended_early``, ``success_mean_error`` (bool), ``completion`` (fraction), ``empty`` (bool),
@@ -96,7 +113,8 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
     the position test; ``lost_rotation`` — passing it, failing the rotation test; ``lost_finger`` —
     failing only the finger test; ``lost_after_end`` — never tracked, the episode having ended) and,
     with ``reference_motion``, ``carried`` (bool) and ``moving_frames`` (how many frames the carry test
-    looked at; 0: it used object completion).
+    looked at; 0: it used object completion); with ``palm_limit``, ``ended_palm`` (bool); with the rises,
+    ``reference_lifts`` and ``lifted`` (bool; ``lifted`` only where the reference lifts).
     """
     B, T = _check(errors)
     valid = torch.ones(B, T, dtype=torch.bool) if valid is None else valid.to(torch.bool)
@@ -132,6 +150,21 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
                               out["object_completion"] >= thresholds.carry_fraction)
         out["carried"] = carried & ~out["empty"]
         out["moving_frames"] = m
+    if palm_limit is not None:
+        last = (n - 1).clamp(min=0)
+        palm_end = errors["T_h"].gather(1, last[:, None].to(torch.int64))[:, 0] > palm_limit
+        out["ended_palm"] = out["ended_early"] & ~out["empty"] & palm_end
+    if (object_rise is None) != (reference_rise is None):
+        raise ArrayError("object_rise and reference_rise go together: give both or neither")
+    if object_rise is not None:
+        rises = [torch.as_tensor(r).to(torch.float64) for r in (object_rise, reference_rise)]
+        if any(tuple(r.shape) != (B, T) for r in rises):
+            raise ArrayError(f"object_rise and reference_rise must have the errors' shape {(B, T)}, "
+                             f"got {[tuple(r.shape) for r in rises]}")
+        top = rises[1].max(1).values
+        out["reference_lifts"] = top >= thresholds.lift
+        need = torch.minimum(torch.full_like(top, thresholds.lift), 0.5 * top)
+        out["lifted"] = out["reference_lifts"] & (valid & (rises[0] >= need[:, None])).any(1)
     return out
 
 
@@ -169,8 +202,10 @@ def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
         ``{"trajectories", "empty"}`` (counts), the mean of each error (``T_o``, ``T_h`` in cm;
         ``R_o``, ``R_h``, ``E_finger`` in rad) and ``success_mean_error_pct``, ``completion_pct``,
         ``object_completion_pct``, ``carried_pct`` (NaN without ``carried``) and, where the result
-        has them, the lost frames (:data:`LOST`) as ``lost_position_pct`` …; every mean is NaN when no
-        trajectory is non-empty.
+        has them, the lost frames (:data:`LOST`) as ``lost_position_pct`` …, ``ended_pct`` (episodes
+        that ended early), ``ended_palm_pct`` (of all episodes, those that ended with the palm beyond
+        the termination error) and ``lifted_pct`` (of the episodes whose reference lifts its object,
+        those that raised it; NaN when none does); every mean is NaN when no trajectory is non-empty.
     """
     keep = ~per_traj["empty"]
     n = int(keep.sum())
@@ -186,6 +221,12 @@ def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
     out["carried_pct"] = (100.0 * float(per_traj["carried"][keep].double().mean()) if "carried" in per_traj
                           else math.nan)
     out.update({f"{k}_pct": 100.0 * float(per_traj[k][keep].mean()) for k in LOST if k in per_traj})
+    out["ended_pct"] = 100.0 * float(per_traj["ended_early"][keep].double().mean())
+    if "ended_palm" in per_traj:
+        out["ended_palm_pct"] = 100.0 * float(per_traj["ended_palm"][keep].double().mean())
+    if "lifted" in per_traj:
+        lifts = keep & per_traj["reference_lifts"]
+        out["lifted_pct"] = 100.0 * float(per_traj["lifted"][lifts].double().mean()) if lifts.any() else math.nan
     return out
 
 
@@ -195,6 +236,17 @@ REF_OBJECT_POSE_KEY = ("next", "reference", "object_pose")
 REF_OBJECT_START_KEY = ("next", "object", "reference_start")
 
 
+def _reference_offset(td) -> torch.Tensor | None:
+    """(…, T, 3) the reference object's position minus its start, from a tracking env's rollout; None
+    where :func:`reference_motion_from_rollout` says."""
+    keys = set(td.keys(include_nested=True))
+    if REF_OBJECT_POSE_KEY not in keys or REF_OBJECT_START_KEY not in keys or ("next", "modulation") in keys \
+            or "modulation" in keys:
+        return None
+    return td.get(REF_OBJECT_POSE_KEY)[..., 0, :3].to(torch.float64) - \
+        td.get(REF_OBJECT_START_KEY)[..., :3].to(torch.float64)
+
+
 def reference_motion_from_rollout(td) -> torch.Tensor | None:
     """(…, T) the reference object's distance from its start position at each frame of a tracking
     env's rollout (``[…, T]``), from the entries the env writes: ``("next", "reference",
@@ -202,18 +254,29 @@ def reference_motion_from_rollout(td) -> torch.Tensor | None:
     the rollout lacks them or holds a modulation (channel R shows the *edited* reference in those
     entries, so the original's motion must come from the dataset, as
     :func:`adadex.eval.evaluate.evaluate` does)."""
+    offset = _reference_offset(td)
+    return None if offset is None else torch.linalg.vector_norm(offset, dim=-1)
+
+
+#: what :func:`object_rise_from_rollout` reads: the object's pose after each step and where it started
+OBJECT_POSE_KEY = ("next", "object", "pose")
+OBJECT_START_KEY = ("next", "object", "start_pose")
+
+
+def object_rise_from_rollout(td) -> torch.Tensor | None:
+    """(…, T) the object's height above where it started the episode at each frame of a tracking env's
+    rollout (``("next", "object", "pose")`` against ``("next", "object", "start_pose")``), m; ``None``
+    when the rollout lacks them."""
     keys = set(td.keys(include_nested=True))
-    if REF_OBJECT_POSE_KEY not in keys or REF_OBJECT_START_KEY not in keys or ("next", "modulation") in keys \
-            or "modulation" in keys:
+    if OBJECT_POSE_KEY not in keys or OBJECT_START_KEY not in keys:
         return None
-    ref = td.get(REF_OBJECT_POSE_KEY)[..., 0, :3]
-    start = td.get(REF_OBJECT_START_KEY)[..., :3]
-    return torch.linalg.vector_norm(ref.to(torch.float64) - start.to(torch.float64), dim=-1)
+    return td.get(OBJECT_POSE_KEY)[..., 2].to(torch.float64) - td.get(OBJECT_START_KEY)[..., 2].to(torch.float64)
 
 
 def from_rollout(td, *, errors_key=("next", "privileged", "errors"), lengths: torch.Tensor | None = None,
-                 thresholds: Thresholds = Thresholds(),
-                 reference_motion: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                 thresholds: Thresholds = Thresholds(), reference_motion: torch.Tensor | None = None,
+                 palm_limit: float | None = None,
+                 reference_rise: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """:func:`trajectory_metrics` of a TorchRL rollout TensorDict of batch shape ``[..., T]`` (time
     last): ``[B, T]`` from one env, ``[workers, B, T]`` from a multi-process collector, … — every
     leading index is one trajectory, in row-major order.
@@ -223,7 +286,12 @@ def from_rollout(td, *, errors_key=("next", "privileged", "errors"), lengths: to
 
     ``reference_motion`` (the rollout's batch shape, m) is what ``carried`` needs; by default it is
     read from the rollout (:func:`reference_motion_from_rollout`), and ``carried`` is left out
-    where that is not possible.
+    where that is not possible. ``lifted`` needs the object's rise, read from the rollout
+    (:func:`object_rise_from_rollout`), and the reference's (``reference_rise``, by default from the
+    rollout's reference entries as for the motion, over the frames up to each episode's end, so an
+    episode that ended before its reference lifts does not count as one whose reference lifts; pass the
+    whole window's, as :func:`adadex.eval.evaluate.evaluate` does from the dataset); it is left out where
+    either is missing.
 
     Args:
         td: the rollout, batch shape ``[..., T]``, holding ``("next", "done")`` and the errors.
@@ -231,6 +299,8 @@ def from_rollout(td, *, errors_key=("next", "privileged", "errors"), lengths: to
         lengths: frames each trajectory should have tracked (see :func:`trajectory_metrics`).
         thresholds: the success thresholds.
         reference_motion: the reference object's distance from its start, m, or None (above).
+        palm_limit: the env's palm termination error, m (``ended_palm``; see :func:`trajectory_metrics`).
+        reference_rise: the reference object's height above its start, m, or None (above).
 
     Returns:
         :func:`trajectory_metrics`'s (B,) tensors, B the product of the leading dimensions.
@@ -246,5 +316,14 @@ def from_rollout(td, *, errors_key=("next", "privileged", "errors"), lengths: to
     motion = reference_motion_from_rollout(td) if reference_motion is None else torch.as_tensor(reference_motion)
     if motion is not None:
         motion = motion.reshape(td.batch_size)
+    if reference_rise is None:         # read from the rollout: up to each episode's end (an auto-reset follows)
+        offset = _reference_offset(td)
+        reference_rise = None if offset is None else \
+            torch.where(after_done, -math.inf, offset[..., 2].reshape(td.batch_size))
+    rise = object_rise_from_rollout(td)
+    rises = {}
+    if rise is not None and reference_rise is not None:
+        rises = {"object_rise": rise.reshape(td.batch_size),
+                 "reference_rise": torch.as_tensor(reference_rise).reshape(td.batch_size)}
     return trajectory_metrics(errors, valid=~after_done, lengths=lengths, thresholds=thresholds,
-                              reference_motion=motion)
+                              reference_motion=motion, palm_limit=palm_limit, **rises)

@@ -33,6 +33,8 @@ def test_a_policy_that_drifts_fails(tiny_dataset):
     floor = evaluate(replay_policy(), tiny_dataset, split=None, config=CFG, progress=False)
     assert res["summary"]["E_finger"] > floor["summary"]["E_finger"] + 0.1
     assert res["summary"]["completion_pct"] < floor["summary"]["completion_pct"]
+    # the arm driven off its reference: the episodes end with the palm beyond its termination error
+    assert res["summary"]["ended_palm_pct"] == res["summary"]["ended_pct"] > floor["summary"]["ended_palm_pct"]
 
 
 def test_a_modulated_policy_evaluates_with_its_primer(tiny_dataset):
@@ -104,7 +106,7 @@ def test_per_episode_results_pair_up_and_carry_the_object_measures(tiny_dataset)
     from adadex.envs.randomization import Randomization
     from adadex.envs.tracking import episode_references
     from adadex.eval.evaluate import EPISODE_FIELDS, reference_motion
-    from adadex.eval.metrics import reference_motion_from_rollout
+    from adadex.eval.metrics import from_rollout, reference_motion_from_rollout
 
     ds = ReferenceDataset(tiny_dataset)
     refs = episode_references(ds, None, CFG.window)[:3] * 2
@@ -118,11 +120,19 @@ def test_per_episode_results_pair_up_and_carry_the_object_measures(tiny_dataset)
     assert res["summary"]["object_completion_pct"] == pytest.approx(100 * sum(ep["object_completion"]) / len(refs))
     assert res["summary"]["carried_pct"] == pytest.approx(100 * sum(ep["carried"]) / len(refs))
     assert all(o <= c for o, c in zip(ep["object_completion"], ep["completion"]))
+    assert all(e or not p for e, p in zip(ep["ended_early"], ep["ended_palm"]))
+    assert all(r or not lift for r, lift in zip(ep["reference_lifts"], ep["lifted"]))
     rho = res["return_completion_spearman"]
     assert rho["episodes"] == len(refs) and set(rho) == {"completion", "object_completion", "episodes"}
     for k, td in enumerate(res["rollouts"]):
         chunk = refs[4 * k: 4 * (k + 1)]
         assert torch.allclose(reference_motion(ds, chunk, CFG.window - 1), reference_motion_from_rollout(td))
+        # read from the rollout, whether the reference lifts agrees with the dataset's where nothing ended
+        own = from_rollout(td)
+        for i, r in enumerate(chunk):
+            if not ep["ended_early"][4 * k + i]:
+                assert bool(own["reference_lifts"][i]) == ep["reference_lifts"][4 * k + i]
+                assert bool(own["lifted"][i]) == ep["lifted"][4 * k + i]
 
 
 def test_two_policies_meet_the_same_draws(tiny_dataset):

@@ -18,6 +18,7 @@ from adadex.eval.metrics import (
     summarize,
     trajectory_metrics,
 )
+from adadex.errors import ArrayError
 from adadex.eval.evaluate import format_summary
 from adadex.quat import quat_angle, quat_diff, quat_mul
 
@@ -154,6 +155,41 @@ def test_lost_frames_are_charged_to_the_first_test_they_fail_and_sum_with_comple
     assert format_summary(s).splitlines()[3] == ("frames lost: position test 16.7 %, rotation 16.7 %, fingers 8.3 %, "
                                                  "after the episode ended 16.7 %")
 
+
+
+def test_why_episodes_end_palm_beyond_its_limit_and_whether_the_object_was_lifted():
+    # 4 trajectories of 5 frames: 0 tracked to the end, 1 ends with the palm 30 cm off, 2 ends with the
+    # object off (palm fine), 3 ends after the palm came back within the limit (its last frame decides)
+    e = errors_from({}, B=4, T=5)
+    valid = torch.ones(4, 5, dtype=torch.bool)
+    valid[1, 3:] = valid[2, 2:] = valid[3, 4:] = False
+    e["T_h"][1, 2] = 0.30
+    e["T_o"][2, 1] = 0.30
+    e["T_h"][3, 1] = 0.30
+    # the reference raises objects 0, 1 and 3 by 10, 4 and 2 cm; the objects rise 3.1, 2.1, 5 and 1.5 cm,
+    # object 1's 2.1 cm (≥ half its reference's 4 cm) on a frame after its episode ended (not counted)
+    reference_rise = torch.zeros(4, 5)
+    reference_rise[0, 3], reference_rise[1, 4], reference_rise[2, 1], reference_rise[3, 2] = 0.10, 0.04, 0.02, 0.02
+    object_rise = torch.zeros(4, 5)
+    object_rise[0, 2], object_rise[1, 1], object_rise[1, 4] = 0.031, 0.019, 0.021
+    object_rise[2, 1], object_rise[3, 2] = 0.05, 0.015
+    m = trajectory_metrics(e, valid=valid, lengths=torch.full((4,), 5), palm_limit=0.25,
+                           object_rise=object_rise, reference_rise=reference_rise)
+    assert m["ended_early"].tolist() == [False, True, True, True]
+    assert m["ended_palm"].tolist() == [False, True, False, False]
+    assert m["reference_lifts"].tolist() == [True, True, False, False]     # 3 cm or more
+    assert m["lifted"].tolist() == [True, False, False, False]              # 3.1 ≥ 3; 1.9 < 2 (2.1 too late)
+    s = summarize(m)
+    assert s["ended_pct"] == pytest.approx(75.0) and s["ended_palm_pct"] == pytest.approx(25.0)
+    assert s["lifted_pct"] == pytest.approx(50.0)                           # of the two that the reference lifts
+    assert format_summary(s).splitlines()[-1] == ("episodes ended early 75.0 % (the palm beyond its termination "
+                                                  "error: 25.0 %); objects the reference lifts, lifted 50.0 %")
+    none_lift = summarize(trajectory_metrics(e, object_rise=object_rise, reference_rise=0 * reference_rise))
+    assert math.isnan(none_lift["lifted_pct"]) and "ended_palm_pct" not in none_lift
+    with pytest.raises(ArrayError, match="object_rise and reference_rise"):
+        trajectory_metrics(e, object_rise=object_rise)
+    with pytest.raises(ArrayError, match="errors' shape"):
+        trajectory_metrics(e, object_rise=object_rise[:, :3], reference_rise=reference_rise[:, :3])
 
 def test_from_rollout_stops_at_first_done():
     B, T = 2, 4

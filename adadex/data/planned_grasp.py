@@ -11,9 +11,12 @@ of those references' 65 objects. :func:`plan_hold` puts that pinch into a retarg
 =============================  =======================================================================
 frames (synthesis phases)      robot joints
 =============================  =======================================================================
-before ``approach``            retargeted (the hand at rest, far from the object)
+before ``approach``            retargeted (the hand at rest, far from the object; the arm re-solved
+                               for the same palm poses from the grasp's posture where that shortens
+                               the way to the grasp: ``rest_resolved``)
 ``approach`` → ``grasp``       joint-space blend to the open pinch 8 cm above the object, then down
-                               to the open pinch (at least the last ``grasp − reach`` frames)
+                               to the open pinch (the last ``grasp − reach`` frames, or as few as the
+                               descent needs where the way there needs more frames than precede it)
 ``grasp`` → ``manipulate``     the fingers close to the squeeze posture (earlier, if closing within
                                :data:`MAX_STEP` per frame takes longer); the palm holds from here on
 ``manipulate`` → release       the palm keeps its pose in the object's frame while the object moves
@@ -217,15 +220,51 @@ def plan_hold(joint_pos: np.ndarray, object_pose: np.ndarray, object_name: str, 
     return plan["q"]
 
 
+def _in_branch_of(model, q_ret: np.ndarray, approach: int, above: np.ndarray) -> np.ndarray:
+    """``q_ret`` with its arm joints up to ``approach`` re-solved for the same palm poses (warm-started
+    backwards from ``approach``, from the grasp's posture ``above`` and from the retargeted posture with
+    its wrist flipped), where that shortens the way to ``above``; else ``q_ret`` itself. The retargeted
+    hand at rest can sit in the other branch of the wrist (j4 and j6 half a turn away, the palm posed
+    alike), and the way from there to the pinch turns both wrist joints about π: faster than the
+    servos' targets may move in the frames the reference leaves it. The palm, fingertips and fingers
+    stay as the reference has them."""
+    flipped = q_ret[approach].copy()
+    flipped[3], flipped[4], flipped[5] = flipped[3] + np.pi, -flipped[4], flipped[5] + np.pi
+    flipped[[3, 5]] = (flipped[[3, 5]] + np.pi) % (2 * np.pi) - np.pi
+    palms = [_palm_pose(model, q_ret[k]) for k in range(approach + 1)]
+    best, rot = q_ret, np.empty(9)
+    for seed in (above, flipped):
+        out, init = q_ret.copy(), seed.copy()
+        for k in range(approach, -1, -1):
+            mujoco.mju_quat2Mat(rot, palms[k][3:])
+            init[6:] = q_ret[k, 6:]
+            init, err = solve_arm_ik(model, "palm", palms[k][:3], rot.reshape(3, 3), init, tol=1e-6, iters=200)
+            if err > 1e-4:
+                break
+            out[k] = init
+        else:
+            if _frames_for(out[0], above) < _frames_for(best[0], above):
+                best = out
+    return best
+
+
 def _plan(model, q_ret, smooth, pinch, object_name, approach, reach, grasp, manip, release, n_rise, fps) -> dict:
     """One pinch's plan, laid out backwards from the object's first motion (``manip``): the fingers
     close no faster than :data:`MAX_STEP` per frame and are closed when the object starts to move."""
     T = len(q_ret)
     above = translate_palm(model, pinch.open, [0.0, 0.0, CLEARANCE_HEIGHT])
     close = manip - max(manip - grasp, _frames_for(pinch.open[6:], pinch.closed[6:]))
-    descend = close - max(grasp - reach, _frames_for(above, pinch.open))
-    # earlier if the way is long, but not before the first frame (the servos then lag at first)
+    descent = _frames_for(above, pinch.open)
+    descend = close - max(grasp - reach, descent)
+    resolved = _in_branch_of(model, q_ret, approach, above)
+    rest_resolved, q_ret = resolved is not q_ret, resolved
+    # earlier if the way is long, but not before the first frame; where even that leaves the way too few
+    # frames, the descent takes only what it needs and the way the rest (the servos then lag only where
+    # the way is longer than every frame before the descent allows)
     start = max(0, min(approach, descend - _frames_for(q_ret[approach], above)))
+    way = _frames_for(q_ret[0], above)
+    if start == 0 and descend < way:
+        descend = min(close - descent, way)
     n_open = max(round(OPEN_S * fps), _frames_for(pinch.closed[6:], pinch.open[6:]))
     end = release + n_open
     if descend - start < 2 or end + 2 * n_rise >= T:
@@ -250,5 +289,6 @@ def _plan(model, q_ret, smooth, pinch, object_name, approach, reach, grasp, mani
     q[end + n_rise + 1: back + 1] = _blend(up, q_ret[back], back - end - n_rise)
     arm_step = float(np.abs(np.diff(q[descend: end + 1, :6], axis=0)).max())
     approach_step = float(np.abs(np.diff(q[start: descend + 1], axis=0)).max())
-    return {"q": q, "approach_from": int(start), "approach_step": approach_step, "close_from": int(close),
+    return {"q": q, "approach_from": int(start), "approach_step": approach_step, "rest_resolved": rest_resolved,
+            "close_from": int(close),
             "release": int(release), "open_until": int(end), "back_at": int(back), "arm_step": arm_step}

@@ -128,6 +128,13 @@ def test_make_splits_on_a_larger_list():
     assert s["unseen_object"]["test"] == [i for i, o in enumerate(objs) if o in held]
     assert s["unseen_object"]["train"] == s["unseen_trajectory"]["train"]
     assert make_splits(refs, seed=0) == s and make_splits(refs, seed=1) != s
+    # a reference's part does not hang on the others: drop two and the rest keep theirs but for at most two
+    named = [r.with_name(f"ref_{i:02d}") for i, r in enumerate(refs)]
+    full = make_splits(named, seed=0)["unseen_trajectory"]
+    kept = [k for k in range(len(named)) if k not in (3, 17)]
+    fewer = make_splits([named[k] for k in kept], seed=0)["unseen_trajectory"]
+    moved = [k for j, k in enumerate(kept) if (j in fewer["test"]) != (k in full["test"])]
+    assert len(moved) <= 2
 
 
 def test_kinematic_replay_matches_stored_link_poses(tiny):

@@ -8,7 +8,8 @@ from adadex.data.planned_grasp import MAX_STEP, PlannedGraspError, axis_order, p
 from adadex.data.retarget import Retargeter
 from adadex.data.synth import Synthesizer, make_instruction
 from adadex.geometry import compose, inverse
-from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES
+from adadex.sim.ik import solve_arm_ik
+from adadex.sim.robot import HOME_QPOS, NUM_JOINTS, TRACKED_SITES
 from adadex.sim.scene import build_scene_model
 
 
@@ -57,6 +58,38 @@ def test_hold_keeps_the_palm_on_the_object_and_blends_gently(lift_motion):
     assert np.abs(np.diff(q[info["close_from"]: info["open_until"] + 1, 6:], axis=0)).max() <= MAX_STEP + 1e-9
     assert info["axis"] in axis_order(m.object_pose[m.phases["grasp"]])
 
+
+
+def test_a_rest_in_the_other_wrist_branch_is_re_solved_so_the_way_to_the_grasp_stays_short(lift_motion):
+    """The hand at rest posed alike from the wrist's other branch (j4, j6 half a turn away): the plan
+    re-solves the arm there from the grasp's posture, so the reference's palm and fingers keep their
+    poses and its arm reaches the pinch no faster than from the branch the grasp is in."""
+    m, q_ret = lift_motion
+    model = build_scene_model(None)
+    approach = m.phases["approach"]
+    info = {}
+    plan_hold(q_ret, m.object_pose, "cube_050", m.phases, info=info)
+    assert not info["rest_resolved"]               # the retargeted rest is in the grasp's branch already
+    other = q_ret.copy()
+    data = mujoco.MjData(model)
+    for k in range(approach + 1):                  # the same palm poses from the home posture's branch
+        data.qpos[:NUM_JOINTS] = q_ret[k]
+        mujoco.mj_kinematics(model, data)
+        b = model.body("palm").id
+        other[k], err = solve_arm_ik(model, "palm", data.xpos[b].copy(), data.xmat[b].reshape(3, 3).copy(),
+                                     HOME_QPOS if k == 0 else other[k - 1], tol=1e-7)
+        other[k, 6:] = q_ret[k, 6:]
+        assert err < 1e-5
+    assert np.abs(other[0, 3] - q_ret[0, 3]) > 2.5    # j4 half a turn away
+    swapped = {}
+    q = plan_hold(other, m.object_pose, "cube_050", m.phases, info=swapped)
+    assert swapped["rest_resolved"] and swapped["approach_step"] <= info["approach_step"] + 1e-3
+    start = swapped["approach_from"] + 1
+    palm, tips = _fk(q[:start])
+    palm_ref, tips_ref = _fk(other[:start])
+    np.testing.assert_allclose(palm[:, :3], palm_ref[:, :3], atol=1e-4)
+    np.testing.assert_allclose(tips, tips_ref, atol=1e-4)
+    np.testing.assert_array_equal(q[:start, 6:], other[:start, 6:])
 
 def test_axis_order_puts_the_thumb_nearest_the_robot():
     upright = np.array([0.45, 0.0, 0.03, 1.0, 0.0, 0.0, 0.0])

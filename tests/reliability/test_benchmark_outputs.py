@@ -323,3 +323,20 @@ def test_replay_floor_counts_ended_episodes_per_verb(bench):
     assert list(table) == ["lift", "shake"]
     assert table["lift"] == {"episodes": 2, "ended_pct": 50.0}
     assert table["shake"]["episodes"] == 3 and table["shake"]["ended_pct"] == pytest.approx(200 / 3)
+
+
+def test_dataset_replay_pairs_two_builds_by_name_and_refuses_bad_input(bench, tiny_dataset, tmp_path, capsys):
+    """A build against itself, randomized: every episode meets the same draws, so every difference is 0."""
+    compare = bench("dataset_replay")
+    out = tmp_path / "pair.json"
+    for args, says in ((["--before", str(tiny_dataset), "--after", str(tmp_path / "absent")], str(tmp_path / "absent")),
+                       (["--before", str(tiny_dataset), "--after", str(tiny_dataset), "--repeats", "0"],
+                        "--repeats must be ≥ 1")):
+        _assert_refused(compare.main, [*args, "--out", str(out)], says, capsys)
+    assert not out.exists()
+    res = compare.main(["--before", str(tiny_dataset), "--after", str(tiny_dataset), "--randomize", "--repeats", "2",
+                        "--seed", "3", "--out", str(out)])
+    assert res["references"] >= 2 and len(res["per_episode"]["name"]) == 2 * res["references"]
+    assert all(v["diff"] == 0 and v["ci95"] == [0, 0] for v in res["diff"].values()), res["diff"]
+    assert res["before_summary"]["completion_pct"] == res["after_summary"]["completion_pct"]
+    assert json.loads(out.read_text())["names"] == res["names"]

@@ -151,8 +151,9 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
         out["carried"] = carried & ~out["empty"]
         out["moving_frames"] = m
     if palm_limit is not None:
-        last = (n - 1).clamp(min=0)
-        palm_end = errors["T_h"].gather(1, last[:, None].to(torch.int64))[:, 0] > palm_limit
+        frame = torch.arange(T, device=valid.device).expand(B, T)
+        last = torch.where(valid, frame, -1).max(1).values.clamp(min=0)          # the last tracked frame
+        palm_end = errors["T_h"].gather(1, last[:, None])[:, 0] > palm_limit
         out["ended_palm"] = out["ended_early"] & ~out["empty"] & palm_end
     if (object_rise is None) != (reference_rise is None):
         raise ArrayError("object_rise and reference_rise go together: give both or neither")

@@ -54,6 +54,7 @@ def _cmd_info(a) -> int:
         "groups": len({e["group"] for e in ds.entries}), "objects": len(objects), "verbs": dict(verbs),
         "splits": {name: {part: len(idx) for part, idx in parts.items()} for name, parts in ds.splits.items()},
         "rejected": ds.info.get("report", {}).get("rejected", {}),
+        "arm_speed": arm_speed(ds),
     }
     if a.json:
         print(json.dumps(summary, indent=1))
@@ -65,9 +66,33 @@ def _cmd_info(a) -> int:
         print(f"split {name}: " + ", ".join(f"{k} {v}" for k, v in parts.items()))
     if summary["rejected"]:
         print("rejected while building: " + ", ".join(f"{k} {v}" for k, v in sorted(summary["rejected"].items())))
+    speed = summary["arm_speed"]
+    if speed["windows"]:
+        print(f"arm joints faster than the env's servo targets ({speed['bound']:g} rad a frame) in {speed['faster']} of "
+              f"{speed['windows']} episode windows; fastest {speed['fastest']:.2f} rad a frame ({speed['fastest_reference']})")
     for i, e in enumerate(ds.entries[: a.head]):
         print(f"  [{i}] {e['name']}: {e['instruction']!r} ({e['length']} frames, window from {e['window_start']})")
     return 0
+
+
+def arm_speed(ds) -> dict:
+    """How fast each reference's arm joints move within its episode window (the default
+    :class:`~adadex.envs.tracking.TrackingConfig`'s ``window``) against the most the env moves a servo
+    target in a control step (its ``max_action``): ``{"bound", "windows", "faster", "fastest",
+    "fastest_reference"}`` — a reference faster than that is one the env, and so every policy, follows
+    with a lag (docs/references.md: the planned grasp's approach)."""
+    from adadex.envs.tracking import TrackingConfig, episode_references
+
+    cfg = TrackingConfig()
+    q = ds.frames["hand_joint_pos"]
+    steps = {}
+    for r in episode_references(ds, None, cfg.window):
+        start = ds.entries[r]["offset"] + ds.entries[r]["window_start"]
+        arm = q[start: start + cfg.window, :6]
+        steps[ds.entries[r]["name"]] = float((arm[1:] - arm[:-1]).abs().max())
+    fastest = max(steps, key=steps.get) if steps else None
+    return {"bound": cfg.max_action, "windows": len(steps), "faster": sum(v > cfg.max_action for v in steps.values()),
+            "fastest": steps[fastest] if steps else None, "fastest_reference": fastest}
 
 
 def _cmd_show(a) -> int:

@@ -114,6 +114,14 @@ def test_cli_data_build_info_show(tmp_path, capsys):
     assert main(["data", "info", str(out), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["references"] == len(ds) and set(info["splits"]) == {"unseen_trajectory", "unseen_object"}
+    speed = info["arm_speed"]                    # checked against the stored frames of each episode window
+    from adadex.envs.tracking import TrackingConfig, episode_references
+    windows = episode_references(ds, None, TrackingConfig().window)
+    fastest = [np.abs(np.diff(np.asarray(ds[r].hand_joint_pos)[ds.entries[r]["window_start"]:][:300, :6], axis=0)).max()
+               for r in windows]
+    assert speed["windows"] == len(windows) and speed["faster"] == sum(f > 0.1 for f in fastest)
+    if windows:
+        assert speed["fastest"] == pytest.approx(max(fastest), abs=1e-6)
     png = tmp_path / "ref.png"
     assert main(["data", "show", str(out), "--index", "0", "--out", str(png), "--no-render"]) == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

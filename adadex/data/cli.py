@@ -75,23 +75,28 @@ def _cmd_info(a) -> int:
     return 0
 
 
-def arm_speed(ds) -> dict:
-    """How fast each reference's arm joints move within its episode window (the default
-    :class:`~adadex.envs.tracking.TrackingConfig`'s ``window``) against the most the env moves a servo
-    target in a control step (its ``max_action``): ``{"bound", "windows", "faster", "fastest",
-    "fastest_reference"}`` — a reference faster than that is one the env, and so every policy, follows
-    with a lag (docs/references.md: the planned grasp's approach)."""
-    from adadex.envs.tracking import TrackingConfig, episode_references
+def arm_speed(ds, window: int | None = None, bound: float | None = None) -> dict:
+    """How fast each reference's arm joints move within its episode window (``window`` frames, default
+    :data:`~adadex.data.reference.WINDOW_FRAMES`, the tracking env's) against the most the env moves a
+    servo target in a control step (``bound``, default :data:`~adadex.sim.scene.MAX_TARGET_STEP`):
+    ``{"bound", "windows", "faster", "fastest", "fastest_reference"}`` — a reference faster than that
+    is one the env, and so every policy, follows with a lag (docs/references.md: the planned grasp's
+    approach)."""
+    from adadex.data.reference import WINDOW_FRAMES
+    from adadex.sim.scene import MAX_TARGET_STEP
 
-    cfg = TrackingConfig()
+    window = WINDOW_FRAMES if window is None else window
+    bound = MAX_TARGET_STEP if bound is None else bound
     q = ds.frames["hand_joint_pos"]
     steps = {}
-    for r in episode_references(ds, None, cfg.window):
-        start = ds.entries[r]["offset"] + ds.entries[r]["window_start"]
-        arm = q[start: start + cfg.window, :6]
-        steps[ds.entries[r]["name"]] = float((arm[1:] - arm[:-1]).abs().max())
+    for e in ds.entries:
+        if e["window_start"] is None or e["window_start"] + window > e["length"]:
+            continue
+        start = e["offset"] + e["window_start"]
+        arm = q[start: start + window, :6]
+        steps[e["name"]] = float((arm[1:] - arm[:-1]).abs().max())
     fastest = max(steps, key=steps.get) if steps else None
-    return {"bound": cfg.max_action, "windows": len(steps), "faster": sum(v > cfg.max_action for v in steps.values()),
+    return {"bound": bound, "windows": len(steps), "faster": sum(v > bound for v in steps.values()),
             "fastest": steps[fastest] if steps else None, "fastest_reference": fastest}
 
 

@@ -83,6 +83,7 @@ from adadex.envs.reward import TERM_NAMES, RewardConfig, tracking_reward
 from adadex.errors import ArrayError, ConfigError, check_array, check_number, check_numbers
 from adadex.geometry import Rotation, quat, rotation
 from adadex.sim.batched import MAX_OBJECT_SPEED, BatchedSim, check_backend, flung
+from adadex.sim.scene import MAX_TARGET_STEP
 from adadex.sim.effects import ModelBase
 from adadex.sim.patch import EffectInstance, ModelPatch, patched_scene
 from adadex.sim.robot import NUM_JOINTS, TRACKED_SITES, joint_limits
@@ -122,7 +123,7 @@ class TrackingConfig:
     """
 
     window: int = WINDOW_FRAMES
-    max_action: float = 0.1
+    max_action: float = MAX_TARGET_STEP
     terminate_object_error: float = 0.25
     terminate_palm_error: float = 0.25
     object_lift: float = 0.002

@@ -38,6 +38,9 @@ from adadex.sim.robot import (
 
 #: Policy steps per second.
 CONTROL_HZ = 12.0
+#: The most a servo target moves in one control step, rad: the tracking env's action bound
+#: (``TrackingConfig.max_action``'s default), what a reference can ask of the arm and be followed.
+MAX_TARGET_STEP = 0.1
 #: MuJoCo's timestep, s.
 PHYSICS_TIMESTEP = 1.0 / 120.0
 #: Physics steps per control step.

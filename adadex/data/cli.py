@@ -82,16 +82,15 @@ def arm_speed(ds, window: int | None = None, bound: float | None = None) -> dict
     ``{"bound", "windows", "faster", "fastest", "fastest_reference"}`` — a reference faster than that
     is one the env, and so every policy, follows with a lag (docs/references.md: the planned grasp's
     approach)."""
-    from adadex.data.reference import WINDOW_FRAMES
+    from adadex.data.reference import WINDOW_FRAMES, episode_references
     from adadex.sim.scene import MAX_TARGET_STEP
 
     window = WINDOW_FRAMES if window is None else window
     bound = MAX_TARGET_STEP if bound is None else bound
     q = ds.frames["hand_joint_pos"]
     steps = {}
-    for e in ds.entries:
-        if e["window_start"] is None or e["window_start"] + window > e["length"]:
-            continue
+    for r in episode_references(ds, None, window):
+        e = ds.entries[r]
         start = e["offset"] + e["window_start"]
         arm = q[start: start + window, :6]
         steps[e["name"]] = float((arm[1:] - arm[:-1]).abs().max())

@@ -636,3 +636,18 @@ def check_frames(dataset: ReferenceDataset, indices) -> None:
         raise JointLimitError(f"{where(k)}: joint {JOINT_NAMES[j]} is {q[k, j]:+.4f} rad, outside "
                               f"[{lim[j, 0]:+.4f}, {lim[j, 1]:+.4f}] by {over[k, j]:.4f} "
                               f"(tolerance {JOINT_LIMIT_TOLERANCE})")
+
+
+def episode_references(dataset: ReferenceDataset, split: tuple[str, str] | None, window: int = WINDOW_FRAMES
+                       ) -> list[int]:
+    """Indices of the references in ``split`` (``None``: all) long enough for a ``window``-frame episode.
+
+    Args:
+        dataset: the reference dataset.
+        split: ``(split name, part)``, e.g. ``("unseen_trajectory", "train")``; None: every reference.
+        window: the episode's length in frames (default ``WINDOW_FRAMES``); a reference qualifies
+            if this many frames follow its window start.
+    """
+    idx = list(range(len(dataset))) if split is None else dataset.split(*split)
+    return [i for i in idx if dataset.entries[i]["window_start"] is not None
+            and dataset.entries[i]["window_start"] + window <= dataset.entries[i]["length"]]

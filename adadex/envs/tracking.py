@@ -75,6 +75,7 @@ from torchrl.envs import EnvBase
 
 from adadex.arrays import to_float
 from adadex.data.reference import WINDOW_FRAMES, ReferenceDataset, check_frames, check_split
+from adadex.data.reference import episode_references  # noqa: F401  (defined there; importable here as before)
 from adadex.envs.frame_errors import ERROR_NAMES, frame_errors
 from adadex.envs.latent import encoder_latent
 from adadex.envs.observation import LATENT_DIM, OBS_DIM, PRIVILEGED, REF_OFFSETS, flat_observation
@@ -160,21 +161,6 @@ def _as_patch(patch, effects) -> ModelPatch:
         else:
             out = out.with_effect(*e)
     return out
-
-
-def episode_references(dataset: ReferenceDataset, split: tuple[str, str] | None, window: int = WINDOW_FRAMES
-                       ) -> list[int]:
-    """Indices of the references in ``split`` (``None``: all) long enough for a ``window``-frame episode.
-
-    Args:
-        dataset: the reference dataset.
-        split: ``(split name, part)``, e.g. ``("unseen_trajectory", "train")``; None: every reference.
-        window: the episode's length in frames (default ``WINDOW_FRAMES``); a reference qualifies
-            if this many frames follow its window start.
-    """
-    idx = list(range(len(dataset))) if split is None else dataset.split(*split)
-    return [i for i in idx if dataset.entries[i]["window_start"] is not None
-            and dataset.entries[i]["window_start"] + window <= dataset.entries[i]["length"]]
 
 
 def scene_pack(dataset, references, *, randomize: Randomization | None = None, patch=None,

@@ -55,6 +55,7 @@ def _cmd_info(a) -> int:
         "splits": {name: {part: len(idx) for part, idx in parts.items()} for name, parts in ds.splits.items()},
         "rejected": ds.info.get("report", {}).get("rejected", {}),
         "arm_speed": arm_speed(ds),
+        "approach_overlap": approach_overlap(ds),
     }
     if a.json:
         print(json.dumps(summary, indent=1))
@@ -70,9 +71,46 @@ def _cmd_info(a) -> int:
     if speed["windows"]:
         print(f"arm joints faster than the env's servo targets ({speed['bound']:g} rad a frame) in {speed['faster']} of "
               f"{speed['windows']} episode windows; fastest {speed['fastest']:.2f} rad a frame ({speed['fastest_reference']})")
+    inside = summary["approach_overlap"]
+    if inside["windows"]:
+        print(f"the hand reaches more than {1000 * inside['limit']:g} mm into the object before the grasp in "
+              f"{inside['deeper']} of {inside['windows']} episode windows; deepest {1000 * inside['deepest']:.0f} mm "
+              f"({inside['deepest_reference']})")
     for i, e in enumerate(ds.entries[: a.head]):
         print(f"  [{i}] {e['name']}: {e['instruction']!r} ({e['length']} frames, window from {e['window_start']})")
     return 0
+
+
+def approach_overlap(ds, window: int | None = None, limit: float | None = None) -> dict:
+    """How deep each reference's hand reaches into its object before it grasps it, kinematically (the
+    reference's joints and object pose, :func:`~adadex.sim.grasp.object_overlap`), over its episode
+    window (``window`` frames, default the tracking env's) up to the frame the fingers start to close
+    (a planned grasp's ``close_from``, else the synthesis phase ``grasp``): ``{"limit", "windows",
+    "deeper", "deepest", "deepest_reference"}`` with ``deeper`` the windows reaching more than ``limit``
+    m in (default :data:`~adadex.data.planned_grasp.MAX_OVERLAP`). Replay of such a reference pins the
+    object to the table, pushes or flings it before the grasp (docs/references.md)."""
+    from adadex.data.planned_grasp import MAX_OVERLAP
+    from adadex.data.reference import WINDOW_FRAMES, episode_references
+    from adadex.sim.grasp import object_overlap
+    from adadex.sim.scene import build_scene_model
+
+    window = WINDOW_FRAMES if window is None else window
+    limit = MAX_OVERLAP if limit is None else limit
+    q, pose = ds.frames["hand_joint_pos"], ds.frames["object_pose"]
+    depth, models = {}, {}
+    for r in episode_references(ds, None, window):
+        e = ds.entries[r]
+        meta = e.get("meta", {})
+        grasp = meta.get("planned_grasp", {}).get("close_from", meta.get("phases", {}).get("grasp"))
+        if grasp is None or grasp <= e["window_start"]:
+            continue
+        if e["object"] not in models:
+            models[e["object"]] = build_scene_model(e["object"])
+        frames = slice(e["offset"] + e["window_start"], e["offset"] + min(grasp, e["window_start"] + window - 1) + 1)
+        depth[e["name"]] = object_overlap(models[e["object"]], q[frames].numpy(), pose[frames].numpy()).depth
+    deepest = max(depth, key=depth.get) if depth else None
+    return {"limit": limit, "windows": len(depth), "deeper": sum(v > limit for v in depth.values()),
+            "deepest": depth[deepest] if depth else None, "deepest_reference": deepest}
 
 
 def arm_speed(ds, window: int | None = None, bound: float | None = None) -> dict:

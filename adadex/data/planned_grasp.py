@@ -33,8 +33,14 @@ the reference's own, noise included; the palm follows it low-passed (:func:`smoo
 The pinch axis is one of the object's horizontal body axes (±x, ±y), tried in the order that puts
 the thumb nearest the robot (the scripted grasp's side), each solved from the retargeted and the
 home posture; of those whose fingertips reach their surface points within :data:`TOLERANCE`, the
-first whose hold moves no arm joint more than :data:`MAX_STEP` per frame wins. A reference with no reachable pinch, or whose hold the
-arm cannot follow, raises :class:`PlannedGraspError` (the build counts it as ``no_planned_grasp``).
+first whose hold moves no arm joint more than :data:`MAX_STEP` per frame wins. The pinch line runs
+through the object's middle, or higher (:data:`PINCH_HEIGHTS`) where the hand would otherwise reach
+into the object: pinched at its middle, a bottle or a wineglass has the palm and the index finger's
+inner links 2–3 cm inside it, and the approach then pins the object to the table and flings it
+before the fingers close. No plan is taken whose hand, from the approach to the close, reaches more
+than :data:`MAX_OVERLAP` into the object (:func:`~adadex.sim.grasp.object_overlap`, the object where
+the reference has it). A reference with no reachable pinch, or whose hold the arm cannot follow,
+raises :class:`PlannedGraspError` (the build counts it as ``no_planned_grasp``).
 
 Example::
 
@@ -52,7 +58,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from adadex.errors import AdadexError
 from adadex.geometry import compose, inverse
-from adadex.sim.grasp import PINCH_AXES, SQUEEZE, plan_pinch, translate_palm
+from adadex.sim.grasp import PINCH_AXES, SQUEEZE, object_overlap, plan_pinch, translate_palm
 from adadex.sim.ik import IKError, solve_arm_ik
 from adadex.sim.objects import get_object
 from adadex.sim.robot import HOME_QPOS, NUM_JOINTS
@@ -70,6 +76,12 @@ SMOOTHING = 2.0
 MAX_STEP = 0.08
 #: clearance of a preferred pinch's arm joints from their limits (rad)
 LIMIT_MARGIN = 0.25
+#: deepest the planned hand may reach into the object before it closes (m; the open fingertips are
+#: :data:`~adadex.sim.grasp.OPEN_CLEARANCE` out, so anything deeper is a link passing through it)
+MAX_OVERLAP = 3e-3
+#: heights of the pinch line above the object's origin tried, in units of its half height: a tall or
+#: wide-topped object pinched at its middle puts the palm and the index finger's inner links inside it
+PINCH_HEIGHTS = (0.0, 0.35, 0.7)
 #: required phase names (from :class:`adadex.data.synth.HumanMotion`)
 PHASES = ("approach", "reach", "grasp", "manipulate", "placed", "release", "retreat")
 
@@ -81,6 +93,15 @@ class PlannedGraspError(AdadexError, ValueError):
 @functools.lru_cache(maxsize=1)
 def _robot_model() -> mujoco.MjModel:
     return build_scene_model(None)
+
+
+@functools.lru_cache(maxsize=4)
+def _object_model(object_name: str) -> mujoco.MjModel:
+    return build_scene_model(object_name)
+
+
+#: the digits a pinch presses into the object on purpose
+_PRESSING = ("th_ds", "if_ds", "mf_ds")
 
 
 def _min_jerk(n: int) -> np.ndarray:
@@ -140,24 +161,38 @@ def _limit_margin(model: mujoco.MjModel, q: np.ndarray) -> float:
 
 
 def _pinches(model, object_name: str, object_pose: np.ndarray, q_near: np.ndarray, squeeze: float, tried: list):
-    """Reachable pinches with their axis, best first, solved as they are asked for: axes in
-    :func:`axis_order`, each solved from ``q_near`` (the retargeted posture: the shortest way there)
-    and from the home posture; those whose arm comes within :data:`LIMIT_MARGIN` of a joint limit
-    last (the hold must be able to turn the wrist either way). Why others failed goes to ``tried``."""
-    triangles = get_object(object_name).mesh().triangles
+    """Reachable pinches with their axis, best first, solved as they are asked for: at the heights
+    :data:`PINCH_HEIGHTS` (lowest first), each along the axes in :func:`axis_order`, each solved from
+    ``q_near`` (the retargeted posture: the shortest way there) and from the home posture; a pinch
+    whose open hand reaches more than :data:`MAX_OVERLAP` into the object, or whose touch posture's
+    links other than the pressing fingertips reach deeper than the squeeze, is skipped; those whose arm comes within
+    :data:`LIMIT_MARGIN` of a joint limit come last (the hold must be able to turn the wrist either
+    way). Why others failed goes to ``tried``."""
+    info = get_object(object_name)
+    triangles = info.mesh().triangles
+    scene = _object_model(object_name)
     near_limits = []
-    for axis in axis_order(object_pose):
-        for init in (q_near, HOME_QPOS):
-            try:
-                pinch = plan_pinch(model, triangles, object_pose, DIRECTIONS[axis], squeeze=squeeze,
-                                   q_init=init, tolerance=TOLERANCE, label=object_name)
-            except IKError as e:
-                tried.append(f"{axis}: {e}")
-                continue
-            if _limit_margin(model, pinch.touch) < LIMIT_MARGIN:
-                near_limits.append((pinch, axis))
-            else:
-                yield pinch, axis
+    for level in PINCH_HEIGHTS:
+        for axis in axis_order(object_pose):
+            for init in (q_near, HOME_QPOS):
+                try:
+                    pinch = plan_pinch(model, triangles, object_pose, DIRECTIONS[axis], squeeze=squeeze,
+                                       q_init=init, tolerance=TOLERANCE, label=object_name,
+                                       height=level * info.half_height)
+                except IKError as e:
+                    tried.append(f"{axis}@{level}: {e}")
+                    continue
+                opened = object_overlap(scene, pinch.open, object_pose)
+                touching = object_overlap(scene, pinch.touch, object_pose, skip=_PRESSING)
+                if opened.depth > MAX_OVERLAP or touching.depth > max(MAX_OVERLAP, squeeze):
+                    inside = opened if opened.depth > MAX_OVERLAP else touching
+                    tried.append(f"{axis}@{level}: the hand's {inside.body} lies {1000 * inside.depth:.0f} mm "
+                                 f"inside the object")
+                    continue
+                if _limit_margin(model, pinch.touch) < LIMIT_MARGIN:
+                    near_limits.append((pinch, axis))
+                else:
+                    yield pinch, axis
     yield from near_limits
 
 
@@ -215,7 +250,7 @@ def plan_hold(joint_pos: np.ndarray, object_pose: np.ndarray, object_name: str, 
         raise PlannedGraspError(f"{object_name}: no planned pinch fits at frame {grasp}: " + "; ".join(tried))
     plan, axis, pinch = best
     if info is not None:
-        info.update(axis=axis, touch_residual=float(pinch.residual), squeeze=float(squeeze),
+        info.update(axis=axis, height=pinch.height, touch_residual=float(pinch.residual), squeeze=float(squeeze),
                     **{k: v for k, v in plan.items() if k != "q"})
     return plan["q"]
 
@@ -287,8 +322,13 @@ def _plan(model, q_ret, smooth, pinch, object_name, approach, reach, grasp, mani
     back = end + n_rise + _frames_for(up, q_ret[min(T - 1, end + 3 * n_rise)])
     back = min(T - 1, max(back, end + 2 * n_rise))
     q[end + n_rise + 1: back + 1] = _blend(up, q_ret[back], back - end - n_rise)
+    inside = object_overlap(_object_model(object_name), q[start: close + 1], smooth[start: close + 1])
+    if inside.depth > MAX_OVERLAP:
+        raise PlannedGraspError(f"{object_name}: the approach passes {1000 * inside.depth:.0f} mm into the object "
+                                f"at frame {start + inside.index} (the hand's {inside.body})")
     arm_step = float(np.abs(np.diff(q[descend: end + 1, :6], axis=0)).max())
     approach_step = float(np.abs(np.diff(q[start: descend + 1], axis=0)).max())
     return {"q": q, "approach_from": int(start), "approach_step": approach_step, "rest_resolved": rest_resolved,
+            "approach_overlap": inside.depth,
             "close_from": int(close),
             "release": int(release), "open_until": int(end), "back_at": int(back), "arm_step": arm_step}

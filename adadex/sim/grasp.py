@@ -57,16 +57,18 @@ class GraspResult:
 FINGER_SPREAD = 0.022
 
 
-def pinch_surface(triangles: np.ndarray, approach=(1.0, 0.0, 0.0), spread: float = FINGER_SPREAD) -> dict:
+def pinch_surface(triangles: np.ndarray, approach=(1.0, 0.0, 0.0), spread: float = FINGER_SPREAD, *,
+                  height: float = 0.0) -> dict:
     """Where each digit of the pinch meets an object, in the frame of its ``triangles`` (F, 3, 3):
-    the thumb along the line through the origin from the −``approach`` side, index and middle
-    ``spread`` to either side of it from the +``approach`` side. A finger whose line misses (an object
-    narrower than the spread) rests beside the middle line's point. Raises ``IKError`` when the
-    pinch line misses the object."""
+    the thumb along the line through the origin (raised ``height`` m along the object's z axis) from
+    the −``approach`` side, index and middle ``spread`` to either side of it from the +``approach``
+    side. A finger whose line misses (an object narrower than the spread) rests beside the middle
+    line's point. Raises ``IKError`` when the pinch line misses the object."""
     u = np.asarray(approach, float) / np.linalg.norm(approach)
     v = np.cross([0.0, 0.0, 1.0], u)
-    lines = {"thumb_tip": (-u, u), "index_tip": (u + spread * v, -u), "middle_tip": (u - spread * v, -u),
-             "centre": (u, -u)}
+    up = np.array([0.0, 0.0, float(height)])
+    lines = {"thumb_tip": (up - u, u), "index_tip": (up + u + spread * v, -u),
+             "middle_tip": (up + u - spread * v, -u), "centre": (up + u, -u)}
     dist, _ = first_hits(np.asarray(triangles, float), np.array([o for o, _ in lines.values()]),
                          np.array([d for _, d in lines.values()]))
     if not np.isfinite(dist[[0, 3]]).all():
@@ -193,20 +195,23 @@ class Pinch:
     closed: np.ndarray     # the same arm, fingertips ``squeeze`` inside (what the servos are sent)
     approach: np.ndarray   # (3,) world pinch axis; the thumb is on its negative side
     residual: float        # fingertip distance from the touch targets, m
+    height: float = 0.0    # the pinch line's height above the object's origin, m
 
 
 def plan_pinch(model: mujoco.MjModel, triangles: np.ndarray, object_pose, approach, *, squeeze: float = SQUEEZE,
-               q_init: np.ndarray | None = None, tolerance: float = 5e-3, label: str = "the object") -> Pinch:
+               q_init: np.ndarray | None = None, tolerance: float = 5e-3, label: str = "the object",
+               height: float = 0.0) -> Pinch:
     """Plan a pinch of an object whose mesh ``triangles`` (object frame) sit at ``object_pose`` (7,
     w-first), squeezing along ``approach`` (3, in the object's frame; horizontal when the object is
-    upright): the digits where :func:`pinch_surface` puts them, solved by :func:`fingertip_grasp` from
-    ``q_init``. Raises ``IKError`` when the touch posture misses by more than ``tolerance`` m."""
+    upright) ``height`` m above its origin: the digits where :func:`pinch_surface` puts them, solved by
+    :func:`fingertip_grasp` from ``q_init``. Raises ``IKError`` when the touch posture misses by more
+    than ``tolerance`` m."""
     pose = np.asarray(object_pose, float)
     rot = np.empty(9)
     mujoco.mju_quat2Mat(rot, pose[3:] / np.linalg.norm(pose[3:]))
     rot = rot.reshape(3, 3)
     u = rot @ np.asarray(approach, float)
-    surface = {k: rot @ p + pose[:3] for k, p in pinch_surface(triangles, approach=approach).items()}
+    surface = {k: rot @ p + pose[:3] for k, p in pinch_surface(triangles, approach=approach, height=height).items()}
     touch, err = fingertip_grasp(model, surface, approach=u, q_init=q_init)
     if err > tolerance:
         raise IKError(f"fingertip grasp of {label} along {np.round(u, 3).tolist()} at "
@@ -214,7 +219,51 @@ def plan_pinch(model: mujoco.MjModel, triangles: np.ndarray, object_pose, approa
     # open/closed postures need not be met exactly (the fingers' reach ends)
     open_, _ = fingertip_grasp(model, surface, approach=u, clearance=OPEN_CLEARANCE, q_init=touch, hand_only=True)
     closed, _ = fingertip_grasp(model, surface, approach=u, clearance=-squeeze, q_init=touch, hand_only=True)
-    return Pinch(touch, open_, closed, u, err)
+    return Pinch(touch, open_, closed, u, err, float(height))
+
+
+@dataclass(frozen=True)
+class Overlap:
+    """The deepest overlap of the robot with the object over some postures: ``depth`` m (0: none),
+    at posture ``index``, by robot body ``body`` (``None`` where nothing overlaps)."""
+
+    depth: float
+    index: int | None
+    body: str | None
+
+
+def object_overlap(model: mujoco.MjModel, joint_pos, object_pose, *, skip: tuple[str, ...] = ()) -> Overlap:
+    """How deep the robot reaches into the object, kinematically, over postures ``joint_pos`` (N, 22)
+    with the object at ``object_pose`` ((N, 7) or one (7,) for all): the deepest of the robot–object
+    contacts MuJoCo's collision finds (table contacts are not counted; bodies named in ``skip`` are
+    not either, e.g. the fingertips meant to press in). ``model`` is a scene holding the object
+    (:func:`~adadex.sim.scene.build_scene_model`). A planned approach that overlaps the object pushes
+    or flings it before the grasp (:mod:`adadex.data.planned_grasp` refuses one).
+
+    Example::
+
+        m = build_scene_model("bottle_01")
+        object_overlap(m, pinch.open[None], pose).depth     # 0.0 where the open hand clears the bottle
+    """
+    q = np.atleast_2d(np.asarray(joint_pos, float))
+    poses = np.broadcast_to(np.asarray(object_pose, float), (len(q), 7))
+    data = mujoco.MjData(model)
+    obj = model.body("object").id
+    skipped = {model.body(n).id for n in skip} | {0}
+    deepest, where, who = 0.0, None, None
+    for k in range(len(q)):
+        data.qpos[:NUM_JOINTS] = q[k]
+        data.qpos[NUM_JOINTS:NUM_JOINTS + 7] = poses[k]
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_collision(model, data)
+        for c in data.contact[:data.ncon]:
+            b1, b2 = model.geom_bodyid[c.geom1], model.geom_bodyid[c.geom2]
+            if (b1 == obj) == (b2 == obj):
+                continue
+            other = b2 if b1 == obj else b1
+            if other not in skipped and -c.dist > deepest:
+                deepest, where, who = float(-c.dist), k, model.body(other).name
+    return Overlap(deepest, where, who)
 
 
 def scripted_grasp_lift(object_name: str = "cube_050", *, lift: float = 0.10, hold_s: float = 3.0,

@@ -127,6 +127,38 @@ def test_cli_data_build_info_show(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_data_info_says_where_the_hand_reaches_into_the_object_before_the_grasp(tmp_path, capsys):
+    """A reference whose object lies on the resting hand's index fingertip from frame 50, before its
+    grasp (frame 100), is counted; one whose object stays on the table is not, nor is the overlap
+    after the grasp frame."""
+    import mujoco
+
+    from adadex.data.reference import Reference, save_dataset
+    from adadex.sim.robot import HOME_QPOS
+    from adadex.sim.scene import build_scene_model
+
+    m = build_scene_model(None)
+    d = mujoco.MjData(m)
+    d.qpos[:22] = HOME_QPOS
+    mujoco.mj_kinematics(m, d)
+    table, tip = [0.45, 0.0, 0.026, 1, 0, 0, 0], [*d.site("index_tip").xpos, 1, 0, 0, 0]
+    T, q = 320, np.tile(HOME_QPOS, (320, 1))
+
+    def ref(name, on_tip_from, grasp):
+        pose = np.tile(table, (T, 1))
+        pose[on_tip_from:] = tip
+        return Reference.from_joint_positions(q, pose, object_name="cube_050", instruction="wait", group_id=0,
+                                              name=name, meta={"phases": {"grasp": grasp}})
+
+    out = save_dataset([ref("clear", T, 100), ref("inside", 50, 100), ref("after", 150, 100)], tmp_path / "ds")
+    assert main(["data", "info", str(out), "--json"]) == 0
+    inside = json.loads(capsys.readouterr().out)["approach_overlap"]
+    assert inside["windows"] == 3 and inside["deeper"] == 1 and inside["deepest_reference"] == "inside"
+    assert inside["deepest"] > 0.01
+    assert main(["data", "info", str(out)]) == 0
+    assert "into the object before the grasp in 1 of 3 episode windows" in capsys.readouterr().out
+
+
 def test_cli_data_errors(tmp_path, capsys):
     assert main(["data", "info", str(tmp_path / "nothing")]) == 2
     assert "not a reference dataset" in capsys.readouterr().err

@@ -91,6 +91,29 @@ def test_a_rest_in_the_other_wrist_branch_is_re_solved_so_the_way_to_the_grasp_s
     np.testing.assert_allclose(tips, tips_ref, atol=1e-4)
     np.testing.assert_array_equal(q[:start, 6:], other[:start, 6:])
 
+def test_a_tall_object_is_pinched_high_enough_that_the_approach_stays_out_of_it():
+    """A bottle pinched through its middle has the palm and the index finger's inner links 2 cm inside
+    it (the approach then pins it to the table and flings it); the plan raises the pinch line, and no
+    frame from the approach to the close reaches more than MAX_OVERLAP into the bottle."""
+    from adadex.data.planned_grasp import DIRECTIONS, MAX_OVERLAP, TOLERANCE, _object_model, _robot_model
+    from adadex.sim.grasp import object_overlap, plan_pinch
+    from adadex.sim.objects import get_object
+
+    m = Synthesizer().synthesize(make_instruction("lift", "bottle_01", seed=1), seed=1)
+    q_ret = Retargeter().retarget(m.keypoints[None]).joint_pos[0]
+    scene, grasp = _object_model("bottle_01"), m.phases["grasp"]
+    middle = plan_pinch(_robot_model(), get_object("bottle_01").mesh().triangles, m.object_pose[grasp],
+                        DIRECTIONS["-x"], q_init=q_ret[grasp], tolerance=TOLERANCE)
+    assert object_overlap(scene, middle.open, m.object_pose[grasp]).depth > 0.01
+    info = {}
+    q = plan_hold(q_ret, m.object_pose, "bottle_01", m.phases, info=info)
+    assert info["axis"] == "-x" and info["height"] > 0 and info["approach_overlap"] <= MAX_OVERLAP
+    way = slice(info["approach_from"], info["close_from"] + 1)
+    assert object_overlap(scene, q[way], m.object_pose[way]).depth <= MAX_OVERLAP + 1e-3
+    far = object_overlap(scene, HOME_QPOS, m.object_pose[0])
+    assert far.depth == 0.0 and far.body is None
+
+
 def test_axis_order_puts_the_thumb_nearest_the_robot():
     upright = np.array([0.45, 0.0, 0.03, 1.0, 0.0, 0.0, 0.0])
     assert axis_order(upright)[0] == "+x" and axis_order(upright)[-1] == "-x"

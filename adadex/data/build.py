@@ -38,7 +38,7 @@ import numpy as np
 
 from adadex.data import feasibility
 from adadex.data.object_contact import ObjectContact
-from adadex.data.planned_grasp import PlannedGraspError, plan_hold
+from adadex.data.planned_grasp import PLANNER_VERSION, PlannedGraspError, plan_hold
 from adadex.data.presets import PRESETS, Preset
 from adadex.data.reference import Reference, is_dataset, save_dataset
 from adadex.data.retarget import Retargeter
@@ -168,15 +168,21 @@ def dataset_at(path, *, preset: str | None, setting: str, seed: int = 0, planned
     """The reference dataset at ``path``, built there from ``preset`` when there is none: the one
     build-if-missing of every recipe (training, the pipeline, the sim-to-real loop).
 
-    A folder that holds a dataset is used as it is; a missing or empty one is built into (``log`` says
-    so first); with ``preset`` None, or a folder that holds other files, nothing is built and a
-    one-line ``FileNotFoundError`` names ``setting`` (the key the user set, e.g. ``"dataset"``), with
-    ``hint`` (how to get one) after it.
+    A folder that holds a dataset is used as it is (``log`` says so where its planned grasp was made by an
+    earlier planner than today's, :data:`~adadex.data.planned_grasp.PLANNER_VERSION`: its references are
+    not the ones a build makes now); a missing or empty one is built into (``log`` says so first); with
+    ``preset`` None, or a folder that holds other files, nothing is built and a one-line
+    ``FileNotFoundError`` names ``setting`` (the key the user set, e.g. ``"dataset"``), with ``hint`` (how
+    to get one) after it.
     """
-    from adadex.data.reference import is_dataset
+    from adadex.data.reference import ReferenceDataset, is_dataset
 
     path = Path(path)
     if is_dataset(path):
+        info = ReferenceDataset(path).info
+        if info.get("planned_grasp") and info.get("planner", 1) < PLANNER_VERSION:
+            log(f"note: {path} was built by grasp planner {info.get('planner', 1)}, not today's {PLANNER_VERSION} "
+                f"(docs/references.md); rebuild it into a new folder for today's references")
         return path
     if path.exists() and (not path.is_dir() or any(path.iterdir())):
         raise FileNotFoundError(f"{setting}={path}: not a reference dataset (no index.json), and not empty: "
@@ -254,7 +260,7 @@ def build_dataset(preset: str | Preset, out, *, seed: int = 0, noise: NoiseConfi
     splits = make_splits(refs, seed)
     info = {"preset": preset.name, "seed": seed, "noise": asdict(noise), "feasibility": asdict(config),
             "object_contact": None if contact is None else asdict(contact), "planned_grasp": planned_grasp,
-            "report": report.as_dict()}
+            **({"planner": PLANNER_VERSION} if planned_grasp else {}), "report": report.as_dict()}
     report.path = str(save_dataset(refs, Path(out), splits=splits, info=info, force=force))
     report.seconds["save"] = time.perf_counter() - t0
     return report

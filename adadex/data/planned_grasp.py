@@ -72,6 +72,10 @@ CLEARANCE_HEIGHT = 0.08
 OPEN_S, RISE_S = 0.6, 0.6
 #: Gaussian smoothing (frames) of the object path the held palm follows
 SMOOTHING = 2.0
+#: what the planner builds, recorded in a dataset's info (``planner``) so a build made by an earlier one is
+#: told apart: 1 the first (2026-11-25); 2 the approach the servos can follow (2026-12-07, night); 3 no
+#: approach that reaches into the object (2026-12-07, late; docs/references.md)
+PLANNER_VERSION = 3
 #: largest joint change per frame of the blends the plan adds (rad; the env's servo targets move ≤ 0.1)
 MAX_STEP = 0.08
 #: clearance of a preferred pinch's arm joints from their limits (rad)

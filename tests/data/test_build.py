@@ -281,3 +281,25 @@ def test_dataset_at_uses_builds_or_refuses(tiny, tmp_path):
                        log=said.append)
     assert said == [f"building the tiny reference dataset into {tmp_path / 'built'}"]
     assert [e["name"] for e in ReferenceDataset(built).entries] == [e["name"] for e in ds.entries]
+
+
+def test_dataset_at_says_when_a_planned_grasp_was_made_by_an_earlier_planner(tiny, tmp_path):
+    """A build's info records its grasp planner; one made by an earlier planner is still used (a user may
+    compare against it on purpose), but the recipe says its references are not today's."""
+    from adadex.data.build import dataset_at
+    from adadex.data.planned_grasp import PLANNER_VERSION
+    from adadex.data.reference import save_dataset
+
+    _, ds = tiny
+    refs = [ds[i] for i in range(len(ds))]
+    for version, noted in ((None, True), (PLANNER_VERSION - 1, True), (PLANNER_VERSION, False)):
+        info = {"planned_grasp": True, **({} if version is None else {"planner": version})}
+        path = save_dataset(refs, tmp_path / f"v{version}", splits=ds.splits, info=info)
+        said = []
+        assert dataset_at(path, preset="tiny", setting="dataset", log=said.append) == path
+        assert bool(said) == noted
+        if noted:
+            assert f"grasp planner {version or 1}, not today's {PLANNER_VERSION}" in said[0]
+    said = []
+    dataset_at(ds.path, preset="tiny", setting="dataset", log=said.append)      # no planned grasp: nothing to say
+    assert said == []

@@ -312,6 +312,10 @@ def _plan(model, q_ret, smooth, pinch, object_name, approach, reach, grasp, mani
     q = q_ret.copy()
     q[start + 1: descend + 1] = _blend(q_ret[start], above, descend - start)
     q[descend + 1: close + 1] = _blend(above, pinch.open, close - descend)
+    inside = object_overlap(_object_model(object_name), q[start: close + 1], smooth[start: close + 1])
+    if inside.depth > MAX_OVERLAP:
+        raise PlannedGraspError(f"{object_name}: the approach passes {1000 * inside.depth:.0f} mm into the object "
+                                f"at frame {start + inside.index} (the hand's {inside.body})")
     fingers = np.empty((end - close, NUM_JOINTS))                    # the hand, frames close+1 … end
     fingers[: manip - close] = _blend(pinch.open, pinch.closed, manip - close)
     fingers[manip - close: release - close] = pinch.closed
@@ -326,10 +330,6 @@ def _plan(model, q_ret, smooth, pinch, object_name, approach, reach, grasp, mani
     back = end + n_rise + _frames_for(up, q_ret[min(T - 1, end + 3 * n_rise)])
     back = min(T - 1, max(back, end + 2 * n_rise))
     q[end + n_rise + 1: back + 1] = _blend(up, q_ret[back], back - end - n_rise)
-    inside = object_overlap(_object_model(object_name), q[start: close + 1], smooth[start: close + 1])
-    if inside.depth > MAX_OVERLAP:
-        raise PlannedGraspError(f"{object_name}: the approach passes {1000 * inside.depth:.0f} mm into the object "
-                                f"at frame {start + inside.index} (the hand's {inside.body})")
     arm_step = float(np.abs(np.diff(q[descend: end + 1, :6], axis=0)).max())
     approach_step = float(np.abs(np.diff(q[start: descend + 1], axis=0)).max())
     return {"q": q, "approach_from": int(start), "approach_step": approach_step, "rest_resolved": rest_resolved,

@@ -17,7 +17,7 @@ up (:mod:`adadex.eval.paired`).
 Besides the summary, the result keeps every episode (``per_episode``: the reference's dataset index
 and name, its repeat — how many times the reference appeared before it in the list —, completion,
 mean-error success, object completion, carried, whether it ended early and with the palm beyond its
-termination error, whether the reference lifts its object and the object rose, the mean errors, the
+termination error or with the physics unstable, whether the reference lifts its object and the object rose, the mean errors, the
 return: :func:`~adadex.eval.metrics.trajectory_metrics`) and, when the rollouts
 hold rewards, ``return_completion_spearman``: the per-episode rank correlation of the return with
 completion and object completion (:mod:`adadex.eval.reward_check`). ``carried`` is measured against
@@ -51,7 +51,7 @@ from adadex.eval.reward_check import episode_returns, spearman_by_episode
 
 #: per-episode values kept in ``per_episode`` (besides reference, name, repeat and return)
 EPISODE_FIELDS = ("completion", "success_mean_error", "object_completion", "carried", "frames", "ended_early",
-                  "ended_palm", "reference_lifts", "lifted", *ERROR_NAMES)
+                  "ended_palm", "ended_unstable", "reference_lifts", "lifted", *ERROR_NAMES)
 
 
 def evaluate(policy, dataset, split: tuple[str, str] | None = ("unseen_trajectory", "test"), *,
@@ -163,11 +163,20 @@ def reference_motion(dataset: ReferenceDataset, references, steps: int) -> torch
     return torch.linalg.vector_norm(reference_offset(dataset, references, steps), dim=-1)
 
 
+def _why_ended(summary: dict) -> str:
+    """`` (the palm beyond its termination error: x %, the physics unstable: y %)`` for the reasons the summary has."""
+    why = [f"{text}: {summary[key]:.1f} %" for key, text in (("ended_palm_pct", "the palm beyond its termination error"),
+                                                               ("ended_unstable_pct", "the physics unstable"))
+           if key in summary]
+    return f" ({', '.join(why)})" if why else ""
+
+
 def format_summary(summary: dict) -> str:
     """Three lines for a terminal: success both ways, the object-centric measures and the mean errors;
     a fourth, where the summary has them, with where the frames that did not pass were lost
     (:data:`adadex.eval.metrics.LOST`), and a fifth, where it has them, with how many episodes ended
-    early, how many of all with the palm beyond its termination error, and how many of those whose
+    early, how many of all with the palm beyond its termination error or with the physics unstable, and how
+    many of those whose
     reference lifts its object raised it (:func:`~adadex.eval.metrics.summarize`).
 
     Args:
@@ -193,7 +202,6 @@ def format_summary(summary: dict) -> str:
                f"episode ended {summary['lost_after_end_pct']:.1f} %")
             + ("" if "ended_pct" not in summary else
                f"\nepisodes ended early {summary['ended_pct']:.1f} %"
-               + ("" if "ended_palm_pct" not in summary else
-                  f" (the palm beyond its termination error: {summary['ended_palm_pct']:.1f} %)")
+               + _why_ended(summary)
                + ("" if "lifted_pct" not in summary else
                   f"; objects the reference lifts, lifted {summary['lifted_pct']:.1f} %")))

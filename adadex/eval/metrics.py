@@ -29,7 +29,9 @@ palm on its reference and the object up to ~19 cm off):
 
 Why episodes end, where the inputs allow (not the paper's either): ``ended_palm`` — the episode ended
 with the palm beyond the env's termination error (``palm_limit``): the arm did not follow the
-reference, whatever the object did; ``lifted`` — of the trajectories whose reference raises the
+reference, whatever the object did; ``ended_unstable`` — it ended because the world's physics went
+unstable (NaN, a MuJoCo reset, the object flung past the env's speed bound), not because the object or the
+palm went too far from the reference (it needs the env's per-step ``unstable`` flag); ``lifted`` — of the trajectories whose reference raises the
 object at least ``Thresholds.lift`` (``reference_lifts``), whether the object rose min(``lift``,
 half that rise) above its start on a tracked frame: a hand that closed on the object and raised it
 (it needs the object's and the reference's heights above their starts, ``object_rise`` and
@@ -88,7 +90,8 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
                        thresholds: Thresholds = Thresholds(),
                        reference_motion: torch.Tensor | None = None, palm_limit: float | None = None,
                        object_rise: torch.Tensor | None = None,
-                       reference_rise: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                       reference_rise: torch.Tensor | None = None,
+                       unstable: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Per-trajectory means and both success measures from (B, T) per-frame errors.
 
     Args:
@@ -105,6 +108,9 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
         object_rise, reference_rise: (B, T) the object's and the reference object's heights above
             their start positions at each frame, m (both or neither); with them ``reference_lifts``
             and ``lifted`` (the module docstring).
+        unstable: (B, T) bool, the env's flag that the world's physics went unstable at that step
+            (``("next", "privileged", "unstable")``); with it ``ended_unstable``: ended early with the flag
+            set at the last tracked frame.
 
     Returns (B,) tensors: the mean of each error (NaN for an empty trajectory), ``frames``,
     ``ended_early``, ``success_mean_error`` (bool), ``completion`` (fraction), ``empty`` (bool),
@@ -113,7 +119,8 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
     the position test; ``lost_rotation`` — passing it, failing the rotation test; ``lost_finger`` —
     failing only the finger test; ``lost_after_end`` — never tracked, the episode having ended) and,
     with ``reference_motion``, ``carried`` (bool) and ``moving_frames`` (how many frames the carry test
-    looked at; 0: it used object completion); with ``palm_limit``, ``ended_palm`` (bool); with the rises,
+    looked at; 0: it used object completion); with ``palm_limit``, ``ended_palm`` (bool); with
+    ``unstable``, ``ended_unstable`` (bool); with the rises,
     ``reference_lifts`` and ``lifted`` (bool; ``lifted`` only where the reference lifts).
     """
     B, T = _check(errors)
@@ -155,6 +162,13 @@ def trajectory_metrics(errors: dict[str, torch.Tensor], valid: torch.Tensor | No
         last = torch.where(valid, frame, -1).max(1).values.clamp(min=0)          # the last tracked frame
         palm_end = errors["T_h"].gather(1, last[:, None])[:, 0] > palm_limit
         out["ended_palm"] = out["ended_early"] & ~out["empty"] & palm_end
+    if unstable is not None:
+        flag = torch.as_tensor(unstable).to(torch.bool)
+        if tuple(flag.shape) != (B, T):
+            raise ArrayError(f"unstable must have the errors' shape {(B, T)}, got {tuple(flag.shape)}")
+        frame = torch.arange(T, device=valid.device).expand(B, T)
+        last = torch.where(valid, frame, -1).max(1).values.clamp(min=0)
+        out["ended_unstable"] = out["ended_early"] & ~out["empty"] & flag.gather(1, last[:, None])[:, 0]
     if (object_rise is None) != (reference_rise is None):
         raise ArrayError("object_rise and reference_rise go together: give both or neither")
     if object_rise is not None:
@@ -205,7 +219,8 @@ def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
         ``object_completion_pct``, ``carried_pct`` (NaN without ``carried``) and, where the result
         has them, the lost frames (:data:`LOST`) as ``lost_position_pct`` …, ``ended_pct`` (episodes
         that ended early), ``ended_palm_pct`` (of all episodes, those that ended with the palm beyond
-        the termination error) and ``lifted_pct`` (of the episodes whose reference lifts its object,
+        the termination error), ``ended_unstable_pct`` (of all episodes, those that ended with the physics
+        unstable) and ``lifted_pct`` (of the episodes whose reference lifts its object,
         those that raised it; NaN when none does); every mean is NaN when no trajectory is non-empty.
     """
     keep = ~per_traj["empty"]
@@ -225,6 +240,8 @@ def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
     out["ended_pct"] = 100.0 * float(per_traj["ended_early"][keep].double().mean())
     if "ended_palm" in per_traj:
         out["ended_palm_pct"] = 100.0 * float(per_traj["ended_palm"][keep].double().mean())
+    if "ended_unstable" in per_traj:
+        out["ended_unstable_pct"] = 100.0 * float(per_traj["ended_unstable"][keep].double().mean())
     if "lifted" in per_traj:
         lifts = keep & per_traj["reference_lifts"]
         out["lifted_pct"] = 100.0 * float(per_traj["lifted"][lifts].double().mean()) if lifts.any() else math.nan
@@ -235,6 +252,8 @@ def summarize(per_traj: dict[str, torch.Tensor]) -> dict[str, float]:
 #: env's reference window) and the reference object's pose at the episode's first frame
 REF_OBJECT_POSE_KEY = ("next", "reference", "object_pose")
 REF_OBJECT_START_KEY = ("next", "object", "reference_start")
+#: the env's flag that a world's physics went unstable at a step (``ended_unstable``)
+UNSTABLE_KEY = ("next", "privileged", "unstable")
 
 
 def _reference_offset(td) -> torch.Tensor | None:
@@ -292,7 +311,8 @@ def from_rollout(td, *, errors_key=("next", "privileged", "errors"), lengths: to
     rollout's reference entries as for the motion, over the frames up to each episode's end, so an
     episode that ended before its reference lifts does not count as one whose reference lifts; pass the
     whole window's, as :func:`adadex.eval.evaluate.evaluate` does from the dataset); it is left out where
-    either is missing.
+    either is missing. ``ended_unstable`` is read from the env's ``("next", "privileged", "unstable")`` flag
+    where the rollout holds it.
 
     Args:
         td: the rollout, batch shape ``[..., T]``, holding ``("next", "done")`` and the errors.
@@ -326,5 +346,7 @@ def from_rollout(td, *, errors_key=("next", "privileged", "errors"), lengths: to
     if rise is not None and reference_rise is not None:
         rises = {"object_rise": rise.reshape(td.batch_size),
                  "reference_rise": torch.as_tensor(reference_rise).reshape(td.batch_size)}
+    flag = td.get(UNSTABLE_KEY, None)
+    unstable = None if flag is None else flag.reshape(td.batch_size)
     return trajectory_metrics(errors, valid=~after_done, lengths=lengths, thresholds=thresholds,
-                              reference_motion=motion, palm_limit=palm_limit, **rises)
+                              reference_motion=motion, palm_limit=palm_limit, unstable=unstable, **rises)

@@ -121,6 +121,7 @@ def test_per_episode_results_pair_up_and_carry_the_object_measures(tiny_dataset)
     assert res["summary"]["carried_pct"] == pytest.approx(100 * sum(ep["carried"]) / len(refs))
     assert all(o <= c for o, c in zip(ep["object_completion"], ep["completion"]))
     assert all(e or not p for e, p in zip(ep["ended_early"], ep["ended_palm"]))
+    assert all(e or not u for e, u in zip(ep["ended_early"], ep["ended_unstable"]))
     assert all(r or not lift for r, lift in zip(ep["reference_lifts"], ep["lifted"]))
     rho = res["return_completion_spearman"]
     assert rho["episodes"] == len(refs) and set(rho) == {"completion", "object_completion", "episodes"}
@@ -155,3 +156,13 @@ def test_two_policies_meet_the_same_draws(tiny_dataset):
         a["per_episode"]["E_finger"] != b["per_episode"]["E_finger"]
     for ta, tb in zip(a["rollouts"], b["rollouts"]):
         assert torch.equal(ta[OBJECT_START][:, 0], tb[OBJECT_START][:, 0])
+
+
+def test_an_episode_ended_by_unstable_physics_is_told_from_one_that_lost_its_reference(tiny_dataset):
+    # a speed bound no resting object keeps under: every world's physics counts as unstable at once
+    twitchy = evaluate(replay_policy(), tiny_dataset, split=None, config=TrackingConfig(window=24, max_object_speed=1e-9),
+                       progress=False)
+    floor = evaluate(replay_policy(), tiny_dataset, split=None, config=CFG, progress=False)
+    assert twitchy["summary"]["ended_unstable_pct"] == twitchy["summary"]["ended_pct"] == 100.0
+    assert all(twitchy["per_episode"]["ended_unstable"])
+    assert floor["summary"]["ended_unstable_pct"] == 0.0

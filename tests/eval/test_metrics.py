@@ -157,9 +157,10 @@ def test_lost_frames_are_charged_to_the_first_test_they_fail_and_sum_with_comple
 
 
 
-def test_why_episodes_end_palm_beyond_its_limit_and_whether_the_object_was_lifted():
+def test_why_episodes_end_palm_beyond_its_limit_unstable_physics_and_whether_the_object_was_lifted():
     # 4 trajectories of 5 frames: 0 tracked to the end, 1 ends with the palm 30 cm off, 2 ends with the
-    # object off (palm fine), 3 ends after the palm came back within the limit (its last frame decides)
+    # object off (palm fine), 3 ends after the palm came back within the limit (its last frame decides),
+    # on a step whose physics went unstable; 0 was flagged unstable on a frame without ending (not counted)
     e = errors_from({}, B=4, T=5)
     valid = torch.ones(4, 5, dtype=torch.bool)
     valid[1, 3:] = valid[2, 2:] = valid[3, 4:] = False
@@ -173,19 +174,25 @@ def test_why_episodes_end_palm_beyond_its_limit_and_whether_the_object_was_lifte
     object_rise = torch.zeros(4, 5)
     object_rise[0, 2], object_rise[1, 1], object_rise[1, 4] = 0.031, 0.019, 0.021
     object_rise[2, 1], object_rise[3, 2] = 0.05, 0.015
+    unstable = torch.zeros(4, 5, dtype=torch.bool)
+    unstable[0, 2] = unstable[3, 3] = True
     m = trajectory_metrics(e, valid=valid, lengths=torch.full((4,), 5), palm_limit=0.25,
-                           object_rise=object_rise, reference_rise=reference_rise)
+                           object_rise=object_rise, reference_rise=reference_rise, unstable=unstable)
     assert m["ended_early"].tolist() == [False, True, True, True]
     assert m["ended_palm"].tolist() == [False, True, False, False]
+    assert m["ended_unstable"].tolist() == [False, False, False, True]
     assert m["reference_lifts"].tolist() == [True, True, False, False]     # 3 cm or more
     assert m["lifted"].tolist() == [True, False, False, False]              # 3.1 ≥ 3; 1.9 < 2 (2.1 too late)
     s = summarize(m)
     assert s["ended_pct"] == pytest.approx(75.0) and s["ended_palm_pct"] == pytest.approx(25.0)
+    assert s["ended_unstable_pct"] == pytest.approx(25.0)
     assert s["lifted_pct"] == pytest.approx(50.0)                           # of the two that the reference lifts
     assert format_summary(s).splitlines()[-1] == ("episodes ended early 75.0 % (the palm beyond its termination "
-                                                  "error: 25.0 %); objects the reference lifts, lifted 50.0 %")
+                                                  "error: 25.0 %, the physics unstable: 25.0 %); objects the "
+                                                  "reference lifts, lifted 50.0 %")
     none_lift = summarize(trajectory_metrics(e, object_rise=object_rise, reference_rise=0 * reference_rise))
     assert math.isnan(none_lift["lifted_pct"]) and "ended_palm_pct" not in none_lift
+    assert "ended_unstable_pct" not in none_lift
     with pytest.raises(ArrayError, match="object_rise and reference_rise"):
         trajectory_metrics(e, object_rise=object_rise)
     with pytest.raises(ArrayError, match="errors' shape"):

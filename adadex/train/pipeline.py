@@ -1,5 +1,6 @@
 """The paper's Table 1 from one command: specialists → teacher rollouts → distilled generalist →
-modulators → baselines → evaluation → ``table1.md`` / ``table1.json`` and the figures.
+(replay and the generalist evaluated) → modulators → baselines → evaluation of the other rows →
+``table1.md`` / ``table1.json`` and the figures.
 
 Per training seed (``seed_<s>/`` under ``out``):
 
@@ -80,6 +81,8 @@ from adadex.train.table_so_far import collect
 
 #: modulator rows of the table → the channel set each trains
 MODULATOR_ROWS = {"R": "R", "RT": "R+T", "ROT": "R+O+T", "O": "O"}
+#: the rows every seed evaluates, in the order it evaluates them
+EVAL_ROWS = ("replay", "ppo", "il_rl", "tracker", *MODULATOR_ROWS)
 EVAL_SPLITS = ("unseen_trajectory", "unseen_object")
 #: the :class:`ModulatorSettings` fields a :class:`ModulatorStage` sets for every modulator row (the
 #: tracker, the channels and ``modulation`` are the pipeline's; ``learner``/``paired`` are not among them:
@@ -743,16 +746,16 @@ class Pipeline:
                         randomize=c.randomization_config() if randomized else None, seed=eval_seed, progress=False,
                         nthread=c.collector.env_threads, keep_rollouts=keep_rollouts, backend=c.backend)
 
-    def evaluations(self, seed: int, root: Path, paths: dict) -> dict:
-        """Every row on both splits, nominal and randomized; the same environment seed, references and
-        repeats for every row of a seed (common random numbers: rows differ by their policy, not their
-        draws, so their episodes pair up). Returns each row's stored result by (split, condition,
-        row): ``summary`` and, for evaluations run since they were kept, ``per_episode`` and
-        ``return_completion_spearman`` (a stage stored by an older run has neither)."""
+    def evaluations(self, seed: int, root: Path, paths: dict, rows: tuple[str, ...] = EVAL_ROWS) -> dict:
+        """Every row of ``rows`` (default all of Table 1's) on both splits, nominal and randomized; the same
+        environment seed, references and repeats for every row of a seed (common random numbers: rows
+        differ by their policy, not their draws, so their episodes pair up). Returns each row's stored
+        result by (split, condition, row): ``summary`` and, for evaluations run since they were kept,
+        ``per_episode`` and ``return_completion_spearman`` (a stage stored by an older run has neither)."""
         results = {}
         for split in EVAL_SPLITS:
             for condition in ("nominal", "randomized"):
-                for row in ("replay", "ppo", "il_rl", "tracker", *MODULATOR_ROWS):
+                for row in rows:
                     folder = root / "eval" / split / condition / row
                     settings = {"policy": paths.get(row, "replay"), "tracker": paths["tracker"],
                                 "repeats": self.cfg.evaluation.repeats, "seed": seed}
@@ -847,6 +850,8 @@ class Pipeline:
         teachers = self.specialists(seed, root)
         rollouts = self.rollouts(seed, root, teachers)
         tracker = self.distill(seed, root / "generalist", rollouts)
+        # replay and the tracker first: their comparison is in (table_so_far) hours before the other rows
+        self.evaluations(seed, root, {"tracker": tracker}, rows=("replay", "tracker"))
         paths = {"tracker": tracker, **self.modulators(seed, root, tracker), **self.baselines(seed, root, rollouts)}
         return (paths, self.evaluations(seed, root, paths), self.scaling(seed, root, rollouts, tracker),
                 self.teacher_check(seed, root, teachers, tracker))

@@ -165,17 +165,28 @@ def test_the_table_so_far_pools_the_seeds_whose_rows_are_in(tiny_run, tiny_datas
     assert so_far["table"] == full
     assert so_far["seeds"] == {f"{s}/{c}": [0, 1] for s in SPLITS for c in CONDITIONS}
     assert "Pooled so far" in (copy / "table1_so_far.md").read_text()
-    # seed 1 stopped before its +R+T row on unseen objects, randomized: that block pools seed 0 alone
-    shutil.rmtree(copy / "seed_1" / "eval" / "unseen_object" / "randomized" / "RT")
+    # seed 1 has evaluated only replay and the tracker on unseen objects, randomized (its chain evaluates
+    # them first): those two rows pool both seeds, the others seed 0 alone
+    block_dir = copy / "seed_1" / "eval" / "unseen_object" / "randomized"
+    for row in ROWS:
+        if row not in ("replay", "tracker"):
+            shutil.rmtree(block_dir / row)
     table = table_so_far(copy)
-    assert table["seeds"]["unseen_object/randomized"] == [0] and table["seeds"]["unseen_trajectory/randomized"] == [0, 1]
-    block = table["table"]["unseen_object"]["randomized"]
-    assert {e["seeds"] for e in block.values()} == {1}
+    assert table["seeds"]["unseen_object/randomized"] == [0, 1] and table["seeds"]["unseen_trajectory/randomized"] == [0, 1]
+    assert table["row_seeds"]["unseen_object/randomized"] == {r: [0, 1] if r in ("replay", "tracker") else [0] for r in ROWS}
+    block, whole = table["table"]["unseen_object"]["randomized"], full["unseen_object"]["randomized"]
+    assert block["replay"] == whole["replay"] and block["tracker"] == whole["tracker"]
+    assert {e["seeds"] for r, e in block.items() if r not in ("replay", "tracker")} == {1}
     assert table["table"]["unseen_trajectory"] == full["unseen_trajectory"]
     seed0 = json.loads((out / "seed_0" / "eval" / "unseen_object" / "randomized" / "ROT" / STAGE).read_text())
     assert block["ROT"]["completion_pct"] == pytest.approx(seed0["result"]["summary"]["completion_pct"], abs=1e-9)
     assert block["ROT"]["episodes"] == seed0["result"]["summary"]["trajectories"]
-    assert full["unseen_object"]["randomized"]["ROT"]["episodes"] == 2 * block["ROT"]["episodes"]
+    assert whole["ROT"]["episodes"] == 2 * block["ROT"]["episodes"]
+    assert "unseen_object/randomized: seeds 0, 1 (PPO, IL+RL (DexTrack-style), +R, +R+T, +R+O+T, O only: seed 0)" in \
+        (copy / "table1_so_far.md").read_text()
+    # a seed whose tracker is not evaluated there yet adds nothing to that block
+    shutil.rmtree(block_dir / "tracker")
+    assert table_so_far(copy, write=False)["row_seeds"]["unseen_object/randomized"] == {r: [0] for r in ROWS}
     # seeds evaluated with different repeats are not pooled; a folder that is no pipeline's is refused
     stage = copy / "seed_1" / "eval" / "unseen_trajectory" / "nominal" / "tracker" / STAGE
     record = json.loads(stage.read_text())

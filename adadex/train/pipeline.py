@@ -769,6 +769,25 @@ class Pipeline:
                         folder, settings, run, label=f"seed {seed} evaluate {row} on {split}, {condition}")
         return results
 
+    def log_tracker_vs_replay(self, seed: int, results: dict) -> None:
+        """One line per split and condition: this seed's tracker against kinematic replay in completion
+        points, paired per episode on the same draws (95 % bootstrap over references) — the first answer
+        the run gives, before the modulators and baselines train."""
+        from adadex.eval.paired import paired_bootstrap
+
+        parts = []
+        for split in EVAL_SPLITS:
+            for condition in ("nominal", "randomized"):
+                r = {row: results[(split, condition, row)].get("per_episode") for row in ("tracker", "replay")}
+                if not all(r.values()):
+                    continue
+                a, b = (np.asarray(r[row]["completion"]) * 100 for row in ("tracker", "replay"))
+                d = paired_bootstrap(a, b, np.asarray(r["tracker"]["reference"]), seed=seed)
+                ci = "" if d["ci95"] is None else f" [{d['ci95'][0]:+.1f}, {d['ci95'][1]:+.1f}]"
+                parts.append(f"{split} {condition} {d['estimate']:+.1f}{ci}")
+        if parts:
+            self.log(f"seed {seed}: tracker − replay, completion points: " + "; ".join(parts))
+
     def teacher_check(self, seed: int, root: Path, teachers: dict, tracker: str) -> list[dict]:
         """The distilled generalist against each teacher on the teacher's own training references
         (randomized, the same draws for both, so their episodes pair up): one stage per specialist,
@@ -851,7 +870,7 @@ class Pipeline:
         rollouts = self.rollouts(seed, root, teachers)
         tracker = self.distill(seed, root / "generalist", rollouts)
         # replay and the tracker first: their comparison is in (table_so_far) hours before the other rows
-        self.evaluations(seed, root, {"tracker": tracker}, rows=("replay", "tracker"))
+        self.log_tracker_vs_replay(seed, self.evaluations(seed, root, {"tracker": tracker}, rows=("replay", "tracker")))
         paths = {"tracker": tracker, **self.modulators(seed, root, tracker), **self.baselines(seed, root, rollouts)}
         return (paths, self.evaluations(seed, root, paths), self.scaling(seed, root, rollouts, tracker),
                 self.teacher_check(seed, root, teachers, tracker))

@@ -53,6 +53,11 @@ def tiny_run(tiny_dataset, tmp_path_factory):
 def test_tiny_preset_writes_every_row_metric_and_figure(tiny_run):
     _, out, r = tiny_run
     table = json.loads((out / "table1.json").read_text())
+    # each seed says how its tracker compares with replay as soon as both are evaluated, before the modulators train
+    for seed in (0, 1):
+        line = next(x for x in r.stdout.splitlines() if x.startswith(f"seed {seed}: tracker − replay"))
+        assert all(f"{s} {c} " in line for s in SPLITS for c in CONDITIONS), line
+        assert r.stdout.index(line) < r.stdout.index(f"seed {seed} modulator"), r.stdout[-3000:]
     assert set(table) == set(SPLITS)
     for split in SPLITS:
         assert set(table[split]) == set(CONDITIONS)
